@@ -1,0 +1,1 @@
+"""Odometry, scan matching, maps, filters, pose graph, SLAM and evaluation."""

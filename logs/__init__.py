@@ -1,0 +1,1 @@
+"""The data model: message types, ROS 2 encoding, MCAP writer/reader/replay, importers."""

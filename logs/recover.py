@@ -1,0 +1,90 @@
+"""Salvage a truncated, killed or partly corrupt MCAP log into a complete one.
+
+Equivalent to ``mcap recover``: every intact schema, channel, message, metadata and
+attachment record is copied (ids remapped) into a new file with a summary; a chunk with a
+bad CRC is skipped and counted, a torn tail ends the copy.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from mcap.records import Attachment, Channel, Message, Metadata, Schema
+from mcap.writer import CompressionType, Writer
+
+from logs.errors import UserError
+from logs.reader import LogReader
+
+
+@dataclass(frozen=True)
+class RecoverResult:
+    output: Path
+    messages: int
+    corrupt_chunks: int
+    stopped_by: str
+
+
+def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> RecoverResult:
+    """Copy every readable record of ``src`` into a complete MCAP at ``dst``.
+
+    Raises ``UserError`` when ``src`` is not MCAP or nothing at all could be read.
+    """
+    reader = LogReader(src)
+    dst = Path(dst)
+    if dst.resolve() == reader.path.resolve():
+        raise UserError("recover needs an output path different from its input")
+    tmp = dst.with_name(dst.name + ".tmp")
+    schema_ids: dict[int, int] = {}
+    channel_ids: dict[int, int] = {}
+    pending_channels: dict[int, Channel] = {}
+    schemas: dict[int, Schema] = {}
+    count = 0
+    header_written = False
+    with open(tmp, "wb") as out:
+        writer = Writer(out, compression=CompressionType.ZSTD)
+        for record in reader.records():
+            if not header_written:
+                header = getattr(record, "profile", None)
+                writer.start(profile=header if header is not None else "ros2",
+                             library=getattr(record, "library", "trundle recover"))
+                header_written = True
+                if header is not None:
+                    continue
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                pending_channels[record.id] = record
+            elif isinstance(record, Message):
+                new_id = channel_ids.get(record.channel_id)
+                if new_id is None:
+                    channel = pending_channels.get(record.channel_id)
+                    if channel is None:
+                        continue
+                    new_id = channel_ids[record.channel_id] = _register(writer, channel, schemas, schema_ids)
+                writer.add_message(new_id, record.log_time, record.data, record.publish_time, record.sequence)
+                count += 1
+            elif isinstance(record, Metadata):
+                writer.add_metadata(record.name, record.metadata)
+            elif isinstance(record, Attachment):
+                writer.add_attachment(record.create_time, record.log_time, record.name,
+                                      record.media_type, record.data)
+        if not header_written:
+            writer.start(profile="ros2", library="trundle recover")
+        writer.finish()
+    if count == 0 and not channel_ids:
+        tmp.unlink()
+        raise UserError(f"nothing could be recovered from {src}: {reader.last_scan_error or 'no messages'}")
+    os.replace(tmp, dst)
+    return RecoverResult(dst, count, reader.last_scan_corrupt_chunks, reader.last_scan_error)
+
+
+def _register(writer: Writer, channel: Channel, schemas: dict[int, Schema], schema_ids: dict[int, int]) -> int:
+    schema_id = 0
+    if channel.schema_id:
+        schema_id = schema_ids.get(channel.schema_id, 0)
+        schema = schemas.get(channel.schema_id)
+        if not schema_id and schema is not None:
+            schema_id = schema_ids[channel.schema_id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+    return writer.register_channel(channel.topic, channel.message_encoding, schema_id, dict(channel.metadata))

@@ -1,0 +1,313 @@
+"""Crash-safe MCAP logger: one writer thread behind a bounded queue.
+
+Files are MCAP with the ``ros2`` profile, ``ros2msg`` schemas (full definition text) and CDR
+messages, so ``ros2 bag`` and Foxglove open them. While open a file is ``NAME.mcap.active``;
+a clean close renames it to ``NAME.mcap``. The open chunk is flushed at least every
+``flush_period_s`` (optionally fsynced), so a killed process loses at most that much. Files split
+by size and/or duration; latched topics (``/tf_static``, ``*/camera_info`` and any named) are
+repeated at the start of every split. Each topic counts messages written and dropped.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import os
+import platform
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Iterable, Mapping
+
+from mcap.writer import CompressionType, Writer
+
+from logs import messages as m
+from logs import ros2
+from logs.errors import UserError
+
+VERSION = "0.1.0"
+ACTIVE_SUFFIX = ".active"
+COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+_QOS_LATCHED = (
+    "- history: 1\n  depth: 1\n  reliability: 1\n  durability: 1\n"
+    "  deadline:\n    sec: 2147483647\n    nsec: 4294967295\n"
+    "  lifespan:\n    sec: 2147483647\n    nsec: 4294967295\n  liveliness: 1\n"
+    "  liveliness_lease_duration:\n    sec: 2147483647\n    nsec: 4294967295\n"
+    "  avoid_ros_namespace_conventions: false\n")
+_QOS_VOLATILE = _QOS_LATCHED.replace("durability: 1", "durability: 2").replace("depth: 1", "depth: 10")
+
+
+class LoggerError(UserError):
+    """The logger could not write (disk full, file size limit, permissions): it has stopped."""
+
+
+def is_latched(topic: str, extra: Iterable[str] = ()) -> bool:
+    """Topics whose last message must be present in every file (ROS transient-local)."""
+    return topic == "/tf_static" or topic.endswith("camera_info") or topic in extra
+
+
+@dataclass
+class TopicStats:
+    written: int = 0
+    dropped: int = 0
+
+
+@dataclass(frozen=True)
+class _Item:
+    topic: str
+    ros_type: str
+    data: bytes
+    log_time_ns: int
+    publish_time_ns: int
+
+
+@dataclass
+class _OpenFile:
+    path: Path
+    stream: IO[bytes]
+    writer: Writer
+    channels: dict[str, int] = field(default_factory=dict)
+    schemas: dict[str, int] = field(default_factory=dict)
+    sequence: dict[str, int] = field(default_factory=dict)
+    first_log_time_ns: int | None = None
+
+    @property
+    def active_path(self) -> Path:
+        return self.path.with_name(self.path.name + ACTIVE_SUFFIX)
+
+
+class Logger:
+    """Write messages to MCAP from any thread; never blocks the caller.
+
+    ``write`` returns False (and counts a drop for that topic) when the queue is full or the
+    logger has failed. ``error`` holds the first write failure; ``close`` raises it.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, compression: str = "zstd",
+                 chunk_size: int = 1 << 20, flush_period_s: float = 1.0, fsync: bool = False,
+                 split_bytes: int | None = None, split_duration_s: float | None = None,
+                 queue_size: int = 10000, metadata: Mapping[str, str] | None = None,
+                 latched_topics: Iterable[str] = (), salvage: bool = True) -> None:
+        if compression not in COMPRESSION:
+            raise UserError(f"unknown compression {compression!r} (choose zstd, lz4 or none)")
+        self.base_path = Path(path)
+        if self.base_path.suffix != ".mcap":
+            self.base_path = self.base_path.with_name(self.base_path.name + ".mcap")
+        if not self.base_path.parent.is_dir():
+            raise UserError(f"output folder does not exist: {self.base_path.parent}")
+        self.compression = compression
+        self.chunk_size = chunk_size
+        self.flush_period_s = flush_period_s
+        self.fsync = fsync
+        self.split_bytes = split_bytes
+        self.split_duration_ns = int(split_duration_s * 1e9) if split_duration_s else None
+        self.queue_size = queue_size
+        self.metadata = {"trundle_version": VERSION, "host": platform.node(), **(metadata or {})}
+        self.latched_topics = frozenset(latched_topics)
+        self.stats: dict[str, TopicStats] = collections.defaultdict(TopicStats)
+        self.files: list[Path] = []
+        self.salvaged: list[Path] = salvage_folder(self.base_path.parent) if salvage else []
+        self.error: LoggerError | None = None
+        self._latched: dict[str, _Item] = {}
+        self._queue: collections.deque[_Item | None] = collections.deque()
+        self._wake = threading.Event()
+        self._split_requested = False
+        self._closed = False
+        self._split_index = 0
+        self._file: _OpenFile | None = None
+        self._lock = threading.Lock()
+        self._open_next()
+        self._thread = threading.Thread(target=self._run, name="mcap-logger", daemon=True)
+        self._thread.start()
+
+    # --- producer side -------------------------------------------------------------------------
+
+    def write(self, topic: str, msg: m.Message, log_time_ns: int | None = None) -> bool:
+        """Queue a message; ``log_time_ns`` is the receive time (default: now)."""
+        ros_type, data = ros2.encode(msg)
+        stamp = getattr(msg, "stamp_ns", None)
+        log_time = time.time_ns() if log_time_ns is None else int(log_time_ns)
+        return self._put(_Item(topic, ros_type, data, log_time, log_time if stamp is None else int(stamp)))
+
+    __call__ = write
+
+    def write_encoded(self, topic: str, ros_type: str, data: bytes, log_time_ns: int,
+                      publish_time_ns: int | None = None) -> bool:
+        """Queue CDR bytes of ``ros_type`` already encoded (e.g. copied from another log)."""
+        return self._put(_Item(topic, ros_type, bytes(data), int(log_time_ns),
+                               int(log_time_ns if publish_time_ns is None else publish_time_ns)))
+
+    def _put(self, item: _Item) -> bool:
+        if self._closed or self.error is not None or len(self._queue) >= self.queue_size:
+            self.stats[item.topic].dropped += 1
+            return False
+        self._queue.append(item)
+        if not self._wake.is_set():
+            self._wake.set()
+        return True
+
+    def split(self) -> None:
+        """Start a new file at the next message (as SIGHUP does in the daemon)."""
+        self._split_requested = True
+        self._wake.set()
+
+    def close(self) -> None:
+        """Write everything queued, finish the file and rename it; raises the first write error."""
+        if not self._closed:
+            self._closed = True
+            self._queue.append(None)
+            self._wake.set()
+            self._thread.join()
+        if self.error is not None:
+            raise self.error
+
+    @property
+    def current_path(self) -> Path | None:
+        file = self._file
+        return file.active_path if file else None
+
+    @property
+    def queue_length(self) -> int:
+        return len(self._queue)
+
+    def __enter__(self) -> Logger:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- writer thread -------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        next_flush = time.monotonic() + self.flush_period_s
+        running = True
+        while running:
+            self._wake.wait(max(0.0, next_flush - time.monotonic()))
+            self._wake.clear()
+            while self._queue:
+                item = self._queue.popleft()
+                if item is None:
+                    running = False
+                    break
+                if self.error is None:
+                    self._guard(self._write_item, item)
+                else:
+                    self.stats[item.topic].dropped += 1
+            if time.monotonic() >= next_flush:
+                next_flush = time.monotonic() + self.flush_period_s
+                self._guard(self._flush)
+        self._guard(self._finish_file)
+
+    def _guard(self, action, *args) -> None:
+        if self.error is not None:
+            return
+        try:
+            action(*args)
+        except OSError as error:
+            where = self._file.active_path if self._file else self.base_path
+            self.error = LoggerError(f"cannot write {where}: {error.strerror or error}; "
+                                     f"the file keeps what was flushed (trundle recover {where})")
+            self._file = None
+
+    def _write_item(self, item: _Item) -> None:
+        file = self._file
+        assert file is not None
+        if self._split_requested or self._needs_split(file, item):
+            self._split_requested = False
+            self._finish_file()
+            self._open_next()
+            file = self._file
+            assert file is not None
+            for latched in list(self._latched.values()):
+                if latched.topic != item.topic:
+                    self._add(file, latched)
+        if is_latched(item.topic, self.latched_topics):
+            self._latched[item.topic] = item
+        self._add(file, item)
+        self.stats[item.topic].written += 1
+
+    def _needs_split(self, file: _OpenFile, item: _Item) -> bool:
+        if file.first_log_time_ns is None:
+            return False
+        if self.split_duration_ns and item.log_time_ns - file.first_log_time_ns >= self.split_duration_ns:
+            return True
+        return bool(self.split_bytes) and file.stream.tell() >= self.split_bytes  # type: ignore[operator]
+
+    def _add(self, file: _OpenFile, item: _Item) -> None:
+        channel = file.channels.get(item.topic)
+        if channel is None:
+            schema = file.schemas.get(item.ros_type)
+            if schema is None:
+                schema = file.writer.register_schema(item.ros_type, "ros2msg", ros2.schema_text(item.ros_type).encode())
+                file.schemas[item.ros_type] = schema
+            qos = _QOS_LATCHED if is_latched(item.topic, self.latched_topics) else _QOS_VOLATILE
+            channel = file.writer.register_channel(item.topic, "cdr", schema, {"offered_qos_profiles": qos})
+            file.channels[item.topic] = channel
+        sequence = file.sequence.get(item.topic, 0)
+        file.sequence[item.topic] = sequence + 1
+        file.writer.add_message(channel, item.log_time_ns, item.data, item.publish_time_ns, sequence)
+        if file.first_log_time_ns is None:
+            file.first_log_time_ns = item.log_time_ns
+
+    def _flush(self) -> None:
+        file = self._file
+        if file is None:
+            return
+        file.writer.flush()
+        if self.fsync:
+            os.fsync(file.stream.fileno())
+
+    def _open_next(self) -> None:
+        if self.split_bytes or self.split_duration_ns:
+            path = self.base_path.with_name(f"{self.base_path.stem}_{self._split_index}.mcap")
+        else:
+            path = self.base_path
+        self._split_index += 1
+        active = path.with_name(path.name + ACTIVE_SUFFIX)
+        stream = open(active, "wb")
+        writer = Writer(stream, chunk_size=self.chunk_size, compression=COMPRESSION[self.compression])
+        writer.start(profile="ros2", library=f"trundle/{VERSION}")
+        writer.add_metadata("trundle", {k: str(v) for k, v in self.metadata.items()})
+        self._file = _OpenFile(path, stream, writer)
+
+    def _finish_file(self) -> None:
+        file = self._file
+        if file is None:
+            return
+        self._file = None
+        file.writer.finish()
+        if self.fsync:
+            file.stream.flush()
+            os.fsync(file.stream.fileno())
+        file.stream.close()
+        os.replace(file.active_path, file.path)
+        self.files.append(file.path)
+
+    def stats_dict(self) -> dict[str, dict[str, int]]:
+        """Per-topic ``{"written": n, "dropped": n}`` (for status and diagnostics)."""
+        return {topic: {"written": s.written, "dropped": s.dropped} for topic, s in sorted(self.stats.items())}
+
+
+def metadata_json(config: Mapping[str, object]) -> str:
+    """A config mapping as the JSON string stored in the file's metadata record."""
+    return json.dumps(config, sort_keys=True, default=str)
+
+
+def salvage_folder(folder: Path) -> list[Path]:
+    """Recover every leftover ``*.mcap.active`` in ``folder`` to ``*.mcap``; returns the new files."""
+    from logs.recover import recover
+
+    recovered = []
+    for active in sorted(folder.glob("*.mcap" + ACTIVE_SUFFIX)):
+        target = active.with_name(active.name[: -len(ACTIVE_SUFFIX)])
+        if target.exists():
+            target = target.with_name(f"{target.stem}.recovered.mcap")
+        try:
+            recover(active, target)
+        except UserError:
+            continue
+        active.unlink()
+        recovered.append(target)
+    return recovered

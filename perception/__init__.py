@@ -1,0 +1,1 @@
+"""Image and 2-D scan features: plain functions over numpy arrays."""

@@ -1,0 +1,1 @@
+"""The `trundle` command line, the onboard daemon, device emulators, world simulator, benchmarks."""

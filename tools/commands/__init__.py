@@ -1,0 +1,1 @@
+"""One module per `trundle` sub-command; each defines ``register(subparsers)``."""

@@ -1,0 +1,81 @@
+"""`trundle export FILE --topic T --format csv|ndjson`: a topic's messages as rows."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import sys
+
+import numpy as np
+
+from logs.errors import UserError
+from logs.reader import LogReader
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("export", help="export one topic as CSV or NDJSON")
+    p.add_argument("file")
+    p.add_argument("--topic", required=True)
+    p.add_argument("--format", choices=("csv", "ndjson"), default="csv")
+    p.add_argument("-o", "--output", help="output file (default: stdout)")
+    p.set_defaults(func=run)
+
+
+def _plain(value: object) -> object:
+    """JSON-ready value: arrays to lists (NaN/inf as strings), nested messages to dicts."""
+    if isinstance(value, np.ndarray):
+        if value.dtype.kind == "f" and not np.isfinite(value).all():
+            return [v if np.isfinite(v) else str(v) for v in value.tolist()]
+        return value.tolist()
+    if isinstance(value, bytes):
+        return value.hex()
+    if isinstance(value, float) and not np.isfinite(value):
+        return str(value)
+    if dataclasses.is_dataclass(value):
+        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+def flatten(msg: object) -> dict[str, object]:
+    """One row: scalars as they are, arrays expanded to ``name.i`` columns (CSV)."""
+    row: dict[str, object] = {}
+    for f in dataclasses.fields(msg):  # type: ignore[arg-type]
+        value = getattr(msg, f.name)
+        if isinstance(value, np.ndarray):
+            for i, v in enumerate(value.reshape(-1).tolist()):
+                row[f"{f.name}.{i}"] = v
+        elif isinstance(value, tuple) and all(isinstance(v, str) for v in value):
+            for i, v in enumerate(value):
+                row[f"{f.name}.{i}"] = v
+        else:
+            row[f.name] = _plain(value) if not isinstance(value, (int, float, str, bool)) else value
+    return row
+
+
+def run(args: argparse.Namespace) -> int:
+    reader = LogReader(args.file)
+    items = reader.messages([args.topic])
+    out = open(args.output, "w", newline="") if args.output else sys.stdout
+    count = 0
+    try:
+        writer = None
+        for item in items:
+            if args.format == "ndjson":
+                out.write(json.dumps({"topic": item.topic, "log_time_ns": item.log_time_ns, **_plain(item.msg)}) + "\n")
+            else:
+                row = {"log_time_ns": item.log_time_ns, **flatten(item.msg)}
+                if writer is None:
+                    writer = csv.DictWriter(out, fieldnames=list(row), extrasaction="ignore")
+                    writer.writeheader()
+                writer.writerow(row)
+            count += 1
+    finally:
+        if args.output:
+            out.close()
+    if count == 0:
+        raise UserError(f"no messages on topic {args.topic} that trundle can decode")
+    return 0

@@ -1,0 +1,72 @@
+"""`trundle info FILE`: what a log holds, shaped like `ros2 bag info`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from datetime import datetime, timezone
+
+from logs.reader import LogInfo, LogReader
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("info", help="summarise a log: duration, size, topics, types, counts, rates")
+    p.add_argument("file", help="MCAP log (.mcap or .mcap.active)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    p.set_defaults(func=run)
+
+
+def _when(ns: int | None) -> str:
+    if ns is None:
+        return "-"
+    t = datetime.fromtimestamp(ns / 1e9, tz=timezone.utc)
+    return f"{t:%b %d %Y %H:%M:%S}.{ns % 1_000_000_000:09d} ({ns / 1e9:.9f})"
+
+
+def _size(n: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{n} B"
+        n /= 1024
+    return f"{n} B"
+
+
+def as_dict(info: LogInfo) -> dict:
+    return {
+        "file": str(info.path), "size_bytes": info.size_bytes, "profile": info.profile,
+        "library": info.library, "compression": sorted(info.compression), "duration_s": info.duration_s,
+        "start_ns": info.start_ns, "end_ns": info.end_ns, "messages": info.message_count,
+        "chunks": info.chunks, "corrupt_chunks": info.corrupt_chunks, "complete": info.complete,
+        "error": info.error, "metadata": info.metadata,
+        "topics": {name: {"type": t.ros_type, "count": t.count, "rate_hz": t.rate_hz, "latched": t.latched}
+                   for name, t in sorted(info.topics.items())},
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    info = LogReader(args.file).info()
+    if args.json:
+        print(json.dumps(as_dict(info), indent=2))
+        return 0 if info.message_count or info.complete else 1
+    state = "complete" if info.complete else f"INCOMPLETE: {info.error} (read what was intact; `trundle recover` fixes it)"
+    lines = [
+        f"Files:             {info.path.name}",
+        f"Bag size:          {_size(info.size_bytes)}",
+        "Storage id:        mcap",
+        f"Profile:           {info.profile or '-'} ({info.library or 'unknown writer'})",
+        f"Compression:       {', '.join(sorted(info.compression)) or 'none'} in {info.chunks} chunks",
+        f"State:             {state}",
+        f"Duration:          {info.duration_s:.3f}s",
+        f"Start:             {_when(info.start_ns)}",
+        f"End:               {_when(info.end_ns)}",
+        f"Messages:          {info.message_count}",
+    ]
+    width = max((len(t) for t in info.topics), default=0)
+    type_width = max((len(t.ros_type) for t in info.topics.values()), default=0)
+    for i, (name, t) in enumerate(sorted(info.topics.items())):
+        head = "Topic information: " if i == 0 else "                   "
+        latched = " | latched" if t.latched else ""
+        lines.append(f"{head}Topic: {name:<{width}} | Type: {t.ros_type:<{type_width}} | Count: {t.count:>7} | "
+                     f"Rate: {t.rate_hz:8.2f} Hz | Serialization Format: cdr{latched}")
+    print("\n".join(lines))
+    return 0 if info.message_count or info.complete else 1

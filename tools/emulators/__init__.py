@@ -1,0 +1,1 @@
+"""Device emulators: the device side of each protocol on a pty, TCP port or CAN bus."""

@@ -11,6 +11,8 @@ repeated at the start of every split. Each topic counts messages written and dro
 from __future__ import annotations
 
 import collections
+import dataclasses
+import fcntl
 import json
 import os
 import platform
@@ -86,7 +88,7 @@ class Logger:
     """
 
     def __init__(self, path: str | os.PathLike[str], *, compression: str = "zstd",
-                 chunk_size: int = 1 << 20, flush_period_s: float = 1.0, fsync: bool = False,
+                 chunk_size: int = 1 << 20, flush_period_s: float = 0.5, fsync: bool = False,
                  split_bytes: int | None = None, split_duration_s: float | None = None,
                  queue_size: int = 10000, metadata: Mapping[str, str] | None = None,
                  latched_topics: Iterable[str] = (), salvage: bool = True) -> None:
@@ -220,9 +222,10 @@ class Logger:
             self._open_next()
             file = self._file
             assert file is not None
+            file.first_log_time_ns = item.log_time_ns
             for latched in list(self._latched.values()):
-                if latched.topic != item.topic:
-                    self._add(file, latched)
+                if latched.topic != item.topic:  # re-logged at the split time, publish time kept
+                    self._add(file, dataclasses.replace(latched, log_time_ns=item.log_time_ns))
         if is_latched(item.topic, self.latched_topics):
             self._latched[item.topic] = item
         self._add(file, item)
@@ -267,9 +270,11 @@ class Logger:
         self._split_index += 1
         active = path.with_name(path.name + ACTIVE_SUFFIX)
         stream = open(active, "wb")
+        fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # marks the file live for salvage_folder
         writer = Writer(stream, chunk_size=self.chunk_size, compression=COMPRESSION[self.compression])
         writer.start(profile="ros2", library=f"trundle/{VERSION}")
         writer.add_metadata("trundle", {k: str(v) for k, v in self.metadata.items()})
+        stream.flush()  # the header is on disk from the start: even an early kill leaves MCAP
         self._file = _OpenFile(path, stream, writer)
 
     def _finish_file(self) -> None:
@@ -301,6 +306,8 @@ def salvage_folder(folder: Path) -> list[Path]:
 
     recovered = []
     for active in sorted(folder.glob("*.mcap" + ACTIVE_SUFFIX)):
+        if _in_use(active):
+            continue
         target = active.with_name(active.name[: -len(ACTIVE_SUFFIX)])
         if target.exists():
             target = target.with_name(f"{target.stem}.recovered.mcap")
@@ -311,3 +318,15 @@ def salvage_folder(folder: Path) -> list[Path]:
         active.unlink()
         recovered.append(target)
     return recovered
+
+
+def _in_use(path: Path) -> bool:
+    """True while a live logger holds the file's lock (the lock dies with its process)."""
+    try:
+        with open(path, "rb") as f:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    return False

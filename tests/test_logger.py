@@ -1,0 +1,202 @@
+"""Logger and reader behaviour: independent read-back, splits, latching, drops, salvage."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
+from rosbags.highlevel import AnyReader
+
+from logs import messages as m
+from logs import ros2
+from logs.reader import LogReader
+from logs.replay import replay
+from logs.writer import Logger
+from tools.cli import main
+
+
+T0 = 1_763_784_000_000_000_000
+
+
+def scan(t: int, n: int = 181) -> m.LaserScan:
+    rng = np.random.default_rng(t)
+    return m.LaserScan(t, "laser", -1.57, 1.57, np.pi / (n - 1), 1e-4, 0.1, 0.02, 30.0,
+                       rng.uniform(0.1, 30, n), rng.uniform(0, 100, n))
+
+
+def static_tf(t: int) -> m.TFMessage:
+    return m.TFMessage((m.TransformStamped.planar(t, "base_link", "laser", 0.2, 0.0, 0.0, 0.3),))
+
+
+def write_sample(path: Path, seconds: float = 2.0, **kwargs) -> list[tuple[str, int, m.Message]]:
+    written = []
+    t0 = T0
+    with Logger(path, **kwargs) as logger:
+        logger.write("/tf_static", static_tf(t0), t0)
+        written.append(("/tf_static", t0, static_tf(t0)))
+        for i in range(int(seconds * 40)):
+            t = t0 + i * 25_000_000
+            s = scan(t)
+            logger.write("/scan", s, t + 1000)
+            written.append(("/scan", t + 1000, s))
+            if i % 4 == 0:
+                js = m.JointState(t, "base_link", ("left", "right"), [i * 0.1, i * 0.2], [1.0, 2.0])
+                logger.write("/wheels", js, t + 2000)
+                written.append(("/wheels", t + 2000, js))
+    return written
+
+
+def test_independent_reader_sees_every_message_equal(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    written = write_sample(path)
+    assert not list(tmp_path.glob("*.active"))
+    with AnyReader([path]) as reader:
+        got = [(c.topic, t, ros2.decode(c.msgtype, raw)) for c, t, raw in reader.messages()]
+        types = {c.topic: c.msgtype for c in reader.connections}
+    assert types == {"/tf_static": "tf2_msgs/msg/TFMessage", "/scan": "sensor_msgs/msg/LaserScan",
+                     "/wheels": "sensor_msgs/msg/JointState"}
+    assert sorted(got, key=lambda g: g[1]) == sorted(written, key=lambda w: w[1])
+    ours = [(x.topic, x.log_time_ns, x.msg) for x in LogReader(path).messages()]
+    assert ours == sorted(written, key=lambda w: w[1])
+
+
+def test_file_is_ros2_profile_with_statistics_and_latched_qos(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    write_sample(path, seconds=0.5, metadata={"robot": "r2"})
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_count == 1 + 20 + 5
+        channels = {c.topic: c for c in summary.channels.values()}
+        assert "durability: 1" in channels["/tf_static"].metadata["offered_qos_profiles"]
+        assert "durability: 2" in channels["/scan"].metadata["offered_qos_profiles"]
+        assert all(s.encoding == "ros2msg" for s in summary.schemas.values())
+        assert {c.message_encoding for c in channels.values()} == {"cdr"}
+        meta = {r.name: r.metadata for r in reader.iter_metadata()}
+        assert meta["trundle"]["robot"] == "r2" and "trundle_version" in meta["trundle"]
+
+
+def test_info_counts_match(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "run.mcap"
+    write_sample(path, seconds=2.0)
+    assert main(["info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert {t: v["count"] for t, v in info["topics"].items()} == {"/scan": 80, "/tf_static": 1, "/wheels": 20}
+    assert info["topics"]["/scan"]["rate_hz"] == pytest.approx(40.0)
+    assert info["complete"] and info["messages"] == 101
+    assert main(["info", str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "Topic: /scan" in text and "Count:      80" in text and "sensor_msgs/msg/LaserScan" in text
+
+
+def test_split_by_duration_repeats_latched_topics(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    write_sample(path, seconds=3.0, split_duration_s=1.0)
+    files = sorted(tmp_path.glob("run_*.mcap"), key=lambda p: int(p.stem.split("_")[1]))
+    assert [p.name for p in files] == ["run_0.mcap", "run_1.mcap", "run_2.mcap"]
+    total = 0
+    for p in files:
+        msgs = list(LogReader(p).messages())
+        assert msgs[0].topic == "/tf_static" and msgs[0].msg == static_tf(T0)  # measurement time kept
+        scans = [x for x in msgs if x.topic == "/scan"]
+        assert len(scans) == 40
+        total += len(scans)
+    assert total == 120
+
+
+def test_split_by_size_and_on_request(tmp_path: Path) -> None:
+    path = tmp_path / "big.mcap"
+    write_sample(path, seconds=2.0, split_bytes=20_000, chunk_size=4096, compression="none")
+    parts = list(tmp_path.glob("big_*.mcap"))
+    assert len(parts) >= 3
+    assert sum(1 for p in parts for x in LogReader(p).messages(["/scan"])) == 80
+    manual = tmp_path / "manual"
+    manual.mkdir()
+    with Logger(manual / "m.mcap") as logger:
+        logger.write("/scan", scan(1), 1)
+        time.sleep(0.05)
+        logger.split()
+        time.sleep(0.05)
+        logger.write("/scan", scan(2), 2)
+    assert len(logger.files) == 2
+
+
+def test_full_queue_drops_are_counted_per_topic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    original = Writer.add_message
+
+    def slow(self, *args, **kwargs):
+        time.sleep(0.01)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Writer, "add_message", slow)
+    logger = Logger(tmp_path / "q.mcap", queue_size=5)
+    accepted = sum(logger.write("/scan", scan(i), i) for i in range(100))
+    logger.close()
+    stats = logger.stats_dict()["/scan"]
+    assert stats["written"] == accepted and stats["written"] + stats["dropped"] == 100
+    assert stats["dropped"] > 0
+    assert sum(1 for _ in LogReader(tmp_path / "q.mcap").messages()) == accepted
+    assert logger.write("/scan", scan(0), 0) is False  # after close: dropped, counted
+    assert logger.stats_dict()["/scan"]["dropped"] == stats["dropped"] + 1
+
+
+def test_leftover_active_file_is_salvaged_at_start(tmp_path: Path) -> None:
+    src = tmp_path / "src.mcap"
+    write_sample(src, seconds=1.0, compression="none", chunk_size=2048)
+    data = src.read_bytes()
+    (tmp_path / "old.mcap.active").write_bytes(data[: len(data) * 2 // 3])
+    src.unlink()
+    logger = Logger(tmp_path / "new.mcap")
+    logger.close()
+    assert logger.salvaged == [tmp_path / "old.mcap"]
+    assert not (tmp_path / "old.mcap.active").exists()
+    assert 0 < sum(1 for _ in LogReader(tmp_path / "old.mcap").messages()) < 51
+
+
+def test_replay_paces_messages_by_log_time(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    write_sample(path, seconds=0.5)
+    now = [100.0]
+    sleeps: list[float] = []
+
+    def fake_sleep(d: float) -> None:
+        sleeps.append(d)
+        now[0] += d
+
+    delivered: list[int] = []
+    count = replay(path, lambda x: delivered.append(x.log_time_ns), rate=2.0, topics=["/scan"],
+                   sleep=fake_sleep, clock=lambda: now[0])
+    assert count == 20 and delivered == sorted(delivered)
+    assert sum(sleeps) == pytest.approx(19 * 0.025 / 2.0)
+    assert replay(path, lambda x: None, rate=0, sleep=fake_sleep, clock=lambda: now[0]) == 26
+
+
+def test_export_csv_and_ndjson(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "run.mcap"
+    write_sample(path, seconds=0.5)
+    assert main(["export", str(path), "--topic", "/wheels", "--format", "csv"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("log_time_ns,stamp_ns,frame_id,name.0,name.1,position.0,position.1")
+    assert len(lines) == 1 + 5
+    assert main(["export", str(path), "--topic", "/scan", "--format", "ndjson"]) == 0
+    rows = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert len(rows) == 20 and len(rows[0]["ranges"]) == 181
+
+
+def test_active_file_copy_reads_while_logging(tmp_path: Path) -> None:
+    logger = Logger(tmp_path / "live.mcap", flush_period_s=0.05)
+    for i in range(10):
+        logger.write("/scan", scan(i), i)
+    time.sleep(0.3)
+    snapshot = tmp_path / "snap.mcap.active"
+    shutil.copy(tmp_path / "live.mcap.active", snapshot)
+    logger.close()
+    assert sum(1 for _ in LogReader(snapshot).messages()) == 10

@@ -11,7 +11,6 @@ repeated at the start of every split. Each topic counts messages written and dro
 from __future__ import annotations
 
 import collections
-import dataclasses
 import fcntl
 import json
 import os
@@ -20,7 +19,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Iterable, Mapping
+from typing import IO, Iterable, Mapping, NamedTuple
 
 from mcap.writer import CompressionType, Writer
 
@@ -56,8 +55,9 @@ class TopicStats:
     dropped: int = 0
 
 
-@dataclass(frozen=True)
-class _Item:
+class _Item(NamedTuple):
+    """One queued message (a tuple: cheap to build on the producer's thread)."""
+
     topic: str
     ros_type: str
     data: bytes
@@ -113,6 +113,7 @@ class Logger:
         self.salvaged: list[Path] = salvage_folder(self.base_path.parent) if salvage else []
         self.error: LoggerError | None = None
         self._latched: dict[str, _Item] = {}
+        self._topic_latched: dict[str, bool] = {}
         self._queue: collections.deque[_Item | None] = collections.deque()
         self._wake = threading.Event()
         self._split_requested = False
@@ -138,7 +139,7 @@ class Logger:
     def write_encoded(self, topic: str, ros_type: str, data: bytes, log_time_ns: int,
                       publish_time_ns: int | None = None) -> bool:
         """Queue CDR bytes of ``ros_type`` already encoded (e.g. copied from another log)."""
-        return self._put(_Item(topic, ros_type, bytes(data), int(log_time_ns),
+        return self._put(_Item(topic, ros_type, data if isinstance(data, bytes) else bytes(data), int(log_time_ns),
                                int(log_time_ns if publish_time_ns is None else publish_time_ns)))
 
     def _put(self, item: _Item) -> bool:
@@ -225,8 +226,11 @@ class Logger:
             file.first_log_time_ns = item.log_time_ns
             for latched in list(self._latched.values()):
                 if latched.topic != item.topic:  # re-logged at the split time, publish time kept
-                    self._add(file, dataclasses.replace(latched, log_time_ns=item.log_time_ns))
-        if is_latched(item.topic, self.latched_topics):
+                    self._add(file, latched._replace(log_time_ns=item.log_time_ns))
+        latched_topic = self._topic_latched.get(item.topic)
+        if latched_topic is None:
+            latched_topic = self._topic_latched[item.topic] = is_latched(item.topic, self.latched_topics)
+        if latched_topic:
             self._latched[item.topic] = item
         self._add(file, item)
         self.stats[item.topic].written += 1

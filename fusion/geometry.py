@@ -1,0 +1,110 @@
+"""Planar rigid-body (SE(2)) algebra over poses ``(x, y, theta)`` and scan-to-points conversion.
+
+Poses are arrays whose last axis is ``(x, y, theta)`` in metres and radians (REP 103), so every
+function works on one pose of shape (3,) or on a batch (..., 3) alike.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from logs.messages import LaserScan
+
+
+def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:
+    """Angle(s) wrapped into [-pi, pi)."""
+    wrapped = np.remainder(np.asarray(angle, dtype=np.float64) + np.pi, 2.0 * np.pi) - np.pi
+    return float(wrapped) if np.ndim(wrapped) == 0 else wrapped
+
+
+def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a (+) b``: pose ``b`` given in the frame of ``a``, expressed in ``a``'s parent frame."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack([a[..., 0] + c * b[..., 0] - s * b[..., 1],
+                     a[..., 1] + s * b[..., 0] + c * b[..., 1],
+                     wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def inverse(a: np.ndarray) -> np.ndarray:
+    """``a^-1``: the parent frame's pose seen from ``a``."""
+    a = np.asarray(a, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack([-c * a[..., 0] - s * a[..., 1],
+                     s * a[..., 0] - c * a[..., 1],
+                     wrap_angle(-a[..., 2])], axis=-1)
+
+
+def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a^-1 (+) b``: pose ``b`` expressed in the frame of pose ``a`` (both in one parent frame)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1)
+
+
+def rotation(theta: float) -> np.ndarray:
+    """The 2x2 rotation matrix of ``theta`` radians."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Points (N, 2) given in the frame of ``pose`` expressed in the pose's parent frame."""
+    pose = np.asarray(pose, dtype=np.float64)
+    return np.asarray(points, dtype=np.float64) @ rotation(pose[2]).T + pose[:2]
+
+
+def rotate_covariance(covariance: np.ndarray, theta: float) -> np.ndarray:
+    """A (x, y, theta) covariance expressed in a frame rotated by ``theta``."""
+    r = np.eye(3)
+    r[:2, :2] = rotation(theta)
+    return r @ np.asarray(covariance, dtype=np.float64) @ r.T
+
+
+def scan_to_points(scan: LaserScan, sensor_pose: np.ndarray | None = None, range_min: float | None = None,
+                   range_max: float | None = None) -> np.ndarray:
+    """Valid returns of ``scan`` as points (N, 2) in metres, in the frame of ``sensor_pose``.
+
+    A beam is kept when its range is finite and inside ``[range_min, range_max]`` (defaults: the
+    scan's own limits), so REP 117's +inf / -inf / NaN readings drop out. ``sensor_pose`` is the
+    laser's pose in the robot frame (default: identity, points stay in the laser frame).
+    """
+    ranges = scan.ranges.astype(np.float64)
+    low = scan.range_min if range_min is None else range_min
+    high = scan.range_max if range_max is None else range_max
+    keep = np.isfinite(ranges) & (ranges >= low) & (ranges <= high)
+    angles = scan.angles()[keep]
+    r = ranges[keep]
+    points = np.stack([r * np.cos(angles), r * np.sin(angles)], axis=1)
+    return points if sensor_pose is None else transform_points(sensor_pose, points)
+
+
+def no_return_directions(scan: LaserScan, sensor_pose: np.ndarray | None = None) -> np.ndarray:
+    """Unit vectors (M, 2) of the beams that saw nothing (+inf, REP 117), in the ``sensor_pose`` frame.
+
+    Free space along them can be cleared up to a chosen distance when building a map.
+    """
+    angles = scan.angles()[np.isposinf(scan.ranges)]
+    directions = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    if sensor_pose is None:
+        return directions
+    return directions @ rotation(float(np.asarray(sensor_pose)[2])).T
+
+
+def voxel_filter(points: np.ndarray, cell_m: float) -> np.ndarray:
+    """One point per ``cell_m`` square cell (the mean of the points in it), order of first appearance.
+
+    Thins dense near-range returns so every part of a scan weighs alike in matching.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) == 0 or cell_m <= 0:
+        return points
+    keys = np.floor(points / cell_m).astype(np.int64)
+    _, first, inverse_index, counts = np.unique(keys, axis=0, return_index=True, return_inverse=True,
+                                                return_counts=True)
+    inverse_index = inverse_index.reshape(-1)
+    sums = np.zeros((len(counts), 2))
+    np.add.at(sums, inverse_index, points)
+    means = sums / counts[:, None]
+    return means[np.argsort(first, kind="stable")]

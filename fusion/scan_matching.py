@@ -1,0 +1,279 @@
+"""Scan-to-map matching: multi-resolution correlative search, then Levenberg-Marquardt refinement.
+
+The search (Olson 2009; branch and bound over max-pooled grids as in Cartographer, Hess et al.
+2016) scores every pose in a window by the mean likelihood-field value under the scan's points
+and finds the best exactly, robust to poor initial guesses. The refinement then minimises the
+robust (Huber) sum of squared distances from the points to the nearest occupied cells, read
+from a bilinearly interpolated distance field, which gives sub-cell precision and, from the
+Gauss-Newton Hessian, a covariance for the match. Both are vectorised over points and poses.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from fusion.geometry import rotation, wrap_angle
+from fusion.occupancy_grid import LogOddsGrid
+
+_CHUNK_ELEMENTS = 1 << 21
+
+
+@dataclass(frozen=True)
+class MatchResult:
+    """A scan match: robot ``pose`` (x, y, theta) in the grid frame with its 3x3 ``covariance``.
+
+    ``score`` is the mean likelihood-field value under the points at ``pose`` (0..1, 1 = every
+    point on an occupied cell); ``residual_m`` the mean distance of the inlier points to the
+    nearest occupied cell; ``inlier_fraction`` the share of points within ``inlier_m`` of one;
+    ``search_score`` the best correlative score (NaN when no search ran).
+    """
+
+    pose: np.ndarray
+    covariance: np.ndarray
+    score: float
+    residual_m: float
+    inlier_fraction: float
+    search_score: float
+    iterations: int
+
+
+def angular_step(resolution: float, max_range_m: float) -> float:
+    """The rotation that moves a point at ``max_range_m`` by one cell: ``acos(1 - r^2 / (2 d^2))``."""
+    d = max(max_range_m, resolution)
+    return math.acos(max(-1.0, 1.0 - resolution ** 2 / (2.0 * d * d)))
+
+
+def score_pyramid(field: np.ndarray, levels: int) -> list[np.ndarray]:
+    """Max-pooled copies of ``field`` padded with ``2**(levels-1)`` zero cells on every side.
+
+    Level ``h`` holds at ``[r, c]`` the maximum of the padded field over ``[r, r + 2^h) x [c, c + 2^h)``,
+    an upper bound of the score of every translation in that block (branch and bound).
+    """
+    pad = 1 << (levels - 1)
+    padded = np.zeros((field.shape[0] + 2 * pad, field.shape[1] + 2 * pad), np.float32)
+    padded[pad:pad + field.shape[0], pad:pad + field.shape[1]] = field
+    pyramid = [padded]
+    for h in range(1, levels):
+        s = 1 << (h - 1)
+        prev = pyramid[-1]
+        level = prev.copy()
+        np.maximum(level[:, :-s], prev[:, s:], out=level[:, :-s])
+        np.maximum(level[:-s, :], level[s:, :], out=level[:-s, :])
+        pyramid.append(level)
+    return pyramid
+
+
+def _block_scores(grid: np.ndarray, ix: np.ndarray, iy: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """Mean of ``grid`` under each candidate's points: ``candidates`` (M, 3) = angle index, dx, dy cells."""
+    count = ix.shape[1]
+    out = np.empty(len(candidates), np.float64)
+    step = max(1, _CHUNK_ELEMENTS // max(count, 1))
+    height, width = grid.shape
+    for start in range(0, len(candidates), step):
+        c = candidates[start:start + step]
+        cols = np.clip(ix[c[:, 0]] + c[:, 1:2], 0, width - 1)
+        rows = np.clip(iy[c[:, 0]] + c[:, 2:3], 0, height - 1)
+        out[start:start + step] = grid[rows, cols].mean(axis=1)
+    return out
+
+
+def _shifts(level: int) -> np.ndarray:
+    """Offsets (angle, dx, dy) of the four sub-blocks at ``level - 1`` of a block at ``level``."""
+    s = 1 << (level - 1)
+    return np.array([[0, 0, 0], [0, s, 0], [0, 0, s], [0, s, s]], np.int64)
+
+
+def _children(candidates: np.ndarray, level: int, limit: int) -> np.ndarray:
+    """The four sub-blocks at ``level - 1`` of blocks at ``level`` (offsets beyond ``limit`` dropped)."""
+    kids = (candidates[:, None, :] + _shifts(level)[None]).reshape(-1, 3)
+    return kids[(kids[:, 1] <= limit) & (kids[:, 2] <= limit)]
+
+
+def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.ndarray, *,
+                       window_xy_m: float = 0.3, window_theta_rad: float = math.radians(10.0),
+                       angular_step_rad: float | None = None, sigma_m: float | None = None,
+                       min_score: float = 0.0) -> tuple[np.ndarray, float] | None:
+    """Best pose on the search lattice around ``initial_pose_xyt`` and its score, or None below ``min_score``.
+
+    ``points_xy`` (N, 2) are the scan's points in the robot frame. The lattice spans
+    ``+-window_xy_m`` in x and y in steps of one cell and ``+-window_theta_rad`` in steps of
+    ``angular_step_rad`` (default: one cell at the farthest point). ``sigma_m`` is the
+    likelihood-field width (default one cell). Branch and bound over a max-pooled pyramid makes
+    the result the exact lattice optimum at a fraction of the exhaustive cost.
+    """
+    points = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    if len(points) == 0 or grid.shape[0] == 0:
+        return None
+    res = grid.resolution
+    sigma = res if sigma_m is None else sigma_m
+    x0, y0, t0 = (float(v) for v in initial_pose_xyt)
+    if angular_step_rad is None:
+        angular_step_rad = angular_step(res, float(np.max(np.hypot(points[:, 0], points[:, 1]))))
+    n_theta = int(math.floor(window_theta_rad / angular_step_rad))
+    thetas = t0 + angular_step_rad * np.arange(-n_theta, n_theta + 1)
+    limit = int(math.ceil(window_xy_m / res))
+    levels = max(1, min(8, int(math.ceil(math.log2(2 * limit + 1))) + 1))
+    pyramid = grid.cached(("pyramid", float(sigma), levels), lambda: score_pyramid(grid.likelihood_field(sigma), levels))
+    pad = 1 << (levels - 1)
+
+    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    wx = c * points[:, 0] - s * points[:, 1] + x0
+    wy = s * points[:, 0] + c * points[:, 1] + y0
+    ix = np.floor((wx - grid.origin[0]) / res).astype(np.int64) + pad - limit
+    iy = np.floor((wy - grid.origin[1]) / res).astype(np.int64) + pad - limit
+
+    top = levels - 1
+    step = 1 << top
+    offsets = np.arange(0, 2 * limit + 1, step)
+    a, ox, oy = np.meshgrid(np.arange(len(thetas)), offsets, offsets, indexing="ij")
+    candidates = np.stack([a.ravel(), ox.ravel(), oy.ravel()], axis=1)
+    scores = _block_scores(pyramid[top], ix, iy, candidates)
+    bound = min_score
+
+    # Greedy dives from the best top blocks reach leaves at once: a lower bound to prune with.
+    dive = candidates[np.argsort(scores)[::-1][:8]]
+    for level in range(top, 0, -1):
+        kids = dive[:, None, :] + _shifts(level)[None]
+        kid_scores = _block_scores(pyramid[level - 1], ix, iy, kids.reshape(-1, 3)).reshape(len(dive), 4)
+        kid_scores[(kids[..., 1] > 2 * limit) | (kids[..., 2] > 2 * limit)] = -np.inf
+        dive = kids[np.arange(len(dive)), np.argmax(kid_scores, axis=1)]
+        if level == 1:
+            bound = max(bound, float(kid_scores.max()))
+
+    for level in range(top, 0, -1):
+        keep = scores >= bound
+        candidates = _children(candidates[keep], level, 2 * limit)
+        scores = _block_scores(pyramid[level - 1], ix, iy, candidates)
+    if len(scores) == 0:
+        return None
+    i = int(np.argmax(scores))
+    if scores[i] < min_score:
+        return None
+    a_i, dx, dy = candidates[i]
+    return np.array([x0 + (dx - limit) * res, y0 + (dy - limit) * res, wrap_angle(thetas[a_i])]), float(scores[i])
+
+
+def _bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Value, d/du, d/dv of ``field`` at continuous cell-centre coordinates, and an inside mask."""
+    height, width = field.shape
+    inside = (u >= 0) & (v >= 0) & (u < width - 1) & (v < height - 1)
+    u = np.clip(u, 0, width - 1.000001)
+    v = np.clip(v, 0, height - 1.000001)
+    c0 = np.floor(u).astype(np.int64)
+    r0 = np.floor(v).astype(np.int64)
+    fu, fv = u - c0, v - r0
+    c1, r1 = np.minimum(c0 + 1, width - 1), np.minimum(r0 + 1, height - 1)
+    f00, f01 = field[r0, c0], field[r0, c1]
+    f10, f11 = field[r1, c0], field[r1, c1]
+    value = (1 - fv) * ((1 - fu) * f00 + fu * f01) + fv * ((1 - fu) * f10 + fu * f11)
+    du = (1 - fv) * (f01 - f00) + fv * (f11 - f10)
+    dv = (1 - fu) * (f10 - f00) + fu * (f11 - f01)
+    return value, du, dv, inside
+
+
+def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.ndarray, *,
+                max_distance_m: float = 0.5, huber_m: float | None = None, inlier_m: float | None = None,
+                max_iterations: int = 30, sigma_m: float | None = None, min_std_xy_m: float = 0.01,
+                min_std_theta_rad: float = math.radians(0.25), search_score: float = float("nan")) -> MatchResult:
+    """Levenberg-Marquardt refinement of ``initial_pose_xyt`` against ``grid``'s distance field.
+
+    Minimises ``sum huber(d_i)`` with ``d_i`` the distance (m, capped at ``max_distance_m``) from
+    point i to the nearest occupied cell; ``huber_m`` defaults to one cell, ``inlier_m`` to two.
+    The covariance is ``s^2 (J^T W J)^-1`` with ``s^2`` the weighted residual variance, plus a floor
+    of ``min_std_xy_m`` / ``min_std_theta_rad`` standard deviation for the grid's discretisation.
+    """
+    points = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    res = grid.resolution
+    huber = res if huber_m is None else huber_m
+    inlier = 2.0 * res if inlier_m is None else inlier_m
+    sigma = res if sigma_m is None else sigma_m
+    field = grid.distance_field(max_distance_m)
+    likelihood = grid.likelihood_field(sigma)
+    origin = grid.origin
+
+    def evaluate(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        rot = rotation(pose[2])
+        q = points @ rot.T + pose[:2]
+        u = (q[:, 0] - origin[0]) / res - 0.5
+        v = (q[:, 1] - origin[1]) / res - 0.5
+        d, du, dv, inside = _bilinear(field, u, v)
+        d = np.where(inside, d, max_distance_m)
+        active = inside & (d < max_distance_m)
+        gx, gy = np.where(active, du / res, 0.0), np.where(active, dv / res, 0.0)
+        c, s = rot[0, 0], rot[1, 0]
+        dqx = -s * points[:, 0] - c * points[:, 1]
+        dqy = c * points[:, 0] - s * points[:, 1]
+        jac = np.stack([gx, gy, gx * dqx + gy * dqy], axis=1)
+        absd = np.abs(d)
+        weight = np.where(absd <= huber, 1.0, huber / np.maximum(absd, 1e-12))
+        cost = float(np.sum(np.where(absd <= huber, 0.5 * d * d, huber * (absd - 0.5 * huber))))
+        return cost, d, jac, weight, active
+
+    pose = np.asarray(initial_pose_xyt, dtype=np.float64).copy()
+    cost, d, jac, weight, active = evaluate(pose)
+    lam = 1e-3
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):
+        jw = jac * weight[:, None]
+        hessian = jw.T @ jac
+        gradient = jw.T @ d
+        damped = hessian + lam * np.diag(np.maximum(np.diag(hessian), 1e-9))
+        try:
+            delta = -np.linalg.solve(damped, gradient)
+        except np.linalg.LinAlgError:
+            break
+        trial = pose + delta
+        trial[2] = wrap_angle(trial[2])
+        t_cost, t_d, t_jac, t_weight, t_active = evaluate(trial)
+        if t_cost < cost:
+            pose, cost, d, jac, weight, active = trial, t_cost, t_d, t_jac, t_weight, t_active
+            lam = max(lam / 10.0, 1e-9)
+            if abs(delta[0]) < 1e-5 and abs(delta[1]) < 1e-5 and abs(delta[2]) < 1e-6:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e6:
+                break
+
+    inliers = active & (np.abs(d) <= inlier)
+    n_in = int(inliers.sum())
+    jw = jac[inliers] * weight[inliers, None]
+    hessian = jw.T @ jac[inliers]
+    variance = max(float(np.sum(weight[inliers] * d[inliers] ** 2) / max(n_in - 3, 1)), 1e-10)
+    # Directions the points do not constrain (a corridor's axis) get the variance cap, not inf.
+    eigenvalues, vectors = np.linalg.eigh(hessian)
+    max_variance = 100.0
+    information = np.maximum(eigenvalues, variance / max_variance) / variance
+    floor = np.diag([min_std_xy_m ** 2, min_std_xy_m ** 2, min_std_theta_rad ** 2])
+    covariance = (vectors / information) @ vectors.T + floor
+    rot = rotation(pose[2])
+    q = points @ rot.T + pose[:2]
+    lik, _, _, inside = _bilinear(likelihood, (q[:, 0] - origin[0]) / res - 0.5, (q[:, 1] - origin[1]) / res - 0.5)
+    score = float(np.mean(np.where(inside, lik, 0.0))) if len(points) else 0.0
+    residual = float(np.mean(np.abs(d[inliers]))) if n_in else float("nan")
+    return MatchResult(pose, 0.5 * (covariance + covariance.T), score, residual,
+                       n_in / max(len(points), 1), search_score, iterations)
+
+
+def match_scan(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.ndarray, *,
+               window_xy_m: float = 0.3, window_theta_rad: float = math.radians(10.0),
+               angular_step_rad: float | None = None, sigma_m: float | None = None, min_score: float = 0.0,
+               refine: bool = True, max_distance_m: float = 0.5, huber_m: float | None = None,
+               min_std_xy_m: float = 0.01, min_std_theta_rad: float = math.radians(0.25)) -> MatchResult | None:
+    """Match ``points_xy`` (robot frame) against ``grid`` near ``initial_pose_xyt``; None if nothing scores ``min_score``.
+
+    A correlative search over ``+-window_xy_m`` / ``+-window_theta_rad`` finds the best lattice
+    pose, then (``refine``) Levenberg-Marquardt polishes it and estimates the covariance.
+    """
+    found = correlative_search(grid, points_xy, initial_pose_xyt, window_xy_m=window_xy_m,
+                               window_theta_rad=window_theta_rad, angular_step_rad=angular_step_rad,
+                               sigma_m=sigma_m, min_score=min_score)
+    if found is None:
+        return None
+    pose, search_score = found
+    return refine_pose(grid, points_xy, pose, max_distance_m=max_distance_m, huber_m=huber_m,
+                       max_iterations=30 if refine else 0, sigma_m=sigma_m, min_std_xy_m=min_std_xy_m,
+                       min_std_theta_rad=min_std_theta_rad, search_score=search_score)

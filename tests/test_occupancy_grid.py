@@ -1,0 +1,110 @@
+"""Log-odds occupancy grid: ray tracing, updates, growth, fields and the nav_msgs export."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fusion.occupancy_grid import LogOddsGrid, log_odds, ray_cells
+from logs import ros2
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(-40, 40), st.integers(-40, 40), st.integers(-40, 40), st.integers(-40, 40))
+def test_ray_cells_have_bresenham_properties(x0: int, y0: int, x1: int, y1: int) -> None:
+    """Between cell centres: max(|dx|,|dy|) cells, 8-connected, each within half a cell of the segment."""
+    start, end = np.array([x0 + 0.5, y0 + 0.5]), np.array([[x1 + 0.5, y1 + 0.5]])
+    cells = ray_cells(start, end)
+    assert len(cells) == max(abs(x1 - x0), abs(y1 - y0))
+    if len(cells) == 0:
+        return
+    assert tuple(cells[0]) == (y0, x0)
+    path = np.vstack([cells, [[y1, x1]]])
+    assert np.abs(np.diff(path, axis=0)).max() == 1
+    centres = path[:, ::-1] + 0.5
+    direction = (end[0] - start) / np.linalg.norm(end[0] - start)
+    offsets = centres - start
+    perpendicular = np.abs(offsets[:, 0] * direction[1] - offsets[:, 1] * direction[0])
+    # Distance along the minor axis from the true line is at most half a cell.
+    major = max(abs(direction[0]), abs(direction[1]))
+    assert np.all(perpendicular / major <= 0.5 + 1e-9)
+
+
+def test_ray_cells_hand_computed_diagonal() -> None:
+    cells = ray_cells(np.array([0.5, 0.5]), np.array([[3.5, 2.5]]))
+    # DDA samples at t = 0, 1/3, 2/3: x 0.5, 1.5, 2.5; y 0.5, 1.17, 1.83 -> rows 0, 1, 1.
+    assert cells.tolist() == [[0, 0], [1, 1], [1, 2]]
+
+
+def test_single_ray_updates_exact_log_odds() -> None:
+    grid = LogOddsGrid(0.05, p_hit=0.7, p_miss=0.4)
+    grid.insert_rays(np.array([0.025, 0.025]), np.array([[1.025, 0.025]]))
+    rows, cols = np.nonzero(grid.observed)
+    assert len(set(rows.tolist())) == 1
+    x = grid.cell_centers(rows, cols)[:, 0]
+    values = grid.log_odds[rows, cols]
+    order = np.argsort(x)
+    np.testing.assert_allclose(x[order], 0.025 + 0.05 * np.arange(21))
+    np.testing.assert_allclose(values[order][:20], math.log(0.4 / 0.6), rtol=1e-6)
+    assert values[order][20] == pytest.approx(math.log(0.7 / 0.3), rel=1e-6)
+
+
+def test_cells_crossed_by_many_rays_update_once_per_scan_and_clamp() -> None:
+    grid = LogOddsGrid(0.1, l_min=-1.0, l_max=2.0)
+    ends = np.array([[2.0, 0.05], [2.0, 0.06], [2.0, 0.04]])
+    grid.insert_rays(np.array([0.05, 0.05]), ends)
+    cell = np.floor(grid.world_to_cell(np.array([0.05, 0.05]))).astype(int)
+    assert grid.log_odds[cell[1], cell[0]] == pytest.approx(log_odds(0.4), rel=1e-6)
+    for _ in range(20):
+        grid.insert_rays(np.array([0.05, 0.05]), ends)
+    assert grid.log_odds.min() == pytest.approx(-1.0)
+    assert grid.log_odds.max() == pytest.approx(2.0)
+
+
+def test_growth_keeps_content_in_place() -> None:
+    grid = LogOddsGrid(0.05, grow_cells=8)
+    grid.insert_rays(np.array([0.0, 0.0]), np.array([[1.0, 0.5]]))
+    before = {tuple(np.round(p, 6)) for p in grid.occupied_points()}
+    old_shape = grid.shape
+    grid.insert_rays(np.array([-20.0, 15.0]), np.array([[-21.0, 14.0]]))
+    assert grid.shape[0] > old_shape[0] and grid.shape[1] > old_shape[1]
+    after = {tuple(np.round(p, 6)) for p in grid.occupied_points()}
+    assert before < after
+    # The lattice is kept: the origin moved by whole cells.
+    assert np.allclose(np.mod(grid.origin / 0.05 + 1e-9, 1.0), 0.0, atol=1e-6)
+
+
+def test_free_ends_clear_without_marking_a_hit() -> None:
+    grid = LogOddsGrid(0.05)
+    grid.insert_rays(np.array([0.0, 0.0]), np.zeros((0, 2)), free_ends_xy=np.array([[0.0, 1.0]]))
+    assert grid.observed.sum() == 20
+    assert np.all(grid.log_odds[grid.observed] < 0)
+
+
+def test_distance_and_likelihood_fields_are_exact_for_one_occupied_cell() -> None:
+    grid = LogOddsGrid(0.05)
+    grid.insert_rays(np.array([0.0, 0.0]), np.array([[0.5, 0.5]]))
+    grid.ensure_contains(np.array([-1.0, -1.0]), np.array([2.0, 2.0]))
+    hit = np.floor(grid.world_to_cell(np.array([0.5, 0.5]))).astype(int)
+    field = grid.distance_field(1.0)
+    assert field[hit[1], hit[0]] == 0.0
+    assert field[hit[1], hit[0] + 3] == pytest.approx(0.15, abs=1e-6)
+    assert field[hit[1] + 4, hit[0] + 3] == pytest.approx(0.25, abs=1e-6)  # 3-4-5 triangle
+    assert field[hit[1] + 30, hit[0]] == pytest.approx(1.0)  # capped
+    likelihood = grid.likelihood_field(0.05)
+    assert likelihood[hit[1], hit[0] + 1] == pytest.approx(math.exp(-0.5), rel=1e-5)
+
+
+def test_message_export_percent_and_unknown_round_trips_through_cdr() -> None:
+    grid = LogOddsGrid(0.05, p_hit=0.7, p_miss=0.4)
+    grid.insert_rays(np.array([0.0, 0.0]), np.array([[0.5, 0.0]]))
+    msg = grid.to_message(123, "map")
+    values = set(np.unique(msg.data).tolist())
+    assert values == {-1, 40, 70}
+    assert msg.origin_x == pytest.approx(grid.origin[0]) and msg.resolution == pytest.approx(0.05)
+    decoded = ros2.decode(*ros2.encode(msg))
+    assert decoded == msg

@@ -1,0 +1,112 @@
+"""Scan-to-map matching on a known polygon world and on real Intel scans with GMapping's poses."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from fusion.geometry import scan_to_points, transform_points, wrap_angle
+from fusion.occupancy_grid import LogOddsGrid
+from fusion.scan_matching import angular_step, correlative_search, match_scan, refine_pose, score_pyramid
+from tests.planar_world import CORRIDOR, ROOM, scan
+
+
+def build_map(walls: np.ndarray, poses: list[tuple[float, float, float]], resolution: float = 0.05,
+              max_range: float = 30.0) -> LogOddsGrid:
+    grid = LogOddsGrid(resolution)
+    for pose in poses:
+        pose = np.array(pose)
+        points = scan_to_points(scan(walls, pose, beams=720, max_range=max_range))
+        grid.insert_rays(pose[:2], transform_points(pose, points))
+    return grid
+
+
+@pytest.fixture(scope="module")
+def room_map() -> LogOddsGrid:
+    return build_map(ROOM, [(0.0, 0.0, 0.0), (-2.0, 0.5, 1.0), (2.5, -1.5, -2.0)])
+
+
+@settings(max_examples=60, deadline=None)
+@given(arrays(np.float32, st.tuples(st.integers(1, 20), st.integers(1, 20)), elements=st.floats(0, 1, width=32)),
+       st.integers(1, 4))
+def test_pyramid_levels_are_block_maxima(field: np.ndarray, levels: int) -> None:
+    pyramid = score_pyramid(field, levels)
+    pad = 1 << (levels - 1)
+    padded = pyramid[0]
+    assert padded[pad:pad + field.shape[0], pad:pad + field.shape[1]].tolist() == field.tolist()
+    for h, level in enumerate(pyramid):
+        size = 1 << h
+        for r in range(0, padded.shape[0], 3):
+            for c in range(0, padded.shape[1], 3):
+                assert level[r, c] == padded[r:r + size, c:c + size].max()
+
+
+def test_branch_and_bound_finds_the_exhaustive_optimum(room_map: LogOddsGrid) -> None:
+    truth = np.array([0.4, -0.3, 0.5])
+    points = scan_to_points(scan(ROOM, truth, beams=180, noise_m=0.01, seed=3))
+    initial = np.array([0.1, 0.1, 0.35])
+    window, window_theta = 0.5, math.radians(12.0)
+    step = angular_step(room_map.resolution, float(np.hypot(*points.T).max()))
+    found = correlative_search(room_map, points, initial, window_xy_m=window, window_theta_rad=window_theta)
+    assert found is not None
+    # Exhaustive: every lattice pose, scored with the same likelihood field.
+    field = room_map.likelihood_field(room_map.resolution)
+    n = int(math.floor(window_theta / step))
+    limit = int(math.ceil(window / room_map.resolution))
+    best = -1.0
+    for theta in initial[2] + step * np.arange(-n, n + 1):
+        rotated = points @ np.array([[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]]).T
+        cells = np.floor((rotated + initial[:2] - room_map.origin) / room_map.resolution).astype(int)
+        d = np.arange(-limit, limit + 1)
+        cols = cells[:, 0][None, None, :] + d[:, None, None]
+        rows = cells[:, 1][None, None, :] + d[None, :, None]
+        inside = (cols >= 0) & (rows >= 0) & (cols < field.shape[1]) & (rows < field.shape[0])
+        values = np.where(inside, field[rows.clip(0, field.shape[0] - 1), cols.clip(0, field.shape[1] - 1)], 0.0)
+        best = max(best, float(values.mean(axis=2).max()))
+    assert found[1] == pytest.approx(best, abs=1e-6)
+    assert np.hypot(*(found[0][:2] - truth[:2])) < 0.06
+    assert abs(wrap_angle(found[0][2] - truth[2])) < math.radians(1.0)
+
+
+@pytest.mark.parametrize("offset", [(0.25, -0.2, 8.0), (-0.3, 0.3, -10.0), (0.05, 0.0, 2.0)])
+def test_match_recovers_true_pose_from_offset_guess(room_map: LogOddsGrid, offset: tuple[float, float, float]) -> None:
+    truth = np.array([-0.7, 0.9, 2.2])
+    points = scan_to_points(scan(ROOM, truth, beams=360, noise_m=0.01, seed=7))
+    guess = truth + np.array([offset[0], offset[1], math.radians(offset[2])])
+    result = match_scan(room_map, points, guess, window_xy_m=0.4, window_theta_rad=math.radians(12.0))
+    assert result is not None
+    assert np.hypot(*(result.pose[:2] - truth[:2])) < 0.02
+    assert abs(wrap_angle(result.pose[2] - truth[2])) < math.radians(0.3)
+    assert result.score > 0.6 and result.inlier_fraction > 0.95 and result.residual_m < 0.03
+    assert np.all(np.linalg.eigvalsh(result.covariance) > 0)
+
+
+def test_refinement_alone_converges_from_a_few_centimetres(room_map: LogOddsGrid) -> None:
+    truth = np.array([1.5, 0.5, -0.4])
+    points = scan_to_points(scan(ROOM, truth, beams=360, noise_m=0.005, seed=1))
+    result = refine_pose(room_map, points, truth + np.array([0.06, -0.05, math.radians(2.0)]))
+    assert np.hypot(*(result.pose[:2] - truth[:2])) < 0.02
+    assert abs(wrap_angle(result.pose[2] - truth[2])) < math.radians(0.3)
+    assert result.iterations > 1
+
+
+def test_corridor_is_uncertain_along_its_axis_only() -> None:
+    grid = build_map(CORRIDOR, [(x, 0.0, 0.0) for x in range(-10, 11, 2)], max_range=6.0)
+    truth = np.array([0.2, 0.1, 0.0])
+    points = scan_to_points(scan(CORRIDOR, truth, beams=360, noise_m=0.01, seed=2, max_range=6.0))
+    result = match_scan(grid, points, truth, window_xy_m=0.2, window_theta_rad=math.radians(5.0))
+    assert result is not None
+    std = np.sqrt(np.diag(result.covariance))
+    assert std[0] > 10 * std[1]
+    assert abs(result.pose[1] - truth[1]) < 0.02
+
+
+def test_no_match_below_min_score() -> None:
+    grid = build_map(ROOM, [(0.0, 0.0, 0.0)])
+    points = np.random.default_rng(0).uniform(-20, 20, (200, 2)) + 100.0
+    assert match_scan(grid, points, np.zeros(3), min_score=0.3) is None

@@ -12,9 +12,10 @@ import heapq
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import BinaryIO, Iterable, Iterator
 
 from mcap.records import Attachment, Channel, Chunk, Header, Message, Metadata, Schema, Statistics
+from mcap.reader import SeekingReader
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from logs import messages as m
@@ -135,14 +136,18 @@ class LogReader:
         """
         start_ns, end_ns = window
         with open(self.path, "rb") as f:
+            # Chunks hold the Schema/Channel records too: skipping one by time is safe only when
+            # the summary already told us every channel.
+            can_skip = (start_ns is not None or end_ns is not None) and self._load_summary_channels(f, scan)
+            f.seek(0)
             stream = StreamReader(f, emit_chunks=True, record_size_limit=1 << 32)
             try:
                 for record in stream.records:
                     if isinstance(record, Chunk):
                         scan.chunks += 1
                         scan.compression.add(record.compression or "none")
-                        if (start_ns is not None and record.message_end_time < start_ns) or (
-                                end_ns is not None and record.message_start_time >= end_ns):
+                        if can_skip and ((start_ns is not None and record.message_end_time < start_ns) or (
+                                end_ns is not None and record.message_start_time >= end_ns)):
                             continue
                         try:
                             inner = breakup_chunk(record, validate_crc=True)
@@ -161,6 +166,19 @@ class LogReader:
             except Exception as error:  # a torn or garbage tail: keep what came before it
                 scan.error = f"{type(error).__name__} after {scan.chunks} chunks" + (
                     f" ({error})" if str(error) else "")
+
+    @staticmethod
+    def _load_summary_channels(f: BinaryIO, scan: _Scan) -> bool:
+        """Fill ``scan`` with the summary's schemas and channels; False when there is no summary."""
+        try:
+            summary = SeekingReader(f).get_summary()
+        except Exception:  # no or damaged footer: a linear pass must see every chunk
+            return False
+        if summary is None:
+            return False
+        scan.schemas.update(summary.schemas)
+        scan.channels.update(summary.channels)
+        return True
 
     @staticmethod
     def _note(scan: _Scan, record: object) -> None:

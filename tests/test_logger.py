@@ -200,3 +200,20 @@ def test_active_file_copy_reads_while_logging(tmp_path: Path) -> None:
     shutil.copy(tmp_path / "live.mcap.active", snapshot)
     logger.close()
     assert sum(1 for _ in LogReader(snapshot).messages()) == 10
+
+
+def test_time_window_and_topic_filter(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    write_sample(path, seconds=2.0, chunk_size=4096)
+    start, end = T0 + 500_000_000, T0 + 1_000_000_000
+    got = list(LogReader(path).messages(["/scan"], start_ns=start, end_ns=end))
+    assert [x.log_time_ns for x in got] == [T0 + i * 25_000_000 + 1000 for i in range(20, 40)]
+
+
+def test_replay_command_prints_per_topic_summary(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "run.mcap"
+    write_sample(path, seconds=1.0)
+    assert main(["replay", str(path), "--rate", "0", "--topics", "/scan", "/wheels"]) == 0
+    out = capsys.readouterr().out
+    assert "replayed 50 messages" in out
+    assert "/scan" in out and "40 msgs" in out and "/wheels" in out and "10 msgs" in out

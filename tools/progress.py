@@ -10,9 +10,10 @@ from typing import TextIO
 class Progress:
     """``update(done)`` redraws ``label [#####     ] 42% done/total`` at most 10 times a second."""
 
-    def __init__(self, label: str, total: float, stream: TextIO = sys.stderr, force: bool = False) -> None:
-        self.label, self.total, self.stream = label, max(total, 1e-12), stream
-        self.enabled = force or stream.isatty()
+    def __init__(self, label: str, total: float, stream: TextIO | None = None, force: bool = False) -> None:
+        self.label, self.total = label, max(total, 1e-12)
+        self.stream = stream if stream is not None else sys.stderr
+        self.enabled = force or self.stream.isatty()
         self._last = 0.0
 
     def update(self, done: float, suffix: str = "") -> None:

@@ -59,6 +59,9 @@ class Message:
     __hash__ = None  # type: ignore[assignment]
 
 
+_SCAN_SCALARS = ("angle_min", "angle_max", "angle_increment", "time_increment", "scan_time", "range_min", "range_max")
+
+
 @dataclass(frozen=True, eq=False)
 class LaserScan(Message):
     """One sweep of a planar range finder (sensor_msgs/LaserScan).
@@ -81,9 +84,10 @@ class LaserScan(Message):
     intensities: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
 
     def __post_init__(self) -> None:
-        for name in ("angle_min", "angle_max", "angle_increment", "time_increment", "scan_time",
-                     "range_min", "range_max"):
-            object.__setattr__(self, name, _float32(getattr(self, name)))
+        scalars = np.array([self.angle_min, self.angle_max, self.angle_increment, self.time_increment,
+                            self.scan_time, self.range_min, self.range_max], np.float32).tolist()
+        for name, value in zip(_SCAN_SCALARS, scalars):
+            object.__setattr__(self, name, value)
         object.__setattr__(self, "ranges", _frozen_array(_f32(self.ranges)))
         object.__setattr__(self, "intensities", _frozen_array(_f32(self.intensities)))
 

@@ -1,0 +1,266 @@
+"""The camera driver: frames from a V4L2 camera, a video file, an image folder or an MJPEG
+stream, checked, stamped and published as ROS 2 image messages.
+
+Topics (``NAME`` is the ``name`` option, default ``camera``):
+  /NAME/image_raw/compressed  sensor_msgs/CompressedImage, format "jpeg": the camera's own JPEG
+                              bytes unchanged (MJPG pass-through), or raw frames encoded at
+                              ``jpeg_quality`` when ``raw_output = "jpeg"``
+  /NAME/image_raw             sensor_msgs/Image (bgr8 or mono8) when ``raw_output`` asks for it
+  /NAME/camera_info           sensor_msgs/CameraInfo, latched (calibration YAML or size only)
+  /tf_static                  parent_frame -> frame_id (config) -> optical_frame_id (REP 103)
+
+Time: the message stamp is the capture time (V4L2 buffer timestamp or file media time, on
+CLOCK_MONOTONIC) moved to wall time by the offset ``time_ns() - monotonic_ns()`` taken when the
+connection opens; MCAP log time is when the frame arrived. Frames missing from the timing (gaps
+over 1.5 periods) are counted as ``dropped``.
+
+Faults: no frame for ``stall_timeout_s`` -> ``stalls`` and reconnect with back-off; a device
+or file that disappears -> reconnect; a JPEG failing the marker check or the sampled decode ->
+``corrupt``, never logged. The end of a file (without ``loop``) stops the driver and sets
+``finished``.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import os
+import stat
+import threading
+import time
+from functools import partial
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from drivers.camera_config import CameraConfig, parse_camera_url
+from drivers.camera_info import load_camera_info, uncalibrated_camera_info
+from drivers.frame_grabber import FrameGrabber
+from drivers.frame_source import Frame, FrameSource, StallError
+from drivers.jpeg_check import CorruptJpeg, JpegChecker, jpeg_header
+from drivers.lifecycle import DeviceError, Driver, Sink, wall_ns
+from drivers.mjpeg_stream import MjpegStreamSource
+from drivers.v4l2_capture import V4L2Source, device_path
+from drivers.video_file import JPEG_SUFFIXES, ImageFolderSource, VideoFileSource, folder_images, probe_video
+from logs import messages as m
+from logs.errors import UserError
+
+# camera body (x forward, y left, z up) -> optical frame (x right, y down, z forward): rpy (-pi/2, 0, -pi/2)
+OPTICAL_ROTATION = (-0.5, 0.5, -0.5, 0.5)
+DROP_GAP = 1.5  # a gap longer than this many frame periods means frames were lost
+
+
+def static_transforms(config: CameraConfig, stamp_ns: int) -> m.TFMessage:
+    """parent_frame -> frame_id from ``config.transform`` and frame_id -> optical_frame_id."""
+    x, y, z, roll, pitch, yaw = config.transform
+    mount = m.TransformStamped(stamp_ns, config.parent_frame, config.frame_id, (x, y, z),
+                               Rotation.from_euler("xyz", (roll, pitch, yaw)).as_quat())
+    optical = m.TransformStamped(stamp_ns, config.frame_id, config.optical_frame_id, (0.0, 0.0, 0.0), OPTICAL_ROTATION)
+    return m.TFMessage((mount, optical))
+
+
+def count_dropped(previous_ns: int | None, t_ns: int, period_ns: float) -> int:
+    """Frames missing between capture times ``previous_ns`` and ``t_ns`` at ``period_ns`` spacing."""
+    if previous_ns is None or period_ns <= 0:
+        return 0
+    gap = t_ns - previous_ns
+    return max(0, round(gap / period_ns) - 1) if gap > DROP_GAP * period_ns else 0
+
+
+class CameraDriver(Driver):
+    """Supervised capture from ``source_factory()`` (a new source per connection).
+
+    Counters: ``frames`` published, ``corrupt`` JPEGs dropped, ``dropped`` frames missing from the
+    timing, ``overwritten`` frames replaced by newer ones before we read them, ``stalls``.
+    """
+
+    def __init__(self, config: CameraConfig, sink: Sink, source_factory: Callable[[], FrameSource], *,
+                 camera_info: m.CameraInfo | None = None, clock: Callable[[], int] = wall_ns,
+                 monotonic_ns: Callable[[], int] = time.monotonic_ns) -> None:
+        super().__init__(config.name, sink, hardware_id=config.target, clock=clock)
+        self.config = config
+        self.source_factory = source_factory
+        self.monotonic_ns = monotonic_ns
+        self.counters.update(frames=0, corrupt=0, dropped=0, overwritten=0, stalls=0)
+        self.finished = threading.Event()
+        self.settings: dict[str, str] = {}
+        self.last_corrupt = ""
+        self.offset_ns = 0
+        stamp = clock()
+        self.camera_info = camera_info or uncalibrated_camera_info(config.width, config.height,
+                                                                   config.optical_frame_id, stamp)
+        self._static = [(f"{config.topic_prefix}/camera_info", self.camera_info),
+                        ("/tf_static", static_transforms(config, stamp))]
+        self._checker = JpegChecker(config.decode_check_every)
+        self._grabber: FrameGrabber | None = None
+        self._overwritten_before = 0
+        self._period_ns = 0.0
+        self._last_t_ns: int | None = None
+        self._recent: collections.deque[int] = collections.deque(maxlen=61)
+
+    def static_messages(self) -> list[tuple[str, m.Message]]:
+        return list(self._static)
+
+    def open(self) -> None:
+        source = self.source_factory()
+        source.open()
+        self.offset_ns = self.clock() - self.monotonic_ns()
+        self.settings = source.settings()
+        self._grabber = FrameGrabber(source).start()
+        width, height = int(self.settings.get("width", 0)), int(self.settings.get("height", 0))
+        self._checker.expected_size = (width, height) if width and height else None
+        fps = float(self.settings.get("fps", 0)) or self.config.fps
+        self._period_ns = 1e9 / fps if fps > 0 else 0.0
+        self._last_t_ns = None
+
+    def read_once(self) -> None:
+        grabber = self._grabber
+        assert grabber is not None
+        frame = grabber.get(self.config.stall_timeout_s)
+        self.counters["overwritten"] = self._overwritten_before + grabber.overwritten
+        if frame is not None:
+            self._handle(frame)
+            return
+        if grabber.ended:
+            self.finished.set()
+            self._stop.set()
+            return
+        error = grabber.error
+        if error is None or isinstance(error, StallError):
+            self.counters["stalls"] += 1
+        if error is None:
+            raise StallError(f"no frame for {self.config.stall_timeout_s:g} s")
+        if isinstance(error, (DeviceError, OSError, ValueError)):
+            raise error
+        raise DeviceError(f"{type(error).__name__}: {error}")
+
+    def _handle(self, frame: Frame) -> None:
+        self.counters["dropped"] += count_dropped(self._last_t_ns, frame.t_ns, self._period_ns)
+        self._last_t_ns = frame.t_ns
+        stamp_ns = frame.t_ns + self.offset_ns
+        msg = self._message(frame, stamp_ns)
+        if msg is None:
+            self.counters["corrupt"] += 1
+            return
+        topic = "image_raw/compressed" if isinstance(msg, m.CompressedImage) else "image_raw"
+        self.publish(f"{self.config.topic_prefix}/{topic}", msg, frame.recv_ns + self.offset_ns)
+        self.counters["frames"] += 1
+        self._recent.append(frame.t_ns)
+
+    def _message(self, frame: Frame, stamp_ns: int) -> m.Message | None:
+        """The message for a frame, or None (reason in ``last_corrupt``) for a damaged one."""
+        frame_id = self.config.optical_frame_id
+        if frame.jpeg:
+            problem = self._checker.check(frame.data)  # type: ignore[arg-type]
+            if problem is not None:
+                self.last_corrupt = problem
+                return None
+            return m.CompressedImage(stamp_ns, frame_id, "jpeg", frame.data)  # type: ignore[arg-type]
+        image = frame.data
+        assert isinstance(image, np.ndarray)
+        if image.size == 0:
+            self.last_corrupt = "the source could not decode the frame"
+            return None
+        return encode_raw(image, stamp_ns, frame_id, self.config.raw_output, self.config.jpeg_quality)
+
+    def close(self) -> None:
+        grabber, self._grabber = self._grabber, None
+        if grabber is not None:
+            grabber.stop()
+            self._overwritten_before += grabber.overwritten
+
+    def measured_fps(self) -> float:
+        """Frame rate over the last (up to) 60 published frames, from their capture times."""
+        if len(self._recent) < 2 or self._recent[-1] <= self._recent[0]:
+            return 0.0
+        return (len(self._recent) - 1) * 1e9 / (self._recent[-1] - self._recent[0])
+
+    def diagnostics(self) -> m.DiagnosticStatus:
+        status = super().diagnostics()
+        extra = [(f"setting.{k}", v) for k, v in sorted(self.settings.items())]
+        extra += [("fps_measured", f"{self.measured_fps():.2f}"), ("clock_offset_ns", str(self.offset_ns))]
+        if self.last_corrupt:
+            extra.append(("last_corrupt", self.last_corrupt))
+        return dataclasses.replace(status, values=status.values + tuple(extra))
+
+
+def encode_raw(image: np.ndarray, stamp_ns: int, frame_id: str, output: str = "jpeg",
+               quality: int = 90) -> m.CompressedImage | m.Image:
+    """A raw (BGR or mono) frame as a JPEG at ``quality`` (1-100) or a bgr8/mono8 Image."""
+    if output == "jpeg":
+        ok, buffer = cv2.imencode(".jpg", image, (cv2.IMWRITE_JPEG_QUALITY, int(quality)))
+        if not ok:
+            raise ValueError("JPEG encoding failed")
+        return m.CompressedImage(stamp_ns, frame_id, "jpeg", buffer.tobytes())
+    if output == "mono8" and image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    elif output == "bgr8" and image.ndim == 2:
+        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    return m.Image.from_array(stamp_ns, frame_id, image, output)
+
+
+def _file_size(path: Path) -> tuple[int, int]:
+    """Image size (w, h) of a video file or the first image of a folder (0, 0 when unknown)."""
+    if path.is_dir():
+        images = folder_images(path)
+        if not images:
+            raise UserError(f"{path} holds no images ({', '.join(sorted(JPEG_SUFFIXES))}, .png, ...)")
+        first = images[0]
+        if first.suffix.lower() in JPEG_SUFFIXES:
+            try:
+                return jpeg_header(first.read_bytes())
+            except CorruptJpeg:
+                return 0, 0
+        image = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
+        return (0, 0) if image is None else (image.shape[1], image.shape[0])
+    probe = probe_video(path)
+    return probe.width, probe.height
+
+
+def _source_factory(config: CameraConfig, unsupported: set[str]) -> tuple[Callable[[], FrameSource], tuple[int, int]]:
+    """How to open the source of ``config`` (checked now: a bad path is a ``UserError``) and its size."""
+    if config.scheme == "v4l2":
+        path = device_path(config.target)
+        try:
+            mode = os.stat(path).st_mode
+        except FileNotFoundError:
+            raise UserError(f"no camera at {path} (see ls /dev/v4l/by-id/)") from None
+        if not stat.S_ISCHR(mode):
+            raise UserError(f"{path} is not a video device (for a video file use file://{os.path.abspath(path)})")
+        factory = partial(V4L2Source, path, width=config.width, height=config.height, fps=config.fps,
+                          fourcc=config.fourcc, buffers=config.buffers, controls=config.controls,
+                          unsupported=unsupported, stale_timeout_s=config.stall_timeout_s)
+        return factory, (config.width, config.height)
+    if config.scheme == "file":
+        path = Path(config.target).expanduser()
+        if not path.exists():
+            raise UserError(f"camera file not found: {path}")
+        size = _file_size(path)
+        kind = ImageFolderSource if path.is_dir() else VideoFileSource
+        return partial(kind, path, fps=config.fps or None, pace=config.pace, loop=config.loop), size
+    return partial(MjpegStreamSource, config.target, timeout_s=2 * config.stall_timeout_s), (config.width, config.height)
+
+
+def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = None) -> CameraDriver:
+    """A camera driver for ``url`` with the options of ``config`` (the ``[camera]`` table).
+
+    ``v4l2:///dev/video0?width=1280&height=720&fps=30&fourcc=MJPG``, ``file:///path/clip.avi``,
+    ``file:///path/folder/`` or ``http://host:port/stream.mjpg``; an unknown scheme, a bad path or
+    a bad option raises ``UserError``.
+    """
+    cfg = parse_camera_url(url, config)
+    unsupported: set[str] = set()
+    factory, (width, height) = _source_factory(cfg, unsupported)
+    if not cfg.width and width:
+        cfg = dataclasses.replace(cfg, width=width, height=height)
+    info = None
+    if cfg.calibration:
+        info = load_camera_info(cfg.calibration, cfg.optical_frame_id, wall_ns())
+        if cfg.width and (info.width, info.height) != (cfg.width, cfg.height):
+            raise UserError(f"calibration {cfg.calibration} is for {info.width}x{info.height} images, "
+                            f"the camera gives {cfg.width}x{cfg.height}")
+    return CameraDriver(cfg, sink, factory, camera_info=info)
+

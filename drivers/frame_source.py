@@ -1,0 +1,62 @@
+"""The seam between the camera driver and where frames come from (V4L2, a file, a stream).
+
+A source yields ``Frame``s: either the camera's own JPEG bytes (to be logged unchanged) or a
+pixel array, with the capture time on the host's CLOCK_MONOTONIC. The driver checks, stamps
+(monotonic -> wall) and publishes them; the source only captures.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from drivers.lifecycle import DeviceError
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One captured frame.
+
+    ``data`` is the JPEG bytes when ``jpeg`` is True, else an H x W x 3 BGR (or H x W mono)
+    uint8 array. ``t_ns`` is the capture time on CLOCK_MONOTONIC (the V4L2 buffer timestamp,
+    or for a file its media time after the stream's start); ``recv_ns`` when the host got it,
+    on the same clock.
+    """
+
+    data: bytes | np.ndarray
+    jpeg: bool
+    t_ns: int
+    recv_ns: int
+
+
+class EndOfStream(Exception):
+    """A file source has delivered its last frame."""
+
+
+class StallError(DeviceError):
+    """The source delivered no new frame in time."""
+
+
+class FrameSource(Protocol):
+    """Where frames come from. ``live`` sources are cameras (keep only the newest frame when the
+    reader falls behind); others are files (deliver every frame). A ``paced`` source's frames
+    are handed over no earlier than their ``t_ns``, as a camera would deliver them."""
+
+    description: str
+    live: bool
+    paced: bool
+
+    def open(self) -> None:
+        """Open the device or file; raise ``DeviceError`` (or ``OSError``) when it cannot be opened."""
+
+    def read(self) -> Frame | None:
+        """The next frame; None when no new frame came (not an error); raise ``DeviceError`` on
+        loss of the device, ``StallError`` when it stopped delivering, ``EndOfStream`` at the end."""
+
+    def close(self) -> None:
+        """Release the device; must not raise."""
+
+    def settings(self) -> dict[str, str]:
+        """The settings actually in effect (read back from the device), for diagnostics."""

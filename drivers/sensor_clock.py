@@ -1,0 +1,193 @@
+"""Host time of a device's wrapping tick counter: round-trip offset, unwrap, reset detection, drift.
+
+A sensor stamps its data with a free-running counter (Hokuyo: 24-bit milliseconds, wrapping
+every 4.66 h and set to 0 by a reboot). ``SensorClock`` turns each reading into host
+nanoseconds: the offset comes from request/reply round trips (median of the midpoint
+estimates, as urg_node does), wraps are unwrapped forwards, a reset is recognised when the
+counter claims more time passed than the host saw (seqsense/urg_stamped PR #65), and drift is
+the slope of receive latency against device time (urg_stamped models 50 ppm).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ClockReading:
+    """One converted reading: ``raw`` counter, ``unwrapped`` ticks, host ``stamp_ns`` and the
+    event it caused: "" normal, "wrap" the counter wrapped, "reset" the device clock restarted,
+    "resync" the offset was re-anchored on receive times."""
+
+    raw: int
+    unwrapped: int
+    stamp_ns: int
+    offset_ns: int
+    event: str = ""
+
+
+class SensorClock:
+    """Converts a ``bits``-wide device tick counter (``tick_ns`` per tick) to host nanoseconds.
+
+    Parameters
+    ----------
+    bits, tick_ns : counter width and tick length (Hokuyo: 24 bits of 1 ms).
+    reset_tolerance_ns : how much more time the device may claim to have passed than the host
+        saw between two readings before it counts as a reset.
+    resync_tolerance_ns : receive latency may leave its running median by this much (urg_node2
+        uses 0.1 s) for ``resync_after`` readings in a row before the offset is re-anchored.
+    bin_ticks : drift is fitted to the smallest receive latency in each bin of this many ticks
+        (the lower envelope is what transmission jitter cannot blur).
+    window : bins kept for the drift fit; ``min_drift_bins`` before drift is estimated.
+    max_drift_ppm : drift estimates are clipped to this magnitude.
+    """
+
+    RECENT = 64  # readings kept for the latency median
+
+    def __init__(self, bits: int = 24, tick_ns: int = 1_000_000, reset_tolerance_ns: int = 500_000_000,
+                 resync_tolerance_ns: int = 100_000_000, resync_after: int = 10, bin_ticks: int = 1000,
+                 window: int = 600, min_drift_bins: int = 30, max_drift_ppm: float = 1000.0) -> None:
+        self.mask = (1 << bits) - 1
+        self.tick_ns = tick_ns
+        self.reset_tolerance_ns = reset_tolerance_ns
+        self.resync_tolerance_ns = resync_tolerance_ns
+        self.resync_after = resync_after
+        self.bin_ticks = bin_ticks
+        self.window = window
+        self.min_drift_bins = min_drift_bins
+        self.max_drift_ppm = max_drift_ppm
+        self.offset_ns = 0
+        self.drift_ppm = 0.0
+        self.wraps = 0
+        self.resets = 0
+        self.resyncs = 0
+        self._ref = 0  # unwrapped tick at which offset_ns holds exactly
+        self._last_raw: int | None = None
+        self._last_host = 0
+        self._unwrapped = 0
+        self._recent = np.zeros(self.RECENT, np.float64)
+        self._n_recent = 0
+        self._outside = 0
+        self._bin_t = np.zeros(window, np.float64)
+        self._bin_y = np.zeros(window, np.float64)
+        self._bins = 0
+        self._bin = -1
+        self._bin_min = np.inf
+
+    @property
+    def synced(self) -> bool:
+        return self._last_raw is not None
+
+    def host_ns(self, unwrapped: int) -> int:
+        """Host time of an unwrapped tick count under the current offset and drift."""
+        elapsed = (unwrapped - self._ref) * self.tick_ns
+        return int(self.offset_ns + unwrapped * self.tick_ns + elapsed * self.drift_ppm * 1e-6)
+
+    def synchronise(self, samples: Sequence[tuple[int, int, int]]) -> int:
+        """Set the offset from round trips ``(host_request_ns, raw_ticks, host_reply_ns)``.
+
+        Each gives ``midpoint - device_time`` (plus half a tick: the counter truncates); the
+        median is kept. Unwrapping restarts at the last sample. Returns the offset in ns.
+        """
+        if not samples:
+            raise ValueError("clock synchronisation needs at least one round trip")
+        unwrapped = [samples[0][1] & self.mask]
+        for _, raw, _ in samples[1:]:
+            unwrapped.append(unwrapped[-1] + (((raw & self.mask) - unwrapped[-1]) & self.mask))
+        mids = [(req + rep) / 2.0 - u * self.tick_ns - self.tick_ns / 2.0
+                for (req, _, rep), u in zip(samples, unwrapped)]
+        self._restart(samples[-1][1] & self.mask, samples[-1][2])
+        self.offset_ns = int(np.median(mids)) + (unwrapped[-1] - self._unwrapped) * self.tick_ns
+        self.drift_ppm = 0.0
+        return self.offset_ns
+
+    def anchor(self, raw: int, host_ns: int, latency_ns: int = 0) -> None:
+        """Set the offset from one reading received at ``host_ns``, ``latency_ns`` after it was taken."""
+        self._restart(raw & self.mask, host_ns)
+        self.offset_ns = host_ns - latency_ns - self._unwrapped * self.tick_ns
+        self.drift_ppm = 0.0
+
+    def _restart(self, raw: int, host_ns: int) -> None:
+        self._last_raw = raw
+        self._last_host = host_ns
+        self._unwrapped = self._ref = raw
+        self._n_recent = self._outside = self._bins = 0
+        self._bin, self._bin_min = -1, np.inf
+
+    def update(self, raw: int, host_rx_ns: int) -> ClockReading:
+        """Convert a reading received at ``host_rx_ns`` (after its measurement) to host time."""
+        raw &= self.mask
+        if self._last_raw is None:
+            self.anchor(raw, host_rx_ns)
+            return ClockReading(raw, self._unwrapped, self.host_ns(self._unwrapped), self.offset_ns, "resync")
+        step = (raw - self._last_raw) & self.mask
+        host_step = host_rx_ns - self._last_host
+        event = ""
+        if step * self.tick_ns > host_step + self.reset_tolerance_ns:
+            event = "reset"
+            self.resets += 1
+            self._unwrapped += max(host_step, 0) // self.tick_ns
+            self._reanchor(host_rx_ns - self._median_latency())
+        else:
+            if raw < self._last_raw:
+                event = "wrap"
+                self.wraps += 1
+            self._unwrapped += step
+        self._last_raw = raw
+        self._last_host = host_rx_ns
+        stamp = self.host_ns(self._unwrapped)
+        if self._track(host_rx_ns, stamp) and not event:
+            event = "resync"
+            self.resyncs += 1
+            self._reanchor(host_rx_ns - self._median_latency())
+            stamp = self.host_ns(self._unwrapped)
+        return ClockReading(raw, self._unwrapped, stamp, self.offset_ns, event)
+
+    def _reanchor(self, stamp_ns: int) -> None:
+        """Make the current unwrapped tick map to ``stamp_ns``, keeping the drift estimate."""
+        self.offset_ns = stamp_ns - self._unwrapped * self.tick_ns
+        self._ref = self._unwrapped
+        self._outside = self._bins = 0
+        self._bin, self._bin_min = -1, np.inf
+
+    def _median_latency(self) -> int:
+        n = min(self._n_recent, self.RECENT)
+        return int(np.median(self._recent[:n])) if n else 0
+
+    def _track(self, host_rx_ns: int, stamp_ns: int) -> bool:
+        """Record a receive latency, update the drift; True when the offset needs re-anchoring."""
+        latency = host_rx_ns - stamp_ns
+        if latency < -self.resync_tolerance_ns:
+            return True
+        if self._n_recent >= self.resync_after and abs(latency - self._median_latency()) > self.resync_tolerance_ns:
+            self._outside += 1
+            return self._outside >= self.resync_after
+        self._outside = 0
+        self._recent[self._n_recent % self.RECENT] = latency
+        self._n_recent += 1
+        ticks = self._unwrapped - self._ref
+        plain = host_rx_ns - (self.offset_ns + self._unwrapped * self.tick_ns)  # latency without drift
+        current = ticks // self.bin_ticks
+        if current != self._bin:
+            if self._bin >= 0 and np.isfinite(self._bin_min):
+                slot = self._bins % self.window
+                self._bin_t[slot] = (self._bin + 0.5) * self.bin_ticks * self.tick_ns
+                self._bin_y[slot] = self._bin_min
+                self._bins += 1
+                if self._bins >= self.min_drift_bins:
+                    self._fit_drift()
+            self._bin, self._bin_min = current, np.inf
+        self._bin_min = min(self._bin_min, plain)
+        return False
+
+    def _fit_drift(self) -> None:
+        """Drift = slope of the per-bin minimum latency over device time."""
+        n = min(self._bins, self.window)
+        t, y = self._bin_t[:n], self._bin_y[:n]
+        if np.ptp(t) <= 0:
+            return
+        slope = np.polyfit(t, y, 1)[0]
+        self.drift_ppm = float(np.clip(slope * 1e6, -self.max_drift_ppm, self.max_drift_ppm))

@@ -119,10 +119,20 @@ class CameraDriver(Driver):
     def read_once(self) -> None:
         grabber = self._grabber
         assert grabber is not None
-        frame = grabber.get(self.config.stall_timeout_s)
+        deadline = time.monotonic() + self.config.stall_timeout_s
+        frame = None
+        while frame is None and not self.stopping and grabber.alive:  # short waits: stop() is prompt
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            frame = grabber.get(min(remaining, 0.1))
+        if frame is None:
+            frame = grabber.get(0.0)
         self.counters["overwritten"] = self._overwritten_before + grabber.overwritten
         if frame is not None:
             self._handle(frame)
+            return
+        if self.stopping:
             return
         if grabber.ended:
             self.finished.set()

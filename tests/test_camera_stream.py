@@ -1,0 +1,152 @@
+"""The camera emulator (MJPEG over HTTP) and the driver reading it: pass-through, stalls,
+unplug/replug, corrupt frames; the stream checked with the standard library's MIME parser."""
+
+from __future__ import annotations
+
+import email
+import urllib.request
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from camera_clips import avi_video_chunks, wait_for, write_clip
+from drivers.camera import CameraDriver, driver_from_url
+from logs import messages as m
+from tools.cli import main
+from tools.emulators.camera_emulator import BOUNDARY, CameraEmulator, synthetic_frame
+
+
+def start_driver(url: str, **options: object) -> tuple[CameraDriver, list[m.CompressedImage]]:
+    logged: list[m.CompressedImage] = []
+    driver = driver_from_url(url, lambda topic, msg, t: logged.append(msg), dict(options))
+    driver.start()
+    return driver, logged
+
+
+def is_subsequence(items: list[bytes], sequence: list[bytes]) -> bool:
+    it = iter(sequence)
+    return all(any(item == other for other in it) for item in items)
+
+
+def test_stream_is_logged_byte_for_byte() -> None:
+    with CameraEmulator(fps=30, width=320, height=240, history=1000) as emulator:
+        driver, logged = start_driver(emulator.url)
+        wait_for(lambda: len(logged) >= 15, what="frames")
+        driver.stop()
+        sent = list(emulator.history)
+    assert is_subsequence([msg.data for msg in logged], sent)
+    assert driver.settings["pass_through"] == "true"
+    assert driver.counters["corrupt"] == 0 and driver.camera_info.width == 0  # size unknown until frames come
+    stamps = [msg.stamp_ns for msg in logged]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+
+
+def test_stream_parts_parse_as_mime_multipart() -> None:
+    with CameraEmulator(fps=30, width=160, height=120, history=100) as emulator:
+        with urllib.request.urlopen(emulator.url, timeout=5) as response:
+            content_type = response.headers["Content-Type"]
+            body = b""
+            while body.count(f"--{BOUNDARY}".encode()) < 4:
+                body += response.read1(65536)
+        sent = list(emulator.history)
+    assert content_type == f"multipart/x-mixed-replace; boundary={BOUNDARY}"
+    complete = body[: body.rindex(f"--{BOUNDARY}".encode())] + f"--{BOUNDARY}--\r\n".encode()
+    message = email.message_from_bytes(f"Content-Type: {content_type}\r\n\r\n".encode() + complete)
+    parts = message.get_payload()
+    assert len(parts) == 3
+    for part in parts:
+        assert part.get_content_type() == "image/jpeg"
+        payload = part.get_payload(decode=True)
+        assert payload in sent and int(part["Content-Length"]) == len(payload)
+        assert cv2.imdecode(np.frombuffer(payload, np.uint8), cv2.IMREAD_COLOR).shape == (120, 160, 3)
+
+
+def test_stall_is_detected_without_a_long_hang_and_recovers() -> None:
+    with CameraEmulator(fps=30, width=160, height=120) as emulator:
+        driver, logged = start_driver(emulator.url, stall_timeout_s=0.4)
+        wait_for(lambda: len(logged) >= 5, what="frames")
+        emulator.stall(1.5)
+        wait_for(lambda: driver.counters["stalls"] >= 1, what="stall detection")
+        assert "no frame for 0.4 s" in driver.last_error
+        before = len(logged)
+        wait_for(lambda: driver.counters["reconnects"] >= 1 and len(logged) >= before + 5, what="recovery")
+        driver.stop()
+    assert driver.state == "stopped" and not driver._thread.is_alive()
+
+
+def test_unplug_and_replug_reconnects() -> None:
+    with CameraEmulator(fps=30, width=160, height=120, history=1000) as emulator:
+        driver, logged = start_driver(emulator.url)
+        wait_for(lambda: len(logged) >= 5, what="frames")
+        emulator.unplug()
+        wait_for(lambda: driver.counters["errors"] >= 2, what="failed reconnects")
+        assert driver.counters["reconnects"] == 0
+        before = len(logged)
+        emulator.replug()
+        wait_for(lambda: driver.counters["reconnects"] == 1 and len(logged) >= before + 5, what="frames after replug")
+        driver.stop()
+        sent = list(emulator.history)
+    assert is_subsequence([msg.data for msg in logged], sent)
+
+
+def test_damaged_frames_from_the_link_are_counted_not_logged() -> None:
+    with CameraEmulator(fps=30, width=160, height=120, history=1000) as emulator:
+        driver, logged = start_driver(emulator.url)
+        wait_for(lambda: len(logged) >= 3, what="frames")
+        emulator.corrupt_next(3, "truncate")
+        emulator.corrupt_next(2, "marker")
+        wait_for(lambda: emulator.corrupted == 5 and len(logged) >= 15, what="damaged frames sent")
+        driver.stop()
+        sent = list(emulator.history)
+    assert driver.counters["corrupt"] == 5
+    assert is_subsequence([msg.data for msg in logged], sent)
+
+
+def test_emulator_serves_mjpeg_file_packets_unchanged(tmp_path: Path) -> None:
+    clip = tmp_path / "clip.avi"
+    write_clip(clip, count=10, fps=30.0, size=(160, 120))
+    chunks = [payload for _, payload in avi_video_chunks(clip)]
+    with CameraEmulator(source=clip, history=100) as emulator:
+        assert emulator.fps == 30.0
+        driver, logged = start_driver(emulator.url)
+        wait_for(lambda: len(logged) >= 12, what="frames")
+        driver.stop()
+        sent = list(emulator.history)
+    assert sent[:10] == chunks and sent[10:20] == chunks[: len(sent[10:20])]  # looped
+    assert {msg.data for msg in logged} <= set(chunks)
+
+
+def test_emulator_renders_frames_from_a_callable() -> None:
+    times: list[float] = []
+
+    def frame_at(t_s: float) -> np.ndarray:
+        times.append(t_s)
+        return synthetic_frame(t_s, 200, 100)
+
+    with CameraEmulator(frame_at, fps=50, history=10) as emulator:
+        wait_for(lambda: len(times) >= 5, what="rendered frames")
+        first = emulator.history[0]
+    steps = np.diff(times[:5])
+    assert np.all(np.isclose(steps, 0.02) | (steps > 0.02))  # scene time advances at 1/fps (or skips when late)
+    assert cv2.imdecode(np.frombuffer(first, np.uint8), cv2.IMREAD_COLOR).shape == (100, 200, 3)
+
+
+def test_synthetic_scene_moves_and_has_texture() -> None:
+    a, b = synthetic_frame(0.0, 320, 240), synthetic_frame(0.5, 320, 240)
+    assert a.shape == (240, 320, 3) and a.dtype == np.uint8
+    assert np.mean(a != b) > 0.1
+    assert len(cv2.ORB_create().detect(cv2.cvtColor(a, cv2.COLOR_BGR2GRAY))) > 50
+
+
+def test_cli_serves_and_reports(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["emulate", "camera", "--port", "0", "--duration", "0.3", "--width", "160", "--height", "120"]) == 0
+    out = capsys.readouterr().out
+    assert "http://127.0.0.1:" in out and "/stream.mjpg" in out and "served" in out
+
+
+def test_cli_bad_source_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["emulate", "camera", "--source", str(tmp_path / "none.avi"), "--duration", "0.1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not found" in err

@@ -17,6 +17,7 @@ from logs import messages as m
 from logs.errors import UserError
 from logs.reader import LogMessage, LogReader
 from logs.writer import Logger
+from tools.cli import main
 
 IMAGE_TOPIC = "/camera/image_raw/compressed"
 
@@ -270,3 +271,23 @@ def test_calibration_for_another_size_is_refused(clip: Path, tmp_path: Path) -> 
                            "[1, 0, 0, 0, 1, 0, 0, 0, 1]}\ndistortion_coefficients: {rows: 1, cols: 5, data: [0, 0, 0, 0, 0]}\n")
     with pytest.raises(UserError, match="640x480"):
         driver_from_url(f"file://{clip}", lambda *a: None, {"calibration": str(calibration)})
+
+
+def test_trundle_record_logs_a_camera(clip: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "run.mcap"
+    assert main(["record", "--camera", f"file://{clip}?pace=0", "--duration", "1", "-o", str(out)]) == 0
+    with LogReader(out) as reader:
+        topics = reader.info().topics
+        logged = [entry.msg.data for entry in reader.messages([IMAGE_TOPIC])]
+        diagnostics = [entry.msg for entry in reader.messages(["/diagnostics"])]
+    assert logged == [payload for _, payload in avi_video_chunks(clip)]
+    assert topics["/camera/camera_info"].count == 1 and topics["/tf_static"].count == 1
+    values = dict(diagnostics[-1].status[0].values)
+    assert values["frames"] == "30" and values["setting.fourcc"] == "MJPG"
+    assert "camera: " in capsys.readouterr().out
+
+
+def test_trundle_record_bad_camera_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["record", "--camera", "v4l2:///dev/video-none", "-o", str(tmp_path / "x.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no camera at /dev/video-none" in err

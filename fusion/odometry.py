@@ -189,6 +189,8 @@ class DiffDriveOdometry:
         return self._advance(stamps, left, right)
 
     def _mark_stale(self, stamp_ns: int) -> None:
+        if self._ref is None and not self.stale:
+            return  # no reference yet (start-up): nothing is lost
         if not self.stale:
             self.stale = True
             self._stale_since_ns = self._ref[0] if self._ref is not None else stamp_ns

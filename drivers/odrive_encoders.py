@@ -1,0 +1,130 @@
+"""Wheel positions from ODrive axes over CAN Simple: cyclic encoder estimates (or polled
+encoder counts), heartbeat and axis-error watch."""
+
+from __future__ import annotations
+
+import math
+
+import can
+
+from drivers import odrive
+from drivers.can_bus import CanBus
+from drivers.encoder_protocol import EncoderProtocol, HeartbeatWatchdog, WheelReading
+
+AXIS_STATES = {0: "undefined", 1: "idle", 2: "startup", 3: "full calibration", 4: "motor calibration",
+               6: "index search", 7: "offset calibration", 8: "closed loop", 9: "lockin spin",
+               10: "direction find", 11: "homing"}
+
+
+class OdriveEncoders(EncoderProtocol):
+    """ODrive axes ``node_ids`` (one per wheel, in the order of ``wheels``).
+
+    Parameters
+    ----------
+    firmware : ``"0.5"`` or ``"0.6"``: heartbeat layout (pin it per robot).
+    source : ``"estimates"`` (0x009, position in turns, cyclic by default) or ``"counts"``
+        (0x00A shadow count, exact integers; needs ``counts_per_rev`` and usually ``poll_hz``).
+    poll_hz : if > 0, request the source message by RTR at this rate (for axes whose cyclic
+        message is off).
+    heartbeat_timeout_s : an axis is stale after this long without a heartbeat (0 = no watch;
+        ODrive sends one every 100 ms by default).
+    data_timeout_s : a wheel is stale after this long without a position.
+    """
+
+    name = "odrive"
+
+    def __init__(self, node_ids: tuple[int, ...], wheels: tuple[int, ...], *, firmware: str = "0.5",
+                 source: str = "estimates", counts_per_rev: int | None = None, poll_hz: float = 0.0,
+                 heartbeat_timeout_s: float = 0.35, data_timeout_s: float = 0.25) -> None:
+        super().__init__(wheels)
+        if len(node_ids) != len(wheels):
+            raise ValueError("one ODrive node id per wheel")
+        if firmware not in odrive.FIRMWARES:
+            raise ValueError(f"ODrive firmware must be one of {', '.join(odrive.FIRMWARES)}, got {firmware!r}")
+        if source not in ("estimates", "counts"):
+            raise ValueError(f"ODrive source must be estimates or counts, got {source!r}")
+        if source == "counts" and not counts_per_rev:
+            raise ValueError("ODrive source counts needs counts_per_rev (the encoder CPR)")
+        for node in node_ids:
+            odrive.arbitration_id(node, 0)
+        self.node_ids = tuple(node_ids)
+        self.firmware, self.source = firmware, source
+        self.poll_period_ns = int(1e9 / poll_hz) if poll_hz > 0 else 0
+        self._wheel_of = dict(zip(self.node_ids, wheels))
+        cpr = 1.0 if source == "estimates" else float(counts_per_rev)  # type: ignore[arg-type]
+        self.counts_per_rev = {w: cpr for w in wheels}
+        self._cmd = odrive.GET_ENCODER_ESTIMATES if source == "estimates" else odrive.GET_ENCODER_COUNT
+        self.heartbeats = HeartbeatWatchdog(heartbeat_timeout_s)
+        self.watch_heartbeat = heartbeat_timeout_s > 0
+        self.data = HeartbeatWatchdog(data_timeout_s)
+        self.last_heartbeat: dict[int, odrive.Heartbeat] = {}
+        self._vel_turns: dict[int, float] = {}
+        self._bus: CanBus | None = None
+        self._next_poll = 0
+
+    def start(self, bus: CanBus, now_ns: int) -> None:
+        self._bus = bus
+        self.heartbeats.reset()
+        self.data.reset()
+        self.last_heartbeat.clear()
+        self._next_poll = now_ns
+
+    def handle(self, msg: can.Message, now_ns: int) -> list[WheelReading]:
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            return []
+        node, cmd = odrive.split_id(msg.arbitration_id)
+        wheel = self._wheel_of.get(node)
+        if wheel is None:
+            return []
+        if cmd == odrive.HEARTBEAT:
+            heartbeat = odrive.decode_heartbeat(msg.data, self.firmware)
+            previous = self.last_heartbeat.get(node)
+            if heartbeat.axis_error and (previous is None or previous.axis_error != heartbeat.axis_error):
+                self.counters["axis_errors"] += 1
+            self.last_heartbeat[node] = heartbeat
+            self.heartbeats.beat(node, now_ns)
+            return []
+        if cmd == odrive.GET_ENCODER_ESTIMATES:
+            pos, vel = odrive.decode_encoder_estimates(msg.data)
+            self._vel_turns[node] = vel
+            if self.source == "estimates":
+                self.data.beat(node, now_ns)
+                return [WheelReading(wheel, pos, vel)]
+            return []
+        if cmd == odrive.GET_ENCODER_COUNT and self.source == "counts":
+            shadow, _ = odrive.decode_encoder_count(msg.data)
+            self.data.beat(node, now_ns)
+            vel = self._vel_turns.get(node, math.nan) * self.counts_per_rev[wheel]
+            return [WheelReading(wheel, shadow, vel, 2**32)]
+        return []
+
+    def _encoder_fault(self, node: int) -> bool:
+        """0.5 firmware flags an encoder error in heartbeat byte 6: positions are not trusted."""
+        heartbeat = self.last_heartbeat.get(node)
+        return heartbeat is not None and self.firmware == "0.5" and bool(heartbeat.flags[1] & 1)
+
+    def healthy_wheels(self, now_ns: int) -> set[int]:
+        return {self._wheel_of[n] for n in self.node_ids
+                if self.data.alive(n, now_ns) and not self._encoder_fault(n)
+                and (not self.watch_heartbeat or self.heartbeats.alive(n, now_ns))}
+
+    def poll(self, now_ns: int) -> None:
+        lost = self.heartbeats.check(now_ns) if self.watch_heartbeat else set()
+        self.counters["heartbeat_losses"] += len(lost)
+        self.counters["data_losses"] += len(self.data.check(now_ns))
+        if self.poll_period_ns and self._bus is not None and now_ns >= self._next_poll:
+            self._next_poll = now_ns + self.poll_period_ns
+            for node in self.node_ids:
+                self._bus.send(can.Message(arbitration_id=odrive.arbitration_id(node, self._cmd),
+                                           is_extended_id=False, is_remote_frame=True, dlc=8))
+
+    def diagnostics(self) -> list[tuple[str, str]]:
+        values = super().diagnostics()
+        for node in self.node_ids:
+            heartbeat = self.last_heartbeat.get(node)
+            if heartbeat is None:
+                values.append((f"odrive.{node}", "no heartbeat"))
+            else:
+                state = AXIS_STATES.get(heartbeat.axis_state, str(heartbeat.axis_state))
+                values.append((f"odrive.{node}", f"{state}, axis_error=0x{heartbeat.axis_error:08X}"))
+        return values

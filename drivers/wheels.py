@@ -1,0 +1,296 @@
+"""Wheel-encoder driver on a CAN bus: raw frames on ``/can/rx``, wheel angles on ``/wheels``,
+and (when the wheel geometry is configured) odometry on ``/odom`` with ``odom -> base_link`` on ``/tf``.
+
+Configuration (the ``[can]`` table of the robot TOML; ``encoders`` also from ``--encoders``)::
+
+    url = "slcan:///dev/ttyACM0@1000000"
+    encoders = "odrive:0,1"          # or "cia406:5,6", "dbc:/path/robot.dbc", or groups joined by "+"
+    wheels = ["left", "right"]       # joint names, one per encoder in order
+    direction = [1, -1]              # +1 / -1 per wheel (or one number): forward = positive
+    gear_ratio = 1.0                 # motor turns per wheel turn (per wheel or one number)
+    counts_per_rev = 8192            # override the device's counts per motor turn (optional)
+    wheel_radius_m = 0.08            # with track_m: publish odometry
+    track_m = 0.35
+    [can.odrive]   firmware = "0.5", source = "estimates", poll_hz = 0, heartbeat_timeout_s = 0.35
+    [can.cia406]   eds = "...", counts_per_rev = 4096, tpdo_period_ms = 10, heartbeat_ms = 100
+    [can.dbc]      signals = ["Msg.Signal", ...], units_per_rev = 42, velocity_signals = [...]
+
+A wheel whose node stops its heartbeat or its positions is published as NaN (stale): the
+odometry then stops, and restarts from the next good reading without a jump.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from drivers.can_bus import CanBus, Received, parse_url
+from drivers.cia406 import Cia406Encoders
+from drivers.counter_unwrap import CounterUnwrapper
+from drivers.dbc_wheels import DbcWheels
+from drivers.encoder_protocol import EncoderProtocol, WheelReading, per_wheel
+from drivers.lifecycle import Driver, Sink
+from drivers.odrive_encoders import OdriveEncoders
+from fusion.odometry import DiffDriveOdometry, odometry_transform
+from logs import messages as m
+from logs.errors import UserError
+
+PROTOCOLS = ("odrive", "cia406", "dbc")
+
+
+def _per_wheel(config: Mapping[str, Any], key: str, n: int, default: float) -> list[float]:
+    try:
+        return per_wheel(config.get(key, default), n, key)
+    except ValueError as error:
+        raise UserError(str(error)) from None
+
+
+def _node_ids(protocol: str, text: str) -> tuple[int, ...]:
+    try:
+        ids = tuple(int(t, 0) for t in text.split(",") if t.strip())
+    except ValueError:
+        raise UserError(f"{protocol} node ids must be integers, got {text!r}") from None
+    if not ids:
+        raise UserError(f"no node ids after {protocol}:")
+    return ids
+
+
+def build_protocols(spec: str, config: Mapping[str, Any]) -> list[EncoderProtocol]:
+    """Encoder protocols from an ``--encoders`` spec such as ``odrive:0,1`` or
+    ``cia406:5+dbc:robot.dbc``; wheels are numbered in the order they appear."""
+    protocols: list[EncoderProtocol] = []
+    first = 0
+    for group in spec.split("+"):
+        kind, sep, arg = group.strip().partition(":")
+        kind = kind.lower()
+        if not sep or kind not in PROTOCOLS:
+            raise UserError(f"bad encoder spec {group!r}: use odrive:0,1, cia406:5,6 or dbc:/path/file.dbc")
+        options = dict(config.get(kind, {}))
+        try:
+            if kind == "odrive":
+                ids = _node_ids(kind, arg)
+                protocol: EncoderProtocol = OdriveEncoders(ids, tuple(range(first, first + len(ids))), **options)
+            elif kind == "cia406":
+                ids = _node_ids(kind, arg)
+                protocol = Cia406Encoders(ids, tuple(range(first, first + len(ids))), **options)
+            else:
+                signals = options.pop("signals", None)
+                if not signals:
+                    raise UserError("dbc encoders need [can.dbc] signals = [\"Message.Signal\", ...], one per wheel")
+                protocol = DbcWheels(arg, list(signals), tuple(range(first, first + len(signals))), **options)
+        except TypeError as error:
+            raise UserError(f"bad [can.{kind}] option: {error}") from None
+        except ValueError as error:
+            raise UserError(f"{kind} encoders: {error}") from None
+        protocols.append(protocol)
+        first += len(protocol.wheels)
+    return protocols
+
+
+class WheelsDriver(Driver):
+    """Reads a CAN bus, decodes wheel encoders, publishes frames, wheel states and odometry."""
+
+    def __init__(self, bus: CanBus, protocols: list[EncoderProtocol], sink: Sink, *, names: tuple[str, ...],
+                 direction: list[float], gear_ratio: list[float], counts_per_rev: list[float | None],
+                 odometry: DiffDriveOdometry | None = None, publish_frames: bool = True, name: str = "can",
+                 poll_period_s: float = 0.005) -> None:
+        super().__init__(name, sink, hardware_id=bus.spec.url)
+        self.bus = bus
+        self.protocols = protocols
+        self.names = names
+        n = len(names)
+        if sum(len(p.wheels) for p in protocols) != n:
+            raise UserError(f"{n} wheel names for {sum(len(p.wheels) for p in protocols)} encoders")
+        self.direction = np.asarray(direction, dtype=np.float64)
+        self.gear_ratio = np.asarray(gear_ratio, dtype=np.float64)
+        self.counts_override = counts_per_rev
+        self.odometry = odometry
+        self.publish_frames = publish_frames
+        self.poll_period_ns = int(poll_period_s * 1e9)
+        self.frame_id = bus.spec.channel.rsplit("/", 1)[-1]
+        self._unwrap: list[CounterUnwrapper | None] = [None] * n
+        self._position = np.full(n, math.nan)  # rad, at _sampled_ns
+        self._velocity = np.full(n, math.nan)  # rad/s: the device's, else from the last two positions
+        self._sampled_ns = np.zeros(n, dtype=np.int64)
+        self._fresh = np.zeros(n, dtype=bool)
+        self._healthy: set[int] = set()
+        self._next_poll = 0
+        self._published_finite = False
+
+    # -- life cycle ----------------------------------------------------------------------------
+    def open(self) -> None:
+        self.bus.open()
+        now = time.monotonic_ns()
+        for protocol in self.protocols:
+            protocol.start(self.bus, now)
+        self._unwrap = [None] * len(self.names)
+        self._fresh[:] = False
+        self._healthy = set()
+
+    def close(self) -> None:
+        for protocol in self.protocols:
+            protocol.stop()
+        if self._published_finite:  # whatever happens while disconnected is not integrated
+            self._publish_stale(set(range(len(self.names))), self.bus.host_ns() if self.bus.bus else self.clock())
+        self.bus.close()
+
+    def read_once(self) -> None:
+        received = self.bus.recv(0.01)
+        now = time.monotonic_ns()
+        if received is not None:
+            self.handle(received, now)
+        if now >= self._next_poll:
+            self._next_poll = now + self.poll_period_ns
+            self.poll(now)
+
+    # -- processing (also used directly by tests and replays) ----------------------------------
+    def handle(self, received: Received, now_ns: int) -> None:
+        msg = received.msg
+        self.counters["frames"] += 1
+        if self.publish_frames:
+            self.publish("/can/rx", m.CanFrame(received.stamp_ns, self.frame_id, msg.arbitration_id, bytes(msg.data),
+                                               msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame),
+                         received.host_ns)
+        if msg.is_error_frame:
+            return
+        readings: list[WheelReading] = []
+        for protocol in self.protocols:
+            try:
+                readings += protocol.handle(msg, now_ns)
+            except ValueError:
+                self.counters["decode_errors"] += 1
+        if not readings:
+            return
+        healthy = self._healthy_now(now_ns)
+        for reading in readings:
+            self._apply(reading, healthy, received.stamp_ns)
+        if healthy and all(self._fresh[w] for w in healthy):
+            self._publish(healthy, received.stamp_ns, received.host_ns)
+
+    def poll(self, now_ns: int) -> None:
+        for protocol in self.protocols:
+            protocol.poll(now_ns)
+        healthy = self._healthy_now(now_ns)
+        lost = self._healthy - healthy
+        self._healthy = healthy
+        if lost:
+            self.counters["stale_events"] += len(lost)
+            for w in lost:
+                self._unwrap[w] = None
+            self._publish_stale(lost, self.bus.host_ns())
+
+    def _healthy_now(self, now_ns: int) -> set[int]:
+        healthy: set[int] = set()
+        for protocol in self.protocols:
+            healthy |= protocol.healthy_wheels(now_ns)
+        return healthy
+
+    def _apply(self, reading: WheelReading, healthy: set[int], stamp_ns: int) -> None:
+        w = reading.wheel
+        if w not in healthy:
+            self._unwrap[w] = None
+            self._position[w] = math.nan
+            return
+        position = reading.position
+        if reading.modulus is not None:
+            unwrapper = self._unwrap[w]
+            if unwrapper is None or unwrapper.modulus != reading.modulus:
+                unwrapper = self._unwrap[w] = CounterUnwrapper(reading.modulus)
+            position = unwrapper.update(int(position))
+        counts = self.counts_override[w] or self._counts_per_rev(w)
+        scale = 2.0 * math.pi * self.direction[w] / (counts * self.gear_ratio[w])
+        angle = position * scale
+        velocity = reading.velocity * scale
+        dt = (stamp_ns - self._sampled_ns[w]) * 1e-9
+        if math.isnan(velocity) and dt > 0:
+            velocity = (angle - self._position[w]) / dt  # NaN after a gap
+        self._position[w], self._velocity[w], self._sampled_ns[w] = angle, velocity, stamp_ns
+        self._fresh[w] = True
+
+    def _counts_per_rev(self, wheel: int) -> float:
+        for protocol in self.protocols:
+            if wheel in protocol.counts_per_rev:
+                return protocol.counts_per_rev[wheel]
+        raise UserError(f"counts per revolution of wheel {self.names[wheel]} unknown: set counts_per_rev")
+
+    def _publish(self, healthy: set[int], stamp_ns: int, log_ns: int) -> None:
+        """Publish every wheel at ``stamp_ns``: wheels sampled earlier (each axis sends on its
+        own clock) are carried forward by their velocity, so the pair describes one instant."""
+        velocities = self._velocity.copy()
+        lag_s = (stamp_ns - self._sampled_ns) * 1e-9
+        positions = self._position + np.where(np.isfinite(velocities), velocities, 0.0) * lag_s
+        stale = [w for w in range(len(self.names)) if w not in healthy]
+        positions[stale] = math.nan
+        velocities[stale] = math.nan
+        self._fresh[:] = False
+        self._published_finite = bool(np.isfinite(positions).any())
+        self._emit(m.JointState(stamp_ns, "base_link", self.names, positions,
+                                velocities if np.isfinite(velocities).any() else ()), log_ns)
+
+    def _publish_stale(self, lost: set[int], now_ns: int) -> None:
+        positions = self._position.copy()
+        positions[list(lost)] = math.nan
+        self._position[list(lost)] = math.nan
+        self._published_finite = bool(np.isfinite(positions).any())
+        self._emit(m.JointState(now_ns, "base_link", self.names, positions), now_ns)
+
+    def _emit(self, state: m.JointState, log_ns: int) -> None:
+        self.counters["joint_states"] += 1
+        self.publish("/wheels", state, log_ns)
+        if self.odometry is not None:
+            odom = self.odometry.update(state)
+            if odom is not None:
+                self.publish("/odom", odom, log_ns)
+                self.publish("/tf", odometry_transform(odom), log_ns)
+
+    # -- health --------------------------------------------------------------------------------
+    def diagnostics(self) -> m.DiagnosticStatus:
+        status = super().diagnostics()
+        stale = [self.names[w] for w in range(len(self.names)) if w not in self._healthy]
+        values = [*status.values, ("bus_state", self.bus.state),
+                  *sorted((f"bus.{k}", str(v)) for k, v in self.bus.counters.items()),
+                  ("stale_wheels", ",".join(stale) or "none")]
+        for protocol in self.protocols:
+            values += protocol.diagnostics()
+        level, message = status.level, status.message
+        if self.odometry is not None:
+            values += [("odometry_gaps", str(self.odometry.gaps)), ("odometry_stale", str(self.odometry.stale))]
+        if status.level == m.OK and (stale or self.bus.state != "active"):
+            level = m.WARN
+            message = f"stale wheels: {', '.join(stale)}" if stale else f"bus {self.bus.state}"
+        return m.DiagnosticStatus(level, status.name, message, status.hardware_id, tuple(values))
+
+
+def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any]) -> WheelsDriver:
+    """The wheels driver for CAN ``url`` with ``config`` (the ``[can]`` table, ``encoders`` set)."""
+    spec = parse_url(url)
+    encoders = config.get("encoders")
+    if not encoders:
+        raise UserError("no wheel encoders given: use --encoders odrive:0,1 (or encoders in [can])")
+    protocols = build_protocols(str(encoders), config)
+    n = sum(len(p.wheels) for p in protocols)
+    names = tuple(config.get("wheels", ("left", "right") if n == 2 else tuple(f"wheel{i}" for i in range(n))))
+    if len(names) != n:
+        raise UserError(f"{len(names)} wheel names for {n} encoders in {encoders!r}")
+    direction = _per_wheel(config, "direction", n, 1.0)
+    if any(d not in (1.0, -1.0) for d in direction):
+        raise UserError(f"direction must be 1 or -1 per wheel, got {direction}")
+    gear = _per_wheel(config, "gear_ratio", n, 1.0)
+    counts = _per_wheel(config, "counts_per_rev", n, 0.0) if "counts_per_rev" in config else [0.0] * n
+    if any(g <= 0 for g in gear) or any(c < 0 for c in counts):
+        raise UserError("gear_ratio and counts_per_rev must be positive")
+    odometry = None
+    if "wheel_radius_m" in config or "track_m" in config:
+        if n < 2:
+            raise UserError("odometry needs two wheels")
+        left, right = config.get("odometry_wheels", names[:2])
+        odometry = DiffDriveOdometry(float(config.get("wheel_radius_m", 0)), float(config.get("track_m", 0)),
+                                     left=left, right=right,
+                                     wheel_variance_per_m=float(config.get("wheel_variance_per_m", 1e-4)))
+    return WheelsDriver(CanBus(spec), protocols, sink, names=names, direction=direction, gear_ratio=gear,
+                        counts_per_rev=[c or None for c in counts], odometry=odometry,
+                        publish_frames=bool(config.get("publish_frames", True)), name=str(config.get("name", "can")))

@@ -1,0 +1,122 @@
+"""Test rig for the CAN wheel encoders: emulated nodes on a virtual bus or behind the SLCAN pty
+emulator, the real wheels driver (python-can slcan / virtual) publishing into a list."""
+
+from __future__ import annotations
+
+import math
+import time
+import uuid
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import can
+import numpy as np
+
+from drivers.wheels import WheelsDriver, driver_from_url
+from logs import messages as m
+from tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes,
+                                       odrive_nodes, vesc_nodes)
+from tools.emulators.slcan_emulator import SlcanEmulator
+
+VESC_DBC = Path(__file__).resolve().parents[1] / "drivers" / "data" / "vesc_status.dbc"
+RADIUS, TRACK = 0.1, 0.5
+POLE_PAIRS = 7
+
+
+def protocol_setup(protocol: str, node_options: dict[str, Any]) -> tuple[list[EmulatedNode], dict[str, Any]]:
+    """Two emulated nodes (left, right) and the driver config that reads them."""
+    if protocol == "odrive":
+        return odrive_nodes([0, 1], **node_options), {"encoders": "odrive:0,1"}
+    if protocol == "cia406":
+        return cia406_nodes([5, 6], **node_options), {"encoders": "cia406:5,6"}
+    if protocol == "dbc":
+        return vesc_nodes(VESC_DBC, [9, 10], pole_pairs=POLE_PAIRS, **node_options), {
+            "encoders": f"dbc:{VESC_DBC}",
+            "dbc": {"signals": ["VESC_Status5_id9.Tachometer", "VESC_Status5_id10.Tachometer"],
+                    "velocity_signals": ["VESC_Status1_id9.ERPM", "VESC_Status1_id10.ERPM"],
+                    "units_per_rev": 6 * POLE_PAIRS, "velocity_scale": 1 / (60 * POLE_PAIRS)}}
+    raise ValueError(protocol)
+
+
+@dataclass
+class Rig:
+    driver: WheelsDriver
+    runner: CanNodeRunner
+    adapter: SlcanEmulator | None
+    script: VelocityScript
+    log: list[tuple[str, m.Message, int]] = field(default_factory=list)
+
+    @property
+    def nodes(self) -> list[EmulatedNode]:
+        return self.runner.nodes
+
+    def topic(self, name: str) -> list[m.Message]:
+        return [msg for topic, msg, _ in list(self.log) if topic == name]
+
+    def wait_for(self, predicate: Callable[[], bool], timeout_s: float = 5.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            time.sleep(0.01)
+        return predicate()
+
+    def wait_until_script_done(self, settle_s: float = 0.3, timeout_s: float = 10.0) -> None:
+        end = float(self.script.starts[-1]) + settle_s
+        assert self.wait_for(lambda: self.runner.t >= end, timeout_s), "emulator did not reach the end of the script"
+
+    def last_good_wheels(self) -> m.JointState:
+        states = [s for s in self.topic("/wheels") if np.isfinite(s.position).all()]
+        assert states, "no wheel state with every wheel valid"
+        return states[-1]
+
+    def expected_angles(self) -> np.ndarray:
+        return 2 * math.pi * self.script.turns_at(float(self.script.starts[-1]))
+
+
+@contextmanager
+def can_rig(tmp_path: Path, protocol: str, transport: str, script: str, *, node_options: dict[str, Any] | None = None,
+            config: dict[str, Any] | None = None) -> Iterator[Rig]:
+    nodes, cfg = protocol_setup(protocol, dict(node_options or {}))
+    cfg.update(wheel_radius_m=RADIUS, track_m=TRACK)
+    for key, value in (config or {}).items():
+        if isinstance(value, dict):
+            cfg.setdefault(key, {}).update(value)
+        else:
+            cfg[key] = value
+    adapter = None
+    if transport == "slcan":
+        adapter = SlcanEmulator(str(tmp_path / "ttyCAN0")).start()
+        device_bus: can.BusABC = adapter.bus
+        url = f"slcan://{tmp_path / 'ttyCAN0'}@500000"
+    else:
+        channel = f"rig-{uuid.uuid4().hex}"
+        device_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+        url = f"virtual://{channel}"
+    velocity = VelocityScript.parse(script)
+    runner = CanNodeRunner(device_bus, nodes, WheelMotion(velocity), adapter=adapter)
+    rig = Rig(None, runner, adapter, velocity)  # type: ignore[arg-type]
+    rig.driver = driver_from_url(url, lambda topic, msg, t: rig.log.append((topic, msg, t)), cfg)
+    rig.driver.backoff.initial_s = 0.05
+    rig.driver.start()
+    if transport == "virtual":  # the host bus must exist before the nodes talk
+        assert rig.wait_for(lambda: rig.driver.state == "streaming", 2.0)
+    runner.start()
+    try:
+        yield rig
+    finally:
+        runner.stop()
+        rig.driver.stop()
+        if adapter is not None:
+            adapter.close()
+        else:
+            device_bus.shutdown()
+
+
+def max_odom_step(rig: Rig) -> float:
+    """Largest distance between consecutive odometry poses (a jump shows here)."""
+    odoms = rig.topic("/odom")
+    xy = np.array([(o.x, o.y) for o in odoms])
+    return float(np.max(np.hypot(*np.diff(xy, axis=0).T))) if len(xy) > 1 else 0.0

@@ -1,0 +1,301 @@
+"""SLAM accuracy: the relation-based error of Kuemmerle et al. (2009), ATE and RPE, and their inputs.
+
+A *relation* is the pose of the robot at time ``t2`` expressed in its frame at ``t1``. The
+relation error compares the estimated relative motion ``delta = x1^-1 (+) x2`` with the reference
+relation: translational error ``|t_delta - t_ref|`` (m), rotational error
+``|wrap(theta_delta - theta_ref)|``; reported as mean and standard deviation (population, ddof 0)
+of the absolute and squared errors over all relations, as in Kuemmerle et al., Autonomous Robots
+27(4), 2009 and the tables of Hess et al., ICRA 2016. Relations come from a Freiburg
+``.relations`` file or from a reference trajectory (consecutive scans, or every ``step`` scans).
+ATE aligns the estimate to the reference by the least-squares rigid motion in SE(2) (Umeyama 1991
+without scale) and reports position errors; RPE (Sturm et al. 2012) is the RMSE of the relation
+errors at a fixed separation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+
+import numpy as np
+
+from fusion.geometry import compose, relative, wrap_angle
+from logs.errors import UserError
+
+DEFAULT_TOLERANCE_NS = 1_000_000  # 1 ms: scans are tens of milliseconds apart
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Poses (N, 3) ``x, y, theta`` (m, rad) at ``stamps_ns`` (N,) int64 nanoseconds."""
+
+    stamps_ns: np.ndarray
+    poses: np.ndarray
+
+    def __post_init__(self) -> None:
+        stamps = np.asarray(self.stamps_ns, dtype=np.int64).reshape(-1)
+        poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 3)
+        if len(stamps) != len(poses):
+            raise ValueError(f"{len(stamps)} stamps for {len(poses)} poses")
+        object.__setattr__(self, "stamps_ns", stamps)
+        object.__setattr__(self, "poses", poses)
+
+    def __len__(self) -> int:
+        return len(self.stamps_ns)
+
+
+@dataclass(frozen=True)
+class Relations:
+    """Reference relations: pose at ``t2_ns`` in the frame of the pose at ``t1_ns``, ``deltas`` (M, 3)."""
+
+    t1_ns: np.ndarray
+    t2_ns: np.ndarray
+    deltas: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t1_ns", np.asarray(self.t1_ns, dtype=np.int64).reshape(-1))
+        object.__setattr__(self, "t2_ns", np.asarray(self.t2_ns, dtype=np.int64).reshape(-1))
+        object.__setattr__(self, "deltas", np.asarray(self.deltas, dtype=np.float64).reshape(-1, 3))
+
+    def __len__(self) -> int:
+        return len(self.t1_ns)
+
+
+@dataclass(frozen=True)
+class MeanStd:
+    mean: float
+    std: float
+
+
+@dataclass(frozen=True)
+class RelationError:
+    """Kuemmerle's four statistics over ``count`` relations (``missing`` had no estimated pose)."""
+
+    count: int
+    missing: int
+    translation_abs_m: MeanStd
+    translation_sq_m2: MeanStd
+    rotation_abs_deg: MeanStd
+    rotation_sq_deg2: MeanStd
+    translation_max_m: float
+    rotation_max_deg: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class AbsoluteError:
+    """ATE after SE(2) alignment: position error statistics (m), heading RMSE (deg), the alignment."""
+
+    count: int
+    rmse_m: float
+    mean_m: float
+    median_m: float
+    std_m: float
+    max_m: float
+    rotation_rmse_deg: float
+    alignment_xyt: tuple[float, float, float]
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class RelativeError:
+    """RPE at a separation of ``step`` poses: RMSE and mean of translational (m) and rotational (deg) error."""
+
+    step: int
+    count: int
+    translation_rmse_m: float
+    translation_mean_m: float
+    rotation_rmse_deg: float
+    rotation_mean_deg: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+# --- inputs ----------------------------------------------------------------------------------
+
+def seconds_to_ns(token: str) -> int:
+    """Decimal seconds (e.g. ``1232658478.161285``) to integer nanoseconds, exactly."""
+    return int((Decimal(token) * 1_000_000_000).to_integral_value())
+
+
+def read_trajectory_csv(path: str | Path) -> Trajectory:
+    """A ``t_ns,x,y,theta`` CSV (header line, as ``trundle slam`` writes); extra columns ignored."""
+    path = Path(path)
+    with path.open("r", encoding="utf-8") as handle:
+        header = handle.readline().strip().split(",")
+        if header[:4] != ["t_ns", "x", "y", "theta"]:
+            raise UserError(f"{path}: expected a CSV with header t_ns,x,y,theta, got {','.join(header[:4])!r}")
+        stamps, poses = [], []
+        for number, line in enumerate(handle, 2):
+            fields = line.strip().split(",")
+            if fields == [""]:
+                continue
+            try:
+                stamps.append(int(fields[0]))
+                poses.append([float(v) for v in fields[1:4]])
+                if len(poses[-1]) != 3 or not all(math.isfinite(v) for v in poses[-1]):
+                    raise ValueError
+            except ValueError:
+                raise UserError(f"{path}:{number}: expected t_ns,x,y,theta numbers, got {line.strip()!r}") from None
+    return Trajectory(np.array(stamps, np.int64), np.array(poses, np.float64).reshape(-1, 3))
+
+
+def write_trajectory_csv(path: str | Path, trajectory: Trajectory) -> None:
+    """Write ``t_ns,x,y,theta`` with a header line."""
+    lines = ["t_ns,x,y,theta"]
+    lines += [f"{t},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f}" for t, p in zip(trajectory.stamps_ns, trajectory.poses)]
+    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def read_relations(path: str | Path) -> Relations:
+    """A Freiburg ``.relations`` file: ``t1 t2 x y z roll pitch yaw`` per line (s, m, rad)."""
+    path = Path(path)
+    t1, t2, deltas = [], [], []
+    with path.open("r", encoding="utf-8") as handle:
+        for number, line in enumerate(handle, 1):
+            tokens = line.split()
+            if not tokens or tokens[0].startswith("#"):
+                continue
+            try:
+                if len(tokens) != 8:
+                    raise ValueError
+                values = [float(t) for t in tokens[2:]]
+                if not all(math.isfinite(v) for v in values):
+                    raise ValueError
+                t1.append(seconds_to_ns(tokens[0]))
+                t2.append(seconds_to_ns(tokens[1]))
+            except (ValueError, InvalidOperation):
+                raise UserError(f"{path}:{number}: expected 't1 t2 x y z roll pitch yaw', got {line.strip()!r}") from None
+            deltas.append([values[0], values[1], values[5]])
+    if not deltas:
+        raise UserError(f"{path}: no relations")
+    return Relations(np.array(t1), np.array(t2), np.array(deltas))
+
+
+def read_carmen_trajectory(path: str | Path) -> Trajectory:
+    """The robot poses of a CARMEN log's laser lines (FLASER, else ROBOTLASER1), at their ipc times."""
+    from logs.importers.carmen import read_carmen, scan_poses
+
+    log = read_carmen(path)
+    kinds = [laser.kind for laser in log.lasers]
+    kind = "FLASER" if "FLASER" in kinds else "ROBOTLASER1"
+    stamps, poses = scan_poses(log, kind)
+    if not len(stamps):
+        raise UserError(f"{path}: no FLASER or ROBOTLASER1 line with a pose")
+    return Trajectory(stamps, poses)
+
+
+def read_reference(path: str | Path) -> Trajectory | Relations:
+    """A reference for evaluation: ``.relations`` file, ``t_ns,x,y,theta`` CSV, or CARMEN log."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such file")
+    if path.suffix == ".relations":
+        return read_relations(path)
+    with path.open("rb") as handle:
+        start = handle.read(64)
+    if start.startswith(b"t_ns,"):
+        return read_trajectory_csv(path)
+    return read_carmen_trajectory(path)
+
+
+# --- relations -------------------------------------------------------------------------------
+
+def trajectory_relations(reference: Trajectory, step: int = 1) -> Relations:
+    """Relations between poses ``step`` apart in a reference trajectory (1 = consecutive scans)."""
+    if step < 1:
+        raise ValueError("step must be at least 1")
+    a, b = reference.poses[:-step], reference.poses[step:]
+    return Relations(reference.stamps_ns[:-step], reference.stamps_ns[step:], relative(a, b))
+
+
+def poses_at(trajectory: Trajectory, stamps_ns: np.ndarray, tolerance_ns: int = DEFAULT_TOLERANCE_NS
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Poses (M, 3) of ``trajectory`` nearest to each stamp and a mask of those within ``tolerance_ns``."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    if len(trajectory) == 0:
+        return np.full((len(stamps), 3), np.nan), np.zeros(len(stamps), bool)
+    order = np.argsort(trajectory.stamps_ns, kind="stable")
+    sorted_stamps = trajectory.stamps_ns[order]
+    right = np.clip(np.searchsorted(sorted_stamps, stamps), 0, len(order) - 1)
+    left = np.clip(right - 1, 0, len(order) - 1)
+    pick = np.where(np.abs(sorted_stamps[left] - stamps) <= np.abs(sorted_stamps[right] - stamps), left, right)
+    found = np.abs(sorted_stamps[pick] - stamps) <= tolerance_ns
+    return trajectory.poses[order[pick]], found
+
+
+def relation_errors(estimate: Trajectory, relations: Relations, tolerance_ns: int = DEFAULT_TOLERANCE_NS
+                    ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Per-relation translational (m) and rotational (rad, absolute) errors, and how many were missing."""
+    p1, found1 = poses_at(estimate, relations.t1_ns, tolerance_ns)
+    p2, found2 = poses_at(estimate, relations.t2_ns, tolerance_ns)
+    found = found1 & found2
+    delta = relative(p1[found], p2[found])
+    reference = relations.deltas[found]
+    translation = np.hypot(delta[:, 0] - reference[:, 0], delta[:, 1] - reference[:, 1])
+    rotation = np.abs(wrap_angle(delta[:, 2] - reference[:, 2]))
+    return translation, np.asarray(rotation, dtype=np.float64).reshape(-1), int((~found).sum())
+
+
+def relation_error(estimate: Trajectory, relations: Relations, tolerance_ns: int = DEFAULT_TOLERANCE_NS
+                   ) -> RelationError:
+    """Kuemmerle et al.'s relation-based error of ``estimate`` against ``relations``."""
+    translation, rotation, missing = relation_errors(estimate, relations, tolerance_ns)
+    if len(translation) == 0:
+        raise UserError(f"no relation has estimated poses at both times ({missing} relations, "
+                        f"time tolerance {tolerance_ns / 1e6:g} ms): do the timestamps match?")
+    degrees = np.degrees(rotation)
+
+    def stats(values: np.ndarray) -> MeanStd:
+        return MeanStd(float(values.mean()), float(values.std()))
+
+    return RelationError(len(translation), missing, stats(translation), stats(translation ** 2), stats(degrees),
+                         stats(degrees ** 2), float(translation.max()), float(degrees.max()))
+
+
+def relative_pose_error(estimate: Trajectory, reference: Trajectory, step: int = 1,
+                        tolerance_ns: int = DEFAULT_TOLERANCE_NS) -> RelativeError:
+    """RPE over reference poses ``step`` apart (RMSE and mean, translation m and rotation deg)."""
+    translation, rotation, _ = relation_errors(estimate, trajectory_relations(reference, step), tolerance_ns)
+    if len(translation) == 0:
+        raise UserError("no reference pose pair has estimated poses at both times: do the timestamps match?")
+    degrees = np.degrees(rotation)
+    return RelativeError(step, len(translation), float(np.sqrt(np.mean(translation ** 2))), float(translation.mean()),
+                         float(np.sqrt(np.mean(degrees ** 2))), float(degrees.mean()))
+
+
+# --- absolute error --------------------------------------------------------------------------
+
+def align_se2(source_xy: np.ndarray, target_xy: np.ndarray) -> np.ndarray:
+    """The rigid motion ``(x, y, theta)`` minimising ``sum |R source + t - target|^2`` (Umeyama, no scale)."""
+    source = np.asarray(source_xy, dtype=np.float64).reshape(-1, 2)
+    target = np.asarray(target_xy, dtype=np.float64).reshape(-1, 2)
+    ms, mt = source.mean(axis=0), target.mean(axis=0)
+    s, t = source - ms, target - mt
+    theta = math.atan2(float(np.sum(s[:, 0] * t[:, 1] - s[:, 1] * t[:, 0])), float(np.sum(s[:, 0] * t[:, 0] + s[:, 1] * t[:, 1])))
+    c, si = math.cos(theta), math.sin(theta)
+    shift = mt - np.array([c * ms[0] - si * ms[1], si * ms[0] + c * ms[1]])
+    return np.array([shift[0], shift[1], theta])
+
+
+def absolute_trajectory_error(estimate: Trajectory, reference: Trajectory, tolerance_ns: int = DEFAULT_TOLERANCE_NS,
+                              align: bool = True) -> AbsoluteError:
+    """ATE: position errors of the estimate at the reference's stamps after SE(2) alignment."""
+    poses, found = poses_at(estimate, reference.stamps_ns, tolerance_ns)
+    if not found.any():
+        raise UserError("no reference pose has an estimated pose at its time: do the timestamps match?")
+    estimated, truth = poses[found], reference.poses[found]
+    alignment = align_se2(estimated[:, :2], truth[:, :2]) if align else np.zeros(3)
+    aligned = compose(alignment, estimated)
+    error = np.hypot(aligned[:, 0] - truth[:, 0], aligned[:, 1] - truth[:, 1])
+    heading = np.degrees(wrap_angle(aligned[:, 2] - truth[:, 2]))
+    return AbsoluteError(int(found.sum()), float(np.sqrt(np.mean(error ** 2))), float(error.mean()),
+                         float(np.median(error)), float(error.std()), float(error.max()),
+                         float(np.sqrt(np.mean(np.square(heading)))), tuple(float(v) for v in alignment))

@@ -8,7 +8,7 @@ pixel array, with the capture time on the host's CLOCK_MONOTONIC. The driver che
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -60,3 +60,21 @@ class FrameSource(Protocol):
 
     def settings(self) -> dict[str, str]:
         """The settings actually in effect (read back from the device), for diagnostics."""
+
+
+class CaptureSource:
+    """Base of the sources that wrap one ``cv2.VideoCapture`` (``_cap``): releasing it and
+    reporting the settings read back from it (``_settings``)."""
+
+    _cap: Any = None
+
+    def __init__(self) -> None:
+        self._settings: dict[str, str] = {}
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+    def settings(self) -> dict[str, str]:
+        return dict(self._settings)

@@ -13,12 +13,12 @@ from typing import Callable
 
 import cv2
 
-from drivers.frame_source import Frame
+from drivers.frame_source import CaptureSource, Frame
 from drivers.lifecycle import DeviceError
 from drivers.video_file import fourcc_text, open_ffmpeg, read_ffmpeg
 
 
-class MjpegStreamSource:
+class MjpegStreamSource(CaptureSource):
     """Frames of an ``http://`` MJPEG stream; ``timeout_s`` bounds opening and each read."""
 
     live = True
@@ -30,9 +30,8 @@ class MjpegStreamSource:
         self.timeout_s = timeout_s
         self.monotonic_ns = monotonic_ns
         self.description = url
-        self._cap: cv2.VideoCapture | None = None
         self._raw = False
-        self._settings: dict[str, str] = {}
+        super().__init__()
 
     def open(self) -> None:
         ms = max(1, round(self.timeout_s * 1000))
@@ -50,11 +49,3 @@ class MjpegStreamSource:
             raise DeviceError(f"{self.url}: stream closed or silent for {self.timeout_s:g} s")
         now = self.monotonic_ns()
         return Frame(data, self._raw, now, now)
-
-    def close(self) -> None:
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
-
-    def settings(self) -> dict[str, str]:
-        return dict(self._settings)

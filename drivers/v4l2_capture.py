@@ -27,7 +27,7 @@ from typing import Callable, Mapping
 import cv2
 import numpy as np
 
-from drivers.frame_source import Frame, StallError
+from drivers.frame_source import CaptureSource, Frame, StallError
 from drivers.lifecycle import DeviceError, wall_ns
 from drivers.video_file import JPEG_FOURCCS, fourcc_text
 
@@ -95,7 +95,7 @@ def device_path(device: str) -> str:
     return f"/dev/video{device}" if device.isdigit() else device
 
 
-class V4L2Source:
+class V4L2Source(CaptureSource):
     """Frames from a V4L2 device: raw JPEG with ``fourcc="MJPG"``, else BGR converted by OpenCV.
 
     ``width``/``height``/``fps`` of 0 keep the device's current mode. ``controls`` maps names of
@@ -119,9 +119,8 @@ class V4L2Source:
         self.wall_clock_ns = wall_clock_ns
         self.clock = ""
         self.repeated = 0
-        self._cap: cv2.VideoCapture | None = None
+        super().__init__()
         self._raw = False
-        self._settings: dict[str, str] = {}
         self._last_buffer_ns = 0
         self._last_new_ns = 0
 
@@ -193,13 +192,8 @@ class V4L2Source:
             return image.tobytes(), True
         return image, False
 
-    def close(self) -> None:
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
-
     def settings(self) -> dict[str, str]:
-        values = dict(self._settings)
+        values = super().settings()
         if self.clock:
             values["clock"] = self.clock
         return values

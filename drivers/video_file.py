@@ -23,7 +23,7 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
-from drivers.frame_source import EndOfStream, Frame
+from drivers.frame_source import CaptureSource, EndOfStream, Frame
 from drivers.lifecycle import DeviceError
 from logs.errors import UserError
 
@@ -135,15 +135,14 @@ class _PacedFile:
             raise DeviceError(f"{self.path} disappeared")
 
 
-class VideoFileSource(_PacedFile):
+class VideoFileSource(CaptureSource, _PacedFile):
     """Frames of a video file: MJPEG packets as stored, other codecs decoded to BGR."""
 
     def __init__(self, path: Path, *, fps: float | None = None, pace: bool = True, loop: bool = False,
                  monotonic_ns: Callable[[], int] = time.monotonic_ns) -> None:
-        super().__init__(path, fps=fps, pace=pace, loop=loop, monotonic_ns=monotonic_ns)
-        self._cap: cv2.VideoCapture | None = None
+        _PacedFile.__init__(self, path, fps=fps, pace=pace, loop=loop, monotonic_ns=monotonic_ns)
+        CaptureSource.__init__(self)
         self._raw = False
-        self._settings: dict[str, str] = {}
 
     def open(self) -> None:
         self._open_capture()
@@ -179,14 +178,6 @@ class VideoFileSource(_PacedFile):
         else:
             media_ns = round(self._cap.get(cv2.CAP_PROP_POS_MSEC) * 1e6)
         return self._frame(data, self._raw, media_ns)
-
-    def close(self) -> None:
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
-
-    def settings(self) -> dict[str, str]:
-        return dict(self._settings)
 
 
 class ImageFolderSource(_PacedFile):

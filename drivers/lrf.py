@@ -1,0 +1,62 @@
+"""Laser range finder drivers by URL, for ``trundle record --lrf URL`` and robot configs.
+
+- ``scip2:///dev/ttyACM0`` Hokuyo SCIP 2.0 on a USB/serial port (also ``scip2:/dev/...``)
+- ``scip2+tcp://192.168.0.10:10940`` Hokuyo SCIP 2.0 over Ethernet (UST, UTM-EW)
+- ``rplidar:///dev/ttyUSB0?model=a2`` Slamtec RPLIDAR (model a1, a2, a3, s1; default a1)
+
+Query parameters and the ``config`` table (the ``[lrf]`` section of a robot TOML) set driver
+options; see ``ScipConfig`` and ``RplidarConfig`` for the keys. Use a stable path such as
+``/dev/serial/by-id/...`` so reconnects find the device again after an unplug.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+from urllib.parse import parse_qsl, urlsplit
+
+from drivers.lifecycle import Driver, Sink
+from logs.errors import UserError
+
+SCHEMES = ("scip2", "scip2+tcp", "rplidar")
+
+
+def _value(text: str) -> Any:
+    """A query value as bool, int or float when it reads as one."""
+    lowered = text.lower()
+    if lowered in ("true", "false"):
+        return lowered == "true"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = None) -> Driver:
+    """A laser driver for ``url`` sending messages to ``sink``; a bad URL or option is a UserError."""
+    parts = urlsplit(url)
+    scheme = parts.scheme.lower()
+    if scheme not in SCHEMES:
+        raise UserError(f"unknown laser URL {url!r}: use scip2:///dev/ttyACM0, scip2+tcp://host:10940 "
+                        "or rplidar:///dev/ttyUSB0?model=a2")
+    options = {**dict(config or {}), **{k: _value(v) for k, v in parse_qsl(parts.query)}}
+    if scheme == "scip2+tcp":
+        if not parts.hostname:
+            raise UserError(f"laser URL {url!r} needs a host: scip2+tcp://192.168.0.10:10940")
+        try:
+            port_number = parts.port or 10940
+        except ValueError:
+            raise UserError(f"laser URL {url!r} has a bad port number") from None
+        port = f"socket://{parts.hostname}:{port_number}"
+    else:
+        port = f"/{parts.netloc}{parts.path}" if parts.netloc else parts.path
+        if not port:
+            raise UserError(f"laser URL {url!r} needs a device path, e.g. {scheme}:///dev/ttyUSB0")
+    if scheme == "rplidar":
+        from drivers.rplidar_driver import RplidarConfig, RplidarDriver
+
+        return RplidarDriver(RplidarConfig.from_mapping(port, options), sink)
+    from drivers.scip2_driver import ScipConfig, ScipDriver
+
+    return ScipDriver(ScipConfig.from_mapping(port, options), sink)

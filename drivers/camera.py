@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import logging
 import os
 import stat
 import threading
@@ -51,6 +52,7 @@ from logs.errors import UserError
 # camera body (x forward, y left, z up) -> optical frame (x right, y down, z forward): rpy (-pi/2, 0, -pi/2)
 OPTICAL_ROTATION = (-0.5, 0.5, -0.5, 0.5)
 DROP_GAP = 1.5  # a gap longer than this many frame periods means frames were lost
+log = logging.getLogger("trundle.camera")
 
 
 def static_transforms(config: CameraConfig, stamp_ns: int) -> m.TFMessage:
@@ -115,6 +117,9 @@ class CameraDriver(Driver):
         fps = float(self.settings.get("fps", 0)) or self.config.fps
         self._period_ns = 1e9 / fps if fps > 0 else 0.0
         self._last_t_ns = None
+        self._recent.clear()
+        log.info("%s: %s open, %s", self.name, source.description,
+                 ", ".join(f"{k}={v}" for k, v in sorted(self.settings.items())))
 
     def read_once(self) -> None:
         grabber = self._grabber
@@ -184,31 +189,43 @@ class CameraDriver(Driver):
 
     def measured_fps(self) -> float:
         """Frame rate over the last (up to) 60 published frames, from their capture times."""
-        if len(self._recent) < 2 or self._recent[-1] <= self._recent[0]:
+        recent = tuple(self._recent)  # one snapshot: the driver thread appends meanwhile
+        if len(recent) < 2 or recent[-1] <= recent[0]:
             return 0.0
-        return (len(self._recent) - 1) * 1e9 / (self._recent[-1] - self._recent[0])
+        return (len(recent) - 1) * 1e9 / (recent[-1] - recent[0])
 
     def diagnostics(self) -> m.DiagnosticStatus:
+        """The driver's status plus settings in effect, measured rate and clock offset; WARN when
+        the camera streams below 80 % of its set rate (USB bandwidth, exposure time, ...)."""
         status = super().diagnostics()
+        measured = self.measured_fps()
         extra = [(f"setting.{k}", v) for k, v in sorted(self.settings.items())]
-        extra += [("fps_measured", f"{self.measured_fps():.2f}"), ("clock_offset_ns", str(self.offset_ns))]
+        extra += [("fps_measured", f"{measured:.2f}"), ("clock_offset_ns", str(self.offset_ns))]
         if self.last_corrupt:
             extra.append(("last_corrupt", self.last_corrupt))
-        return dataclasses.replace(status, values=status.values + tuple(extra))
+        status = dataclasses.replace(status, values=status.values + tuple(extra))
+        wanted = 1e9 / self._period_ns if self._period_ns else 0.0
+        if status.level == m.OK and len(self._recent) == self._recent.maxlen and 0 < measured < 0.8 * wanted:
+            status = dataclasses.replace(status, level=m.WARN,
+                                         message=f"{measured:.1f} fps, below the set {wanted:g} fps")
+        return status
 
 
 def encode_raw(image: np.ndarray, stamp_ns: int, frame_id: str, output: str = "jpeg",
                quality: int = 90) -> m.CompressedImage | m.Image:
     """A raw (BGR or mono) frame as a JPEG at ``quality`` (1-100) or a bgr8/mono8 Image."""
-    if output == "jpeg":
-        ok, buffer = cv2.imencode(".jpg", image, (cv2.IMWRITE_JPEG_QUALITY, int(quality)))
-        if not ok:
-            raise ValueError("JPEG encoding failed")
-        return m.CompressedImage(stamp_ns, frame_id, "jpeg", buffer.tobytes())
-    if output == "mono8" and image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    elif output == "bgr8" and image.ndim == 2:
-        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    try:
+        if output == "jpeg":
+            ok, buffer = cv2.imencode(".jpg", image, (cv2.IMWRITE_JPEG_QUALITY, int(quality)))
+            if not ok:
+                raise ValueError("JPEG encoding failed")
+            return m.CompressedImage(stamp_ns, frame_id, "jpeg", buffer.tobytes())
+        if output == "mono8" and image.ndim == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        elif output == "bgr8" and image.ndim == 2:
+            image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    except cv2.error as error:
+        raise ValueError(f"cannot convert a {image.shape} frame: {error}") from None
     return m.Image.from_array(stamp_ns, frame_id, image, output)
 
 

@@ -21,6 +21,7 @@ from drivers.frame_source import Frame, StallError
 from drivers.lifecycle import DeviceError
 from drivers.v4l2_capture import V4L2Source, apply_controls, device_path, frame_time_ns
 from drivers.video_file import VideoFileSource
+from logs import messages as m
 
 S = 1_000_000_000
 
@@ -210,3 +211,25 @@ def test_stop_is_prompt_while_waiting_for_a_silent_camera(jpeg: bytes) -> None:
     wait_for(lambda: driver.state == "streaming", what="streaming")
     driver.stop(timeout=2.0)  # bounded wait; a driver stuck for the stall timeout would still be alive
     assert not driver._thread.is_alive() and driver.counters["stalls"] == 0
+
+
+def test_health_warns_when_the_camera_runs_below_its_set_rate(jpeg: bytes) -> None:
+    script = [i * 1000 / 15 for i in range(70)]  # set to 30 fps, delivering 15
+    driver, _ = scripted_driver(script, jpeg)
+    driver.start()
+    wait_for(lambda: driver.counters["frames"] == 70, what="frames")
+    status = driver.diagnostics()
+    driver.stop()
+    values = dict(status.values)
+    assert status.level == m.WARN and status.message == "15.0 fps, below the set 30 fps"
+    assert values["fps_measured"] == "15.00" and values["setting.fps"] == "30"
+    assert driver.counters["dropped"] == 69  # every gap is two periods: one frame missing each
+
+
+def test_health_is_ok_at_the_set_rate(jpeg: bytes) -> None:
+    driver, _ = scripted_driver([i * 1000 / 30 for i in range(70)], jpeg)
+    driver.start()
+    wait_for(lambda: driver.counters["frames"] == 70, what="frames")
+    status = driver.diagnostics()
+    driver.stop()
+    assert status.level == m.OK and dict(status.values)["fps_measured"] == "30.00"

@@ -77,7 +77,9 @@ class DbcWheels(EncoderProtocol):
         except KeyError:
             raise ValueError(f"no signal {signal_name!r} in message {message_name!r} of the DBC") from None
         key = (message.frame_id, bool(message.is_extended_frame))
-        self._routes.setdefault(key, (message, []))[1].append((wheel, signal, is_position))
+        targets = self._routes.setdefault(key, (message, []))[1]
+        # velocities first, so a position in the same frame carries the fresh velocity
+        targets.insert(len(targets) if is_position else 0, (wheel, signal, is_position))
         return message, signal
 
     def start(self, bus: CanBus, now_ns: int) -> None:

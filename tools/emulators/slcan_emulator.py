@@ -227,6 +227,6 @@ class SlcanEmulator:
             self.timestamps, reply = rest == b"1", OK
         elif head in (b"M", b"m", b"W", b"X", b"U", b"Q") or not line:
             reply = OK
-        else:
-            self.stats["bad_commands"] += 1
+        elif head not in b"SsOLCFVNZ":
+            self.stats["bad_commands"] += 1  # unknown; known commands refused in this state are not
         self._reply(reply)

@@ -1,0 +1,228 @@
+"""The daemon in-process with scripted drivers: supervision, status socket, disk guard, splits."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import threading
+import time
+from collections import namedtuple
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.lifecycle import Backoff, DeviceError, Driver
+from logs import messages as m
+from logs.reader import LogReader
+from tools.daemon import Daemon, format_status, query_status
+from tools.daemon_config import parse_config
+
+Usage = namedtuple("Usage", "total used free")
+
+
+class ScriptedDriver(Driver):
+    """Publishes a small scan every ``period_s``; can be told to crash (a bug) or fail (a device fault)."""
+
+    def __init__(self, name, sink, period_s=0.01):
+        super().__init__(name, sink, hardware_id=f"scripted:{name}", backoff=Backoff(0.05, 0.2))
+        self.period_s = period_s
+        self.crash_next = threading.Event()
+        self.fault_next = threading.Event()
+        self.opened = 0
+
+    def open(self):
+        self.opened += 1
+
+    def read_once(self):
+        if self.crash_next.is_set():
+            self.crash_next.clear()
+            raise RuntimeError("scripted bug")
+        if self.fault_next.is_set():
+            self.fault_next.clear()
+            raise DeviceError("scripted unplug")
+        time.sleep(self.period_s)
+        self.counters["scans"] += 1
+        self.publish("/scan", m.LaserScan(self.clock(), "laser", -1.0, 1.0, 0.5, 0.0, 0.1, 0.02, 30.0,
+                                          np.ones(5, np.float32)))
+
+    def close(self):
+        pass
+
+    def static_messages(self):
+        return [("/tf_static", m.TFMessage((m.TransformStamped.planar(0, "base_link", "laser", 0.2, 0.0, 0.0),)))]
+
+
+def config(tmp_path, **tables):
+    data = {"robot": {"name": "testbot"},
+            "lrf": {"url": "scripted://a"},
+            "logger": {"folder": str(tmp_path / "logs"), "flush_period_s": 0.1},
+            "status": {"socket": str(tmp_path / "status.sock"), "diagnostics_period_s": 0.2},
+            "supervision": {"restart_delay_s": 0.1, "stop_timeout_s": 2.0},
+            "disk": {"check_period_s": 0.1, "min_free_mb": 100.0},
+            "transforms": [{"parent": "base_link", "child": "camera", "xyz": [0.25, 0.0, 0.45]}]}
+    for name, table in tables.items():
+        data[name] = {**data.get(name, {}), **table}
+    return parse_config(data, "test.toml")
+
+
+class Running:
+    """A daemon on a thread, its drivers kept for the test to poke."""
+
+    def __init__(self, cfg):
+        self.drivers: dict[str, ScriptedDriver] = {}
+        self.daemon = Daemon(cfg, make_driver=self._make)
+        self.thread = threading.Thread(target=self.daemon.run, kwargs={"install_signals": False})
+
+    def _make(self, family, url, sink, options):
+        driver = ScriptedDriver(options["name"], sink)
+        self.drivers[options["name"]] = driver
+        return driver
+
+    def __enter__(self):
+        self.thread.start()
+        wait_for(lambda: self.daemon.state == "running")
+        return self
+
+    def __exit__(self, *exc):
+        self.daemon.stop()
+        self.thread.join(10)
+        assert not self.thread.is_alive()
+
+
+def wait_for(condition, timeout_s=10.0):
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.02)
+
+
+def read_log(folder: Path):
+    files = sorted(folder.glob("*.mcap"))
+    out = []
+    for path in files:
+        with LogReader(path) as reader:
+            out.append((path, list(reader.messages())))
+    return out
+
+
+def test_status_socket_reports_devices_logger_and_disk(tmp_path):
+    with Running(config(tmp_path)) as run:
+        wait_for(lambda: run.daemon.rates["lrf"].rates.get("/scan", 0) > 20)
+        status = query_status(tmp_path / "status.sock")
+        device = status["devices"][0]
+        assert device["name"] == "lrf" and device["state"] == "streaming"
+        assert 20 < device["rates_hz"]["/scan"] <= 110
+        assert device["counters"]["scans"] > 0 and device["crashes"] == 0
+        log = status["logger"]
+        assert log["recording"] and log["file"].endswith(".mcap.active") and Path(log["file"]).exists()
+        assert log["dropped"] == 0 and log["written"] > 0
+        assert status["disk"]["free_bytes"] > 0 and status["disk"]["action"] == "delete_oldest"
+        text = format_status(status)
+        assert "lrf" in text and "/scan" in text and "recording" in text
+    assert not (tmp_path / "status.sock").exists()
+    (path, messages), = read_log(tmp_path / "logs")
+    topics = {msg.topic for msg in messages}
+    assert {"/scan", "/diagnostics", "/tf_static"} <= topics
+    static = [msg.msg for msg in messages if msg.topic == "/tf_static"][-1]
+    assert {t.child_frame_id for t in static.transforms} == {"laser", "camera"}  # config + driver, merged
+    assert not list((tmp_path / "logs").glob("*.active"))
+
+
+def test_crashed_driver_thread_is_restarted_and_reported(tmp_path):
+    with Running(config(tmp_path)) as run:
+        driver = run.drivers["lrf"]
+        wait_for(lambda: driver.counters["scans"] > 5)
+        driver.crash_next.set()
+        wait_for(lambda: run.daemon.supervised[0].crashes == 1)
+        crashed = query_status(tmp_path / "status.sock")["devices"][0]
+        assert "RuntimeError: scripted bug" in crashed["last_crash"]
+        before = driver.counters["scans"]
+        wait_for(lambda: driver.counters["scans"] > before + 5)  # running again
+        assert driver.opened == 2
+        wait_for(lambda: query_status(tmp_path / "status.sock")["devices"][0]["state"] == "streaming")
+        driver.fault_next.set()  # a device fault is the driver's own reconnect, not a crash
+        wait_for(lambda: driver.counters["reconnects"] >= 2)
+        assert run.daemon.supervised[0].crashes == 1
+        time.sleep(0.3)
+    (_, messages), = read_log(tmp_path / "logs")
+    reports = [s for msg in messages if msg.topic == "/diagnostics" for s in msg.msg.status if s.name == "testbot/lrf"]
+    assert any(s.level == m.ERROR and "scripted bug" in s.message for s in reports)
+    assert reports[-1].level != m.ERROR
+
+
+def test_split_request_starts_a_new_file_with_the_static_transforms(tmp_path):
+    with Running(config(tmp_path)) as run:
+        wait_for(lambda: run.drivers["lrf"].counters["scans"] > 5)
+        run.daemon.request_split()
+        wait_for(lambda: len(run.daemon.logger.files) == 1)
+        wait_for(lambda: run.drivers["lrf"].counters["scans"] > 30)
+    logs = read_log(tmp_path / "logs")
+    assert [p.name.rsplit("_", 1)[1] for p, _ in logs] == ["0.mcap", "1.mcap"]
+    for _, messages in logs:
+        topics = [msg.topic for msg in messages]
+        assert "/tf_static" in topics and topics.count("/scan") > 0
+
+
+def test_disk_guard_deletes_the_oldest_logs_first(tmp_path, monkeypatch):
+    folder = tmp_path / "logs"
+    folder.mkdir()
+    old = []
+    for i in range(3):
+        path = folder / f"old_{i}.mcap"
+        path.write_bytes(b"x" * 10)
+        os.utime(path, (1000 + i, 1000 + i))
+        old.append(path)
+    free = {"bytes": 50e6}
+    real = shutil.disk_usage
+
+    def usage(path):
+        total = real(path).total
+        return Usage(total, total - free["bytes"], free["bytes"])
+
+    monkeypatch.setattr(shutil, "disk_usage", usage)
+    original_unlink = Path.unlink
+
+    def unlink(self, missing_ok=False):
+        original_unlink(self, missing_ok=missing_ok)
+        free["bytes"] += 30e6  # each deleted log frees 30 MB
+
+    monkeypatch.setattr(Path, "unlink", unlink)
+    with Running(config(tmp_path)) as run:
+        wait_for(lambda: run.daemon.logger is not None and run.drivers["lrf"].counters["scans"] > 5)
+        assert [p.exists() for p in old] == [False, False, True]  # 50 + 2 x 30 MB >= 100 MB floor
+        assert run.daemon.disk["deleted"] == ["old_0.mcap", "old_1.mcap"]
+        assert run.daemon.logger.current_path.exists()
+
+
+def test_disk_guard_stops_recording_and_resumes(tmp_path, monkeypatch):
+    free = {"bytes": 500e6}
+    real = shutil.disk_usage
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: Usage(real(p).total, 0, free["bytes"]))
+    with Running(config(tmp_path, disk={"action": "stop"})) as run:
+        wait_for(lambda: run.drivers["lrf"].counters["scans"] > 5)
+        free["bytes"] = 10e6
+        wait_for(lambda: run.daemon.logger is None)
+        status = query_status(tmp_path / "status.sock")
+        assert not status["logger"]["recording"] and status["logger"]["paused"].startswith("disk low")
+        assert status["disk"]["low"]
+        first = list((tmp_path / "logs").glob("*.mcap"))
+        assert len(first) == 1 and not list((tmp_path / "logs").glob("*.active"))  # closed cleanly
+        unrecorded = run.daemon.unrecorded
+        wait_for(lambda: run.daemon.unrecorded > unrecorded + 5)  # drivers keep running
+        free["bytes"] = 105e6  # above the floor but inside the 10 % resume margin: still stopped
+        time.sleep(0.4)
+        assert run.daemon.logger is None
+        free["bytes"] = 500e6
+        wait_for(lambda: run.daemon.logger is not None)
+        wait_for(lambda: run.drivers["lrf"].counters["scans"] > 60)
+    logs = read_log(tmp_path / "logs")
+    assert len(logs) == 2 and all("/tf_static" in {msg.topic for msg in msgs} for _, msgs in logs)
+
+
+def test_second_daemon_on_the_same_socket_is_refused(tmp_path):
+    from logs.errors import UserError
+    with Running(config(tmp_path)):
+        other = Daemon(config(tmp_path), make_driver=lambda f, u, s, o: ScriptedDriver(o["name"], s))
+        with pytest.raises(UserError, match="another trundle daemon"):
+            other._start_status_server()

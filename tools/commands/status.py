@@ -1,0 +1,26 @@
+"""`trundle status`: ask the running daemon how its devices, logger and disk are doing."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from tools.daemon import format_status, query_status
+from tools.daemon_config import default_socket_path, load_config
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("status", help="status of the running daemon: devices, rates, errors, logger, disk")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--socket", type=Path, help=f"the daemon's status socket (default {default_socket_path()})")
+    where.add_argument("--config", type=Path, help="take the socket path from the daemon's robot TOML")
+    p.add_argument("--json", action="store_true", help="print the daemon's JSON answer unchanged")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    path = args.socket or (load_config(args.config).status.socket if args.config else default_socket_path())
+    status = query_status(path)
+    print(json.dumps(status, indent=2) if args.json else format_status(status))
+    return 0

@@ -200,7 +200,7 @@ class ImageFolderSource(_PacedFile):
         if self._index >= len(self._files):
             if not self.loop:
                 raise EndOfStream(str(self.path))
-            self.open_next_round()
+            self._next_round()
         path = self._files[self._index]
         try:
             data = path.read_bytes()
@@ -212,7 +212,7 @@ class ImageFolderSource(_PacedFile):
         image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
         return self._frame(np.zeros((0, 0, 3), np.uint8) if image is None else image, False, media_ns)
 
-    def open_next_round(self) -> None:
+    def _next_round(self) -> None:
         """Start the folder again (re-listing it) after its last image."""
         assert self.fps is not None
         self._check_present()

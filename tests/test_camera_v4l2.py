@@ -81,16 +81,6 @@ def test_device_index_and_by_id_paths() -> None:
     assert device_path("/dev/v4l/by-id/usb-cam-video-index0") == "/dev/v4l/by-id/usb-cam-video-index0"
 
 
-def test_v4l2_url_options() -> None:
-    config = parse_camera_url("v4l2:///dev/video0?width=1280&height=720&fps=30&fourcc=MJPG",
-                              {"controls": {"exposure": 120, "auto_exposure": 1}, "buffers": 1})
-    assert (config.target, config.width, config.height, config.fps, config.fourcc, config.buffers) == (
-        "/dev/video0", 1280, 720, 30.0, "MJPG", 1)
-    assert config.controls == {"exposure": 120.0, "auto_exposure": 1.0}
-    web = parse_camera_url("http://cam.local:8080/?action=stream&stall_timeout_s=1")
-    assert web.target == "http://cam.local:8080/?action=stream" and web.stall_timeout_s == 1.0
-
-
 class ScriptedCamera:
     """A source replaying capture times (ms) from a script; ``"stall"`` raises StallError.
     ``live=False`` hands every frame over (no overwriting) so a test sees them all."""

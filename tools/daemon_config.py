@@ -131,6 +131,11 @@ def _where(source: str, key: str) -> str:
     return f"{source}: {key}" if source else key
 
 
+def _key(key: str) -> str:
+    """A TOML key as the message shows it: bare when plain, quoted otherwise (one line always)."""
+    return key if key.replace("_", "").replace("-", "").isalnum() else repr(key)
+
+
 def _typed(value: Any, expected: Any, key: str, source: str) -> Any:
     """``value`` converted to the type of ``expected`` (the default), or a UserError naming ``key``."""
     bad = UserError(f"{_where(source, key)} = {value!r}: expected {_type_name(expected)}")
@@ -177,7 +182,7 @@ def _build(cls: type, table: dict[str, Any], name: str, source: str, **required:
     values = dict(required)
     for key, value in table.items():
         if key not in known:
-            raise UserError(f"{_where(source, f'unknown key {name}.{key}')} "
+            raise UserError(f"{_where(source, f'unknown key {name}.{_key(key)}')} "
                             f"(known in [{name}]: {', '.join(sorted(known))})")
         values[key] = _typed(value, getattr(defaults, key), f"{name}.{key}", source)
     return cls(**values)
@@ -222,7 +227,7 @@ def _transforms(data: dict[str, Any], source: str) -> tuple[StaticTransform, ...
             raise UserError(f"{_where(source, key)}: expected a table")
         unknown = sorted(set(table) - {"parent", "child", "xyz", "rpy"})
         if unknown:
-            raise UserError(f"{_where(source, f'unknown key {key}.{unknown[0]}')} (known: child, parent, rpy, xyz)")
+            raise UserError(f"{_where(source, f'unknown key {key}.{_key(unknown[0])}')} (known: child, parent, rpy, xyz)")
         names = []
         for part in ("parent", "child"):
             if not isinstance(table.get(part), str) or not table[part]:
@@ -247,11 +252,11 @@ def parse_config(data: dict[str, Any], source: str = "") -> DaemonConfig:
     """Check a decoded TOML document and build the daemon's configuration."""
     unknown = sorted(set(data) - TOP_LEVEL)
     if unknown:
-        raise UserError(f"{_where(source, f'unknown key {unknown[0]}')} (known tables: {', '.join(sorted(TOP_LEVEL))})")
+        raise UserError(f"{_where(source, f'unknown key {_key(unknown[0])}')} (known tables: {', '.join(sorted(TOP_LEVEL))})")
     robot_table = _table(data, "robot", source)
     unknown = sorted(set(robot_table) - {"name"})
     if unknown:
-        raise UserError(f"{_where(source, f'unknown key robot.{unknown[0]}')} (known in [robot]: name)")
+        raise UserError(f"{_where(source, f'unknown key robot.{_key(unknown[0])}')} (known in [robot]: name)")
     robot = _typed(robot_table.get("name", "trundle"), "", "robot.name", source)
     logger_table = _table(data, "logger", source)
     if "folder" not in logger_table:

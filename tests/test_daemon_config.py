@@ -1,0 +1,108 @@
+"""Daemon configuration: the example parses; every mistake is one line naming the key."""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from logs.errors import UserError
+from tools.daemon_config import default_socket_path, load_config, parse_config
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "tools" / "daemon_example.toml"
+
+
+def example() -> dict:
+    with open(EXAMPLE, "rb") as f:
+        return tomllib.load(f)
+
+
+def test_example_config_parses_with_every_section():
+    config = load_config(EXAMPLE)
+    assert [(d.family, d.name) for d in config.devices] == [("lrf", "lrf"), ("can", "can"), ("camera", "camera")]
+    can = config.devices[1]
+    assert can.url == "slcan:///dev/trundle-can@1000000" and can.options["encoders"] == "odrive:0,1"
+    assert "url" not in can.options and can.options["track_m"] == 0.5
+    assert config.transforms[0].child == "laser" and config.transforms[0].xyz == (0.2, 0.0, 0.3)
+    assert config.logger.folder == Path("/var/lib/trundle/logs") and config.logger.prefix == "trundle"
+    assert config.logger.split_size_mb == 1024.0 and config.disk.action == "delete_oldest"
+    assert config.status.socket == Path("/run/trundle/status.sock")
+    assert config.slam == {"resolution": 0.05}
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d["logger"].update(compresion="zstd"), "unknown key logger.compresion"),
+    (lambda d: d.update(loger={}), "unknown key loger"),
+    (lambda d: d["disk"].update(action="panic"), "disk.action = 'panic'"),
+    (lambda d: d["disk"].update(min_free_mb="2 GB"), "disk.min_free_mb = '2 GB'"),
+    (lambda d: d["disk"].update(min_free_mb=-1), "disk.min_free_mb = -1"),
+    (lambda d: d["processing"].update(slam="yes"), "processing.slam = 'yes'"),
+    (lambda d: d["logger"].pop("folder"), "logger.folder: missing"),
+    (lambda d: d["logger"].update(compression="bz2"), "logger.compression = 'bz2'"),
+    (lambda d: d["lrf"].pop("url"), "lrf.url: missing"),
+    (lambda d: d["camera"].update(enabled="no"), "camera.enabled = 'no'"),
+    (lambda d: d["transforms"][0].update(xyz=[1, 2]), "transforms[0].xyz"),
+    (lambda d: d["transforms"][0].update(yaw=1.0), "unknown key transforms[0].yaw"),
+    (lambda d: d["robot"].update(id=3), "unknown key robot.id"),
+    (lambda d: d.update(camera=[{"url": "file:///a", "name": "cam"}, {"url": "file:///b", "name": "cam"}]),
+     "two devices are named 'cam'"),
+    (lambda d: [d.pop(k) for k in ("lrf", "can", "camera")], "no device"),
+])
+def test_mistakes_name_the_key(edit, message):
+    data = example()
+    edit(data)
+    with pytest.raises(UserError) as error:
+        parse_config(data, "robot.toml")
+    text = str(error.value)
+    assert text.startswith("robot.toml: ") and message in text and "\n" not in text
+
+
+def test_device_lists_and_disabled_devices():
+    data = example()
+    data["camera"] = [{"url": "file:///front.avi", "name": "front"}, {"url": "file:///rear.avi", "name": "rear",
+                                                                      "enabled": False}]
+    data["lrf"]["enabled"] = False
+    config = parse_config(data)
+    assert [d.name for d in config.devices] == ["can", "front"]
+    assert config.devices[1].options == {"name": "front"}
+
+
+def test_files_that_cannot_be_read(tmp_path):
+    with pytest.raises(UserError, match="config file not found"):
+        load_config(tmp_path / "none.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[logger\nfolder = 1")
+    with pytest.raises(UserError, match="not valid TOML"):
+        load_config(bad)
+
+
+def test_default_socket_follows_systemd_then_xdg(monkeypatch):
+    monkeypatch.setenv("RUNTIME_DIRECTORY", "/run/trundle")
+    assert default_socket_path() == Path("/run/trundle/status.sock")
+    monkeypatch.delenv("RUNTIME_DIRECTORY")
+    monkeypatch.setenv("XDG_RUNTIME_DIR", "/run/user/1000")
+    assert default_socket_path() == Path("/run/user/1000/trundle/status.sock")
+
+
+values = st.one_of(st.none(), st.booleans(), st.integers(-10, 10**6), st.floats(allow_nan=True),
+                   st.text(max_size=4), st.lists(st.integers(-2, 2), max_size=4), st.dictionaries(st.text(max_size=3),
+                                                                                                   st.integers(), max_size=2))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_any_mutation_gives_a_config_or_one_user_error_line(data):
+    document = copy.deepcopy(example())
+    section = data.draw(st.sampled_from(sorted(k for k in document if isinstance(document[k], dict))))
+    key = data.draw(st.one_of(st.sampled_from(sorted(document[section]) or ["x"]), st.text(max_size=6)))
+    document[section][key] = data.draw(values)
+    if data.draw(st.booleans()):
+        document[data.draw(st.text(max_size=5))] = data.draw(values)
+    try:
+        parse_config(document, "robot.toml")
+    except UserError as error:
+        assert "\n" not in str(error) and str(error).startswith("robot.toml: ")

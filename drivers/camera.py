@@ -153,6 +153,8 @@ class CameraDriver(Driver):
         raise DeviceError(f"{type(error).__name__}: {error}")
 
     def _handle(self, frame: Frame) -> None:
+        if self._last_t_ns is None and self._grabber is not None:  # first frame: the clock is known now
+            self.settings = self._grabber.source.settings()
         self.counters["dropped"] += count_dropped(self._last_t_ns, frame.t_ns, self._period_ns)
         self._last_t_ns = frame.t_ns
         stamp_ns = frame.t_ns + self.offset_ns

@@ -5,14 +5,18 @@ from __future__ import annotations
 
 import math
 import shutil
+import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from camera_clips import avi_video_chunks, scene, wait_for, write_clip
 from drivers.camera import CameraDriver, driver_from_url
+from drivers.jpeg_check import jpeg_problem
 from logs import messages as m
 from logs.errors import UserError
 from logs.reader import LogMessage, LogReader
@@ -291,3 +295,25 @@ def test_trundle_record_bad_camera_is_one_line(tmp_path: Path, capsys: pytest.Ca
     assert main(["record", "--camera", "v4l2:///dev/video-none", "-o", str(tmp_path / "x.mcap")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no camera at /dev/video-none" in err
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.tuples(st.floats(0.0, 1.0, exclude_max=True), st.integers(0, 255)), min_size=1, max_size=40))
+def test_damaged_container_never_crashes_the_driver(clip: Path, damage: list[tuple[float, int]]) -> None:
+    data = bytearray(clip.read_bytes())
+    for where, value in damage:
+        data[int(where * len(data))] = value
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "damaged.avi"
+        path.write_bytes(bytes(data))
+        logged: list[m.CompressedImage] = []
+        try:
+            driver = driver_from_url(f"file://{path}?pace=0", lambda topic, msg, t: logged.append(msg), {})
+        except UserError:
+            return  # FFmpeg no longer recognises the file: the user is told so
+        driver.start()
+        wait_for(lambda: driver.finished.is_set() or driver.counters["errors"] > 0, what="end or error")
+        driver.stop()
+    assert not driver._thread.is_alive()
+    assert all(jpeg_problem(msg.data) is None for msg in logged)
+    assert driver.counters["frames"] == len(logged)

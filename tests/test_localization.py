@@ -1,0 +1,206 @@
+"""Localisation on a fixed map: global search, convergence from an unknown start, kidnap recovery.
+
+Two maps: the simulated office of ``tools/worlds`` (exact ground truth, scans from the world
+simulator) and the Intel Research Lab map built from the GMapping-corrected poses of
+``intel.gfs.log`` (every other scan; the localizer then runs on the scans left out).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fusion.geometry import compose, inverse, relative, scan_to_points, transform_points, voxel_filter
+from fusion.localization import (CoarseMap, Localizer, LocalizerConfig, coarse_map, correlate_headings,
+                                 global_search)
+from fusion.occupancy_grid import LogOddsGrid
+from fusion.odometry_drift import drifting_odometry
+
+INTEL = Path(__file__).parents[2] / "shared" / "data" / "intel" / "intel.gfs.log"
+
+
+def angle_error(a: float, b: float) -> float:
+    return abs(math.remainder(a - b, 2 * math.pi))
+
+
+class Office:
+    """The simulated office: route poses, scans (robot-frame points) and a map built from exact scans."""
+
+    def __init__(self) -> None:
+        from tools.world import LaserModel, load_world, simulate_scan
+
+        self.world = load_world()
+        self.model = LaserModel(beams=361, range_max=20.0)
+        self._simulate = simulate_scan
+        self.grid = LogOddsGrid(0.05)
+        for pose in self.route(1.0):
+            self.grid.insert_rays(pose[:2], transform_points(pose, self.points(pose)))
+
+    def route(self, step_m: float) -> np.ndarray:
+        poses = []
+        for a, b in zip(self.world.route[:-1], self.world.route[1:]):
+            n = max(1, int(np.hypot(*(b - a)) / step_m))
+            heading = math.atan2(b[1] - a[1], b[0] - a[0])
+            poses += [[*(a + (b - a) * k / n), heading] for k in range(n)]
+        return np.array(poses)
+
+    def points(self, pose: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
+        ranges = self._simulate(self.world, tuple(pose), self.model, rng)
+        angles = self.model.angles()
+        ok = np.isfinite(ranges)
+        return voxel_filter(np.column_stack([ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])]), 0.05)
+
+
+@pytest.fixture(scope="module")
+def office() -> Office:
+    return Office()
+
+
+def test_correlate_headings_hand_computed():
+    # one point 1 cell ahead: the score at a cell is the field one cell ahead of it
+    field = np.zeros((5, 5), np.float32)
+    field[2, 3] = 1.0
+    coarse = CoarseMap(field, np.ones((5, 5), bool), np.zeros(2), 1.0)
+    scores = correlate_headings(coarse, np.array([[1.0, 0.0]]), np.array([0.0, math.pi / 2]))
+    assert scores[0, 2, 2] == 1.0 and scores[0].sum() == 1.0  # facing +x from (2, 2) sees (2, 3)
+    assert scores[1, 2, 3] == 0.0 and scores[1, 1, 3] == 1.0  # facing +y from row 1 sees row 2
+    assert scores[1].sum() == 1.0
+
+
+def test_coarse_map_bounds_the_fine_likelihood(office):
+    coarse = coarse_map(office.grid, 0.2)
+    assert coarse.resolution == pytest.approx(0.2)
+    fine = office.grid.likelihood_field(0.2)
+    rows, cols = np.nonzero(fine > 0.5)
+    assert np.all(coarse.field[rows // 4, cols // 4] >= fine[rows, cols] - 1e-6)
+    assert 0.05 < coarse.free.mean() < 0.9
+
+
+def test_global_search_finds_the_true_pose_first(office):
+    rng = np.random.default_rng(2)
+    for pose in office.route(0.3)[[40, 150]]:
+        found = global_search(office.grid, office.points(pose, rng))
+        best = found[0]
+        assert np.hypot(*(best.pose[:2] - pose[:2])) < 0.1
+        assert angle_error(best.pose[2], pose[2]) < math.radians(2.0)
+        assert best.score > 0.7
+        assert all(r.score <= best.score for r in found)
+
+
+def run(localizer: Localizer, truth: np.ndarray, points: list[np.ndarray], odometry: np.ndarray | None):
+    updates = []
+    for k in range(len(truth)):
+        delta = None if odometry is None or k == 0 else relative(odometry[k - 1], odometry[k])
+        updates.append(localizer.update(points[k], delta))
+    return updates
+
+
+def test_office_converges_from_unknown_start_without_touching_the_map(office):
+    rng = np.random.default_rng(5)
+    path = office.route(0.3)
+    truth = path[60:80]
+    points = [office.points(p, rng) for p in truth]
+    odometry = drifting_odometry(truth, seed=3)
+    before, version = office.grid.log_odds.copy(), office.grid.version
+    localizer = Localizer(office.grid)
+    updates = run(localizer, truth, points, odometry)
+    converged = [k for k, u in enumerate(updates) if u.converged]
+    assert converged and converged[0] < 20
+    for u, pose in zip(updates[converged[0]:], truth[converged[0]:]):
+        assert u.status == "tracking"
+        assert np.hypot(*(u.pose[:2] - pose[:2])) < 0.1
+        assert angle_error(u.pose[2], pose[2]) < math.radians(2.0)
+    assert localizer.stats.kidnaps_at == []
+    np.testing.assert_array_equal(office.grid.log_odds, before)
+    assert office.grid.version == version
+
+
+def test_office_kidnapping_is_detected_and_recovered(office):
+    rng = np.random.default_rng(6)
+    path = office.route(0.3)
+    truth = np.vstack([path[10:22], path[120:140]])  # carried 30 m away after scan 12
+    points = [office.points(p, rng) for p in truth]
+    steps = relative(truth[:-1], truth[1:])
+    steps[11] = steps[10]  # the wheels report an ordinary step while the robot is carried
+    odometry = [truth[0]]
+    for step in steps:
+        odometry.append(compose(odometry[-1], step))
+    odometry = np.array(odometry)
+    localizer = Localizer(office.grid)
+    updates = run(localizer, truth, points, odometry)
+    assert localizer.stats.converged_at[0] < 12
+    kidnap = [k for k, u in enumerate(updates) if u.kidnapped]
+    assert kidnap and 12 <= kidnap[0] <= 14
+    recovered = [k for k in localizer.stats.converged_at if k > kidnap[0]]
+    assert recovered and recovered[0] - 12 < 20
+    for u, pose in zip(updates[recovered[0]:], truth[recovered[0]:]):
+        assert np.hypot(*(u.pose[:2] - pose[:2])) < 0.1
+
+
+class Intel:
+    """Map from the even scans of intel.gfs.log at GMapping's poses; the odd scans to localise."""
+
+    def __init__(self) -> None:
+        from logs.importers.carmen import infer_no_return, read_carmen, to_scan
+
+        log = read_carmen(INTEL)
+        no_return = infer_no_return(log)
+        lasers = [laser for laser in log.lasers if laser.kind == "FLASER"]
+        scans = [to_scan(laser, "laser", no_return) for laser in lasers]
+        self.poses = np.array([laser.pose for laser in lasers])
+        self.grid = LogOddsGrid(0.05)
+        for scan, pose in zip(scans[::2], self.poses[::2]):
+            self.grid.insert_rays(pose[:2], transform_points(pose, scan_to_points(scan, range_max=20.0)))
+        self.points = [voxel_filter(scan_to_points(scan, range_max=20.0), 0.05) for scan in scans]
+        self.odometry = drifting_odometry(self.poses, seed=1)  # 5 % scale, 2 deg/m drift plus noise
+
+
+@pytest.fixture(scope="module")
+def intel() -> Intel:
+    if not INTEL.exists():
+        pytest.skip(f"{INTEL} absent (shared data)")
+    return Intel()
+
+
+@pytest.mark.parametrize("start", [1, 251, 501, 751])
+def test_intel_converges_within_20_scans(intel, start):
+    index = np.arange(start, start + 40, 2)  # odd scans: not in the map
+    localizer = Localizer(intel.grid)
+    updates = run(localizer, intel.poses[index], [intel.points[k] for k in index], intel.odometry[index])
+    converged = [k for k, u in enumerate(updates) if u.converged]
+    assert converged and converged[0] < 20
+    errors = [np.hypot(*(u.pose[:2] - p[:2])) for u, p in zip(updates[converged[0]:], intel.poses[index][converged[0]:])]
+    assert max(errors) < 0.15
+    assert localizer.stats.kidnaps_at == []
+
+
+def test_intel_without_odometry(intel):
+    index = np.arange(301, 313)
+    localizer = Localizer(intel.grid)
+    updates = run(localizer, intel.poses[index], [intel.points[k] for k in index], None)
+    assert localizer.stats.converged_at and localizer.stats.converged_at[0] < 20
+    assert np.hypot(*(updates[-1].pose[:2] - intel.poses[index[-1]][:2])) < 0.15
+
+
+def test_intel_kidnapping_is_detected_and_recovered(intel):
+    index = np.concatenate([np.arange(101, 131, 2), np.arange(601, 641, 2)])
+    splice = 15
+    odometry = intel.odometry[index].copy()
+    # after the splice the odometry continues from where the robot was, with an ordinary step
+    step = relative(intel.odometry[index[splice - 2]], intel.odometry[index[splice - 1]])
+    shift = compose(compose(odometry[splice - 1], step), inverse(odometry[splice]))
+    odometry[splice:] = compose(shift, odometry[splice:])
+    before = intel.grid.log_odds.copy()
+    localizer = Localizer(intel.grid, LocalizerConfig(lost_after=2))
+    updates = run(localizer, intel.poses[index], [intel.points[k] for k in index], odometry)
+    kidnap = [k for k, u in enumerate(updates) if u.kidnapped]
+    assert localizer.stats.converged_at[0] < splice
+    assert kidnap and splice <= kidnap[0] <= splice + 2
+    recovered = [k for k in localizer.stats.converged_at if k > kidnap[0]]
+    assert recovered and recovered[0] - splice < 20
+    for u, pose in zip(updates[recovered[0]:], intel.poses[index][recovered[0]:]):
+        assert np.hypot(*(u.pose[:2] - pose[:2])) < 0.15
+    np.testing.assert_array_equal(intel.grid.log_odds, before)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -171,3 +172,39 @@ def test_intel_reference_and_drifting_odometry():
     assert error.translation_abs_m.mean == pytest.approx(0.05 * lengths.mean(), rel=1e-6)
     assert error.rotation_abs_deg.mean == pytest.approx(0.0, abs=1e-9)
     assert absolute_trajectory_error(drift, reference).rmse_m > 0.5
+
+
+def test_slam_eval_command(tmp_path, capsys):
+    from tools.cli import main
+
+    result, reference = tmp_path / "trajectory.csv", tmp_path / "reference.csv"
+    write_trajectory_csv(result, trajectory((0, 0, 0), (1.1, 0, 0), (2.1, 0.2, math.pi / 2 + 0.1)))
+    write_trajectory_csv(reference, REFERENCE)
+    assert main(["slam-eval", str(result), str(reference), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["relation_error"]["count"] == 2
+    assert report["relation_error"]["translation_abs_m"]["mean"] == pytest.approx(0.15, abs=1e-6)
+    assert report["rpe"]["translation_mean_m"] == pytest.approx(0.15, abs=1e-6)
+    assert report["ate"]["count"] == 3
+    assert main(["slam-eval", str(result), str(reference)]) == 0
+    text = capsys.readouterr().out
+    assert "translation abs     0.1500 +- 0.0500 m" in text and "ATE" in text
+    relations = tmp_path / "r.relations"
+    relations.write_text(f"0 {1:d} 1 0 0 0 0 0\n")
+    assert main(["slam-eval", str(result), str(relations), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["relation_error"]["translation_abs_m"]["mean"] == pytest.approx(0.1, abs=1e-6)
+    assert "ate" not in report
+
+
+@pytest.mark.parametrize("args", [["absent.csv", "ref.csv"], ["traj.csv", "bad.relations"], ["traj.csv", "ref.csv", "--step", "0"]])
+def test_slam_eval_user_errors_are_one_line(tmp_path, capsys, monkeypatch, args):
+    from tools.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    write_trajectory_csv(tmp_path / "traj.csv", REFERENCE)
+    write_trajectory_csv(tmp_path / "ref.csv", REFERENCE)
+    (tmp_path / "bad.relations").write_text("1 2 3\n")
+    assert main(["slam-eval", *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("trundle slam-eval: ") and err.count("\n") == 1

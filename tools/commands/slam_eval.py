@@ -1,0 +1,75 @@
+"""`trundle slam-eval RESULT REFERENCE`: relation error (Kuemmerle et al. 2009), ATE and RPE of a SLAM trajectory.
+
+RESULT is the ``trajectory.csv`` (``t_ns,x,y,theta``) written by ``trundle slam``. REFERENCE is a
+Freiburg ``.relations`` file (relation error only), or a reference trajectory: a
+``t_ns,x,y,theta`` CSV or a CARMEN log (its laser lines' poses, e.g. GMapping's corrected
+``.gfs.log``), from which the relations between scans ``--step`` apart are taken and ATE and RPE
+are computed as well. Poses are paired by timestamp within ``--tolerance-ms``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from fusion.evaluation import (Trajectory, absolute_trajectory_error, read_reference, read_trajectory_csv,
+                               relation_error, relative_pose_error, trajectory_relations)
+from logs.errors import UserError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("slam-eval", help="relation error (Kuemmerle 2009), ATE and RPE of a SLAM trajectory",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("result", help="trajectory.csv from `trundle slam` (t_ns,x,y,theta)")
+    p.add_argument("reference", help=".relations file, t_ns,x,y,theta CSV or CARMEN log")
+    p.add_argument("--step", type=int, default=1,
+                   help="relations and RPE between reference poses this many scans apart (default 1: consecutive)")
+    p.add_argument("--tolerance-ms", type=float, default=1.0,
+                   help="largest time difference when pairing poses (default 1 ms)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    p.set_defaults(func=run)
+
+
+def evaluate(result: Trajectory, reference, step: int = 1, tolerance_ns: int = 1_000_000) -> dict:
+    """All metrics as a JSON-ready dict (``ate`` and ``rpe`` only for a reference trajectory)."""
+    if step < 1:
+        raise UserError(f"--step must be at least 1, got {step}")
+    if isinstance(reference, Trajectory):
+        if len(reference) <= step:
+            raise UserError(f"the reference has {len(reference)} poses: too few for relations {step} apart")
+        report = {"relations": f"reference poses {step} apart",
+                  "relation_error": relation_error(result, trajectory_relations(reference, step), tolerance_ns).as_dict(),
+                  "ate": absolute_trajectory_error(result, reference, tolerance_ns).as_dict(),
+                  "rpe": relative_pose_error(result, reference, step, tolerance_ns).as_dict()}
+    else:
+        report = {"relations": "relations file",
+                  "relation_error": relation_error(result, reference, tolerance_ns).as_dict()}
+    return report
+
+
+def _text(report: dict) -> str:
+    e = report["relation_error"]
+    lines = [f"Relations:            {e['count']} ({report['relations']}; {e['missing']} without estimated poses)",
+             "Relation error (Kuemmerle et al. 2009), mean +- std:",
+             f"  translation abs     {e['translation_abs_m']['mean']:.4f} +- {e['translation_abs_m']['std']:.4f} m"
+             f"   (max {e['translation_max_m']:.4f} m)",
+             f"  translation sq      {e['translation_sq_m2']['mean']:.4f} +- {e['translation_sq_m2']['std']:.4f} m^2",
+             f"  rotation abs        {e['rotation_abs_deg']['mean']:.3f} +- {e['rotation_abs_deg']['std']:.3f} deg"
+             f"   (max {e['rotation_max_deg']:.3f} deg)",
+             f"  rotation sq         {e['rotation_sq_deg2']['mean']:.3f} +- {e['rotation_sq_deg2']['std']:.3f} deg^2"]
+    if "ate" in report:
+        a, r = report["ate"], report["rpe"]
+        lines += [f"ATE (SE(2)-aligned):  rmse {a['rmse_m']:.4f} m, mean {a['mean_m']:.4f} m, median {a['median_m']:.4f} m,"
+                  f" max {a['max_m']:.4f} m, heading rmse {a['rotation_rmse_deg']:.3f} deg over {a['count']} poses",
+                  f"RPE ({r['step']} scan{'s' if r['step'] > 1 else ''}):"
+                  f"         translation rmse {r['translation_rmse_m']:.4f} m, rotation rmse {r['rotation_rmse_deg']:.3f} deg"]
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    result = read_reference(args.result)
+    if not isinstance(result, Trajectory):
+        raise UserError(f"{args.result}: RESULT must be a trajectory (t_ns,x,y,theta CSV or CARMEN log)")
+    report = evaluate(result, read_reference(args.reference), args.step, int(round(args.tolerance_ms * 1e6)))
+    print(json.dumps(report, indent=2) if args.json else _text(report))
+    return 0

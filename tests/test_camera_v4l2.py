@@ -223,3 +223,8 @@ def test_health_is_ok_at_the_set_rate(jpeg: bytes) -> None:
     status = driver.diagnostics()
     driver.stop()
     assert status.level == m.OK and dict(status.values)["fps_measured"] == "30.00"
+
+
+def test_opencv_v4l2_select_timeout_is_short_before_any_capture() -> None:
+    # OpenCV reads it once, at the first V4L2 capture: importing the driver must have set it
+    assert int(os.environ["OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT"]) <= 2

@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from drivers.frame_source import FrameSource
+from drivers.lifecycle import DeviceError
 from drivers.video_file import ImageFolderSource, VideoFileSource, probe_video
 from logs.errors import UserError
 
@@ -131,7 +132,10 @@ class CameraEmulator:
 
     def start(self) -> CameraEmulator:
         if self._file is not None:
-            self._file.open()
+            try:
+                self._file.open()
+            except DeviceError as error:
+                raise UserError(f"emulator source: {error}") from None
         self.replug()
         self._producer.start()
         return self

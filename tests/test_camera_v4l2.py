@@ -150,8 +150,7 @@ def test_source_stall_is_counted_and_reconnected(jpeg: bytes) -> None:
 def test_grabber_keeps_only_the_newest_live_frame(jpeg: bytes) -> None:
     camera = ScriptedCamera([float(i) for i in range(10)], jpeg)
     grabber = FrameGrabber(camera).start()
-    wait_for(lambda: not camera.script, what="frames read")
-    time.sleep(0.05)
+    wait_for(lambda: grabber.overwritten == 9, what="frames read and overwritten")
     frame = grabber.get(1.0)
     grabber.stop()
     assert frame is not None and frame.t_ns == 9_000_000

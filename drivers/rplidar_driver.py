@@ -30,6 +30,7 @@ from logs.errors import UserError
 # model: (default baud, range_min m, range_max m)
 MODELS = {"a1": (115200, 0.15, 12.0), "a2": (115200, 0.15, 12.0), "a3": (256000, 0.2, 25.0), "s1": (256000, 0.1, 40.0)}
 LEGACY_SAMPLE_US = 476  # the SDK's default when GET_SAMPLERATE is not answered
+WRAP_Q6 = 16 * 64  # a clean wrap goes from the last 16 deg of a turn to its first 16 deg
 
 
 @dataclass(frozen=True)
@@ -113,11 +114,13 @@ class RevolutionAssembler:
     """Decoded samples -> whole revolutions, dropping every revolution touched by a fault.
 
     A revolution runs from a start sample to the next; it is kept only if both of its
-    boundaries are clean wraps (no lost bytes there, the angle falls back across 0 deg), no
+    boundaries are clean wraps (no lost bytes there, the angle falls from its last 16 degrees to
+    its first 16), no
     bytes were lost inside it, and its angles advance without a gap wider than five typical
-    steps (``monotonic``: never backwards, as legacy scans are). Counters: ``corrupt_revolutions``
-    (lost or bad bytes inside), ``incomplete_revolutions`` (angle gaps), ``late_data``
-    (samples that arrived over 50 ms later than the sample clock predicts).
+    steps (``monotonic``: never backwards, as legacy scans are). Counters, for revolutions that
+    began with a clean wrap: ``corrupt_revolutions`` (lost or bad bytes inside or at the end),
+    ``incomplete_revolutions`` (angle gaps); ``late_data`` counts start samples that arrived
+    over 50 ms later than the sample clock predicts.
 
     Times come from the sample clock (``sample_ns`` apart), re-anchored on the earliest receive
     time seen, so data held up by the host or a USB hiccup is not stamped late. The newest
@@ -132,7 +135,6 @@ class RevolutionAssembler:
     _parts: list[rp.Nodes] = field(default_factory=list)
     _start_ns: int = 0
     _started: bool = False
-    _seen_start: bool = False
     _clean: bool = True
     _prev_angle: int | None = None
     _anchor_ns: int | None = None
@@ -140,8 +142,7 @@ class RevolutionAssembler:
 
     def reset(self) -> None:
         self._parts.clear()
-        self._started, self._seen_start, self._clean = False, False, True
-        self._prev_angle, self._anchor_ns = None, None
+        self._started, self._clean, self._prev_angle, self._anchor_ns = False, True, None, None
 
     def feed(self, nodes: rp.Nodes, rx_ns: int) -> list[Revolution]:
         n = len(nodes)
@@ -161,11 +162,12 @@ class RevolutionAssembler:
             if nodes.broken[b]:
                 self._clean, self._prev_angle, self._anchor_ns = False, None, None
             if nodes.start[b]:
-                wrap = not nodes.broken[b] and self._prev_angle is not None and self._prev_angle > nodes.angle_q6[b]
+                wrap = (not nodes.broken[b] and self._prev_angle is not None
+                        and self._prev_angle >= rp.FULL_CIRCLE_Q6 - WRAP_Q6 and nodes.angle_q6[b] < WRAP_Q6)
                 revolution = self._close(wrap)
                 if revolution is not None:
                     out.append(revolution)
-                self._started, self._clean, self._seen_start = wrap, True, True
+                self._started, self._clean = wrap, True
                 self._start_ns = self._clock(rx_ns - (n - 1 - b + self.lag_samples) * self.sample_ns)
         return out
 
@@ -187,7 +189,7 @@ class RevolutionAssembler:
         if not parts:
             return None
         if not (self._started and self._clean and wrap):
-            if self._seen_start:
+            if self._started:
                 self.counters["corrupt_revolutions"] += 1
             return None
         angle = np.concatenate([p.angle_q6 for p in parts])

@@ -46,6 +46,7 @@ class SensorClock:
     """
 
     RECENT = 64  # readings kept for the latency median
+    REFINE = 16  # readings after a re-anchoring whose median latency corrects it
 
     def __init__(self, bits: int = 24, tick_ns: int = 1_000_000, reset_tolerance_ns: int = 500_000_000,
                  resync_tolerance_ns: int = 100_000_000, resync_after: int = 10, bin_ticks: int = 1000,
@@ -76,6 +77,8 @@ class SensorClock:
         self._bins = 0
         self._bin = -1
         self._bin_min = np.inf
+        self._target: int | None = None  # median latency to restore after a re-anchoring
+        self._refine: list[int] = []
 
     @property
     def synced(self) -> bool:
@@ -147,7 +150,13 @@ class SensorClock:
         return ClockReading(raw, self._unwrapped, stamp, self.offset_ns, event)
 
     def _reanchor(self, stamp_ns: int) -> None:
-        """Make the current unwrapped tick map to ``stamp_ns``, keeping the drift estimate."""
+        """Make the current unwrapped tick map to ``stamp_ns``, keeping the drift estimate.
+
+        One receive time is only as good as its latency; once ``REFINE`` more readings have
+        come, the offset is shifted so their median latency matches the one before.
+        """
+        if self._n_recent:
+            self._target, self._refine = self._median_latency(), []
         self.offset_ns = stamp_ns - self._unwrapped * self.tick_ns
         self._ref = self._unwrapped
         self._outside = self._bins = 0
@@ -166,6 +175,14 @@ class SensorClock:
             self._outside += 1
             return self._outside >= self.resync_after
         self._outside = 0
+        if self._target is not None:
+            self._refine.append(latency)
+            if len(self._refine) < self.REFINE:
+                return False
+            shift = int(np.median(self._refine)) - self._target
+            self.offset_ns += shift
+            latency -= shift
+            self._target = None
         self._recent[self._n_recent % self.RECENT] = latency
         self._n_recent += 1
         ticks = self._unwrapped - self._ref

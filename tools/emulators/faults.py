@@ -34,12 +34,19 @@ class FaultPlan:
     wrap_s: float | None = None
     seed: int = 0
     rng: np.random.Generator = field(init=False, repr=False)
+    forced: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.rng = np.random.default_rng(self.seed)
 
+    def force(self, kind: str) -> None:
+        """Inject ``kind`` into the next scan (before any random draw), once."""
+        self.forced.append(kind)
+
     def draw(self) -> str:
         """The fault kind for the next scan, or "" for none."""
+        if self.forced:
+            return self.forced.pop(0)
         if not self.rates:
             return ""
         x = self.rng.random()

@@ -170,7 +170,7 @@ class RplidarDevice:
         self.sample_ns = (self.model.express_us if express else self.model.standard_us) * 1000
         self._next = (now - self.phase_ns) // self.sample_ns + 1  # next sample, counted from power-on
         self._first_capsule = True
-        self._capsule: list[int] = []  # express: samples waiting for a whole capsule
+        self._capsule = np.zeros(0, np.int64)  # express: samples waiting for a whole capsule
         self._capsule_fault = ""
         self._revolutions: dict[int, SentRevolution] = {}
         self._fault_at: dict[int, str] = {}
@@ -187,29 +187,35 @@ class RplidarDevice:
         """The samples measured by ``now``; during a stall they are held back and sent after it."""
         if self.mode is None or (self.mode != "force" and not self.motor_running):
             return b""
-        last = (now - self.phase_ns) // self.sample_ns  # samples measured by now
-        for k in range(self._next, last + 1):
-            fault = self._sample_fault(k)
-            if fault == "stall":
-                self._silent_until = self.phase_ns + k * self.sample_ns + int(self.faults.stall_s * 1e9)
+        last = (now - self.phase_ns) // self.sample_ns  # the last sample measured by now
+        k = self._next
+        while k <= last:
+            index = k // self.n
+            if index not in self._revolutions:
+                self._new_revolution(index)
+            end = min(last + 1, (index + 1) * self.n)
+            at = next((f for f in self._fault_at if k <= f < end), None)
+            if at is None:
+                self._held += self._samples(k, end)
+                k = end
+                continue
+            self._held += self._samples(k, at)
+            fault = self._fault_at.pop(at)
             if fault == "unplug":
                 self.link_request = ("unplug", self.faults.unplug_s)
                 self.mode = None
                 self._held.clear()
                 return b""
-            self._held += self._sample_bytes(k, fault)
+            if fault == "stall":
+                self._silent_until = self.phase_ns + at * self.sample_ns + int(self.faults.stall_s * 1e9)
+                fault = ""
+            self._held += self._samples(at, at + 1, fault)
+            k = at + 1
         self._next = max(self._next, last + 1)
         if now < self._silent_until:
             return b""
         out, self._held = bytes(self._held), bytearray()
         return out
-
-    def _sample_fault(self, k: int) -> str:
-        """Open a new revolution at its first sample; the fault planned for sample ``k``, if any."""
-        index, within = divmod(k, self.n)
-        if index not in self._revolutions:
-            self._new_revolution(index)
-        return self._fault_at.pop(k, "")
 
     def _new_revolution(self, index: int) -> None:
         """Measure revolution ``index`` (counted from power-on) and plan its fault."""
@@ -232,23 +238,28 @@ class RplidarDevice:
         self._revolutions[index] = rev
         self.sent.append(rev)
 
-    def _sample_bytes(self, k: int, fault: str) -> bytes:
-        index, i = divmod(k, self.n)
-        rev = self._revolutions[index]
-        if self.mode != "express":
-            node = rp.encode_nodes([i == 0], [rev.quality[i]], [rev.angle_q6[i]], [rev.distance_q2[i]])
-            return self._corrupt(node, fault, rp.NODE_SIZE)
-        self._capsule.append(k)
-        self._capsule_fault = self._capsule_fault or fault
-        if len(self._capsule) < 2 * rp.CABINS:
+    def _samples(self, a: int, b: int, fault: str = "") -> bytes:
+        """Bytes of samples a..b-1 (one revolution), the fault applied to their frame."""
+        if b <= a:
             return b""
-        samples, self._capsule = self._capsule, []
-        dist = [int(self._revolutions[s // self.n].distance_q2[s % self.n]) for s in samples]
-        start_q6 = (samples[0] % self.n) * (rp.FULL_CIRCLE_Q6 // self.n)
-        raw = rp.encode_capsule(start_q6, dist, np.zeros(len(samples), np.int64), new_scan=self._first_capsule)
-        self._first_capsule = False
-        fault, self._capsule_fault = self._capsule_fault, ""
-        return self._corrupt(raw, fault, rp.CAPSULE_SIZE)
+        index = a // self.n
+        rev = self._revolutions[index]
+        i = np.arange(a, b) - index * self.n
+        if self.mode != "express":
+            nodes = rp.encode_nodes(i == 0, rev.quality[i], rev.angle_q6[i], rev.distance_q2[i])
+            return self._corrupt(nodes, fault, rp.NODE_SIZE) if fault else nodes
+        self._capsule = np.concatenate((self._capsule, np.arange(a, b)))
+        self._capsule_fault = self._capsule_fault or fault
+        out = bytearray()
+        while self._capsule.size >= 2 * rp.CABINS:
+            samples, self._capsule = self._capsule[:2 * rp.CABINS], self._capsule[2 * rp.CABINS:]
+            dist = [int(self._revolutions[s // self.n].distance_q2[s % self.n]) for s in samples]
+            start_q6 = int(samples[0] % self.n) * (rp.FULL_CIRCLE_Q6 // self.n)
+            raw = rp.encode_capsule(start_q6, dist, np.zeros(samples.size, np.int64), new_scan=self._first_capsule)
+            self._first_capsule = False
+            fault, self._capsule_fault = self._capsule_fault, ""
+            out += self._corrupt(raw, fault, rp.CAPSULE_SIZE) if fault else raw
+        return bytes(out)
 
     def _corrupt(self, raw: bytes, fault: str, size: int) -> bytes:
         rng = self.faults.rng

@@ -116,7 +116,8 @@ def cluster_values(values: np.ndarray, cluster: int, dmin: int) -> np.ndarray:
 @dataclass
 class SentScan:
     """A scan the device meant to send: raw ``timestamp``, true host time ``rear_ns`` of the rear
-    direction, the values, the ``fault`` injected into it ("" none) and the streaming ``session``."""
+    direction, the values, the ``fault`` injected into it ("" none), the streaming ``session``
+    and which line a checksum or truncate fault ``damaged`` (status, timestamp or data)."""
 
     timestamp: int
     rear_ns: int
@@ -125,6 +126,7 @@ class SentScan:
     fault: str
     measure: Measure
     session: int
+    damaged: str = ""
 
 
 class ScipDevice:
@@ -386,9 +388,9 @@ class ScipDevice:
             return scip2.encode_reply(measure.echo(remaining), status)
         raw = scip2.encode_scan(measure, self.sensor_ms(rear), distances, intensities, remaining)
         if fault == "checksum":
-            return self._flip(raw)
+            return self._flip(raw, self.sent[-1])
         if fault == "truncate":
-            return self._truncate(raw)
+            return self._truncate(raw, self.sent[-1])
         if fault == "garbage":
             rng = self.faults.rng
             return rng.integers(0, 256, int(rng.integers(1, 48)), dtype=np.uint8).tobytes() + raw
@@ -404,18 +406,23 @@ class ScipDevice:
             spans.append((start, end))
             start = end + 1
 
-    def _flip(self, raw: bytes) -> bytes:
+    def _flip(self, raw: bytes, record: SentScan) -> bytes:
         """Replace one character of a line after the echo by another valid SCIP character."""
         rng = self.faults.rng
-        start, end = self._lines(raw)[int(rng.integers(len(self._lines(raw))))]
+        spans = self._lines(raw)
+        line = int(rng.integers(len(spans)))
+        record.damaged = ("status", "timestamp")[line] if line < 2 else "data"
+        start, end = spans[line]
         i = int(rng.integers(start, end))
         new = (raw[i] - 0x30 + int(rng.integers(1, 64))) % 64 + 0x30
         return raw[:i] + bytes((new,)) + raw[i + 1:]
 
-    def _truncate(self, raw: bytes) -> bytes:
+    def _truncate(self, raw: bytes, record: SentScan) -> bytes:
         """Cut the tail off the timestamp line or a data line (its LF stays)."""
         rng = self.faults.rng
         spans = self._lines(raw)[1:]
-        start, end = spans[int(rng.integers(len(spans)))]
+        line = int(rng.integers(len(spans)))
+        record.damaged = "timestamp" if line == 0 else "data"
+        start, end = spans[line]
         cut = int(rng.integers(1, end - start))
         return raw[:end - cut] + raw[end:]

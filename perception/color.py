@@ -88,14 +88,9 @@ class HsvTemplate:
     def bins(self) -> tuple[int, int, int]:
         return self.hue.size, self.saturation.size, self.value.size
 
-    def lookup(self, weights: tuple[float, float, float] = DEFAULT_WEIGHTS) -> np.ndarray:
-        """(256, 1, 3) float32 table: entry v of channel c = weights[c] * hist_c[bin of v]."""
-        table = np.zeros((256, 3), np.float32)
-        for c, (hist, size, weight) in enumerate(zip((self.hue, self.saturation, self.value),
-                                                     HSV8_RANGES, weights)):
-            values = np.arange(size)
-            table[:size, c] = weight * hist[values * hist.size // size]
-        return table.reshape(256, 1, 3)
+    def scaled(self) -> list[np.ndarray]:
+        """The three histograms scaled to peak 255 as (bins, 1) float32, as calcBackProject wants."""
+        return [(255.0 * h).astype(np.float32).reshape(-1, 1) for h in (self.hue, self.saturation, self.value)]
 
 
 def template_histograms(bgr: np.ndarray, mask: np.ndarray | None = None,
@@ -119,15 +114,17 @@ def back_project(hsv8: np.ndarray, template: HsvTemplate,
                  weights: tuple[float, float, float] = DEFAULT_WEIGHTS) -> np.ndarray:
     """Likeness of each pixel to the template, 0..255 uint8.
 
-    Each channel is back-projected through its own histogram and the three are merged as the
-    weighted sum ``255 * sum_c weights[c] * hist_c[pixel_c] / sum(weights)``.
+    Each channel is back-projected through its own histogram (``cv2.calcBackProject``, 0..255)
+    and the three are merged as the weighted sum ``sum_c weights[c] * backprojection_c /
+    sum(weights)`` (``cv2.addWeighted``, rounded at each of the two additions).
     """
     total = float(sum(weights))
     if total <= 0 or min(weights) < 0:
         raise ValueError("weights must be non-negative and not all zero")
-    table = template.lookup(tuple(255.0 * w / total for w in weights))
-    per_channel = cv2.LUT(hsv8, table)
-    return cv2.convertScaleAbs(cv2.transform(per_channel, np.ones((1, 3), np.float32)))
+    planes = [cv2.calcBackProject([hsv8], [c], hist, [0, size], 1)
+              for c, (hist, size) in enumerate(zip(template.scaled(), HSV8_RANGES))]
+    merged = cv2.addWeighted(planes[0], weights[0] / total, planes[1], weights[1] / total, 0)
+    return cv2.addWeighted(merged, 1.0, planes[2], weights[2] / total, 0)
 
 
 def clean_mask(mask: np.ndarray, median_size: int = 5, close_size: int = 5, open_size: int = 0) -> np.ndarray:

@@ -64,8 +64,8 @@ def test_back_projection_agrees_with_opencv_calcbackproject() -> None:
         hist = cv2.calcHist([tpl_hsv], [c], None, [bins], [0, size])
         cv2.normalize(hist, hist, 255, 0, cv2.NORM_INF)     # scale so the peak is 255
         expected += weight * cv2.calcBackProject([hsv8], [c], hist, [0, size], 1).astype(np.float64)
-    # OpenCV rounds each channel's back-projection to uint8 before the sum: <= 1 level apart
-    assert np.abs(back_project(hsv8, template, weights).astype(np.float64) - expected).max() <= 1.0
+    # rounded to uint8 after each channel and each of the two weighted additions: <= 1.5 levels
+    assert np.abs(back_project(hsv8, template, weights).astype(np.float64) - expected).max() <= 1.5
 
 
 def test_in_range_with_hue_wrapping_round_red() -> None:

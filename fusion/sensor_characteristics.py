@@ -159,6 +159,69 @@ def errors(measured: np.ndarray, reference: np.ndarray, times_s: np.ndarray | No
     return out
 
 
+def sweep_figures(measured: np.ndarray, reference: np.ndarray, hold: np.ndarray,
+                  times_s: np.ndarray | None = None) -> dict[str, dict[str, float]]:
+    """All reference figures for a stepped sweep, where the true value holds for a while.
+
+    ``hold`` numbers each stretch during which the reference held one value (consecutive
+    samples of one hold share a number). Averaging each hold removes the noise, so:
+    random error = the spread inside holds (pooled, with its distribution and SNR);
+    hysteresis = the largest gap between rising and falling holds at the same true value;
+    linearity = the line through the per-value means of both branches (hysteresis-free);
+    systematic error = the mean error, and its drift = slope over time of each hold's mean
+    error after the static curve is removed. Turning points (levels met from one side only) are
+    left out of the line when other levels were met from both sides.
+    """
+    m, v = np.asarray(measured, np.float64), np.asarray(reference, np.float64)
+    keep = _finite_pairs(m, v)
+    m, v, h = m[keep], v[keep], np.asarray(hold)[keep]
+    t = None if times_s is None else np.asarray(times_s, np.float64)[keep]
+    holds, index = np.unique(h, return_inverse=True)
+    counts = np.bincount(index)
+    hold_m = np.bincount(index, m) / counts
+    hold_v = np.bincount(index, v) / counts
+    order = np.argsort([t[index == k].mean() if t is not None else k for k in range(holds.size)]) if t is not None \
+        else np.arange(holds.size)
+    direction = np.zeros(holds.size)
+    direction[order[1:]] = np.sign(np.diff(hold_v[order]))
+    direction[order[0]] = direction[order[1]] if holds.size > 1 else 0.0
+    residual = m - hold_m[index]
+    dof = m.size - holds.size
+    sigma = float(np.sqrt((residual**2).sum() / dof)) if dof > 0 else float("nan")
+    levels, level_index = np.unique(hold_v, return_inverse=True)
+    curve = np.bincount(level_index, hold_m) / np.bincount(level_index)
+    rising = np.bincount(level_index, direction > 0, minlength=levels.size) > 0
+    falling = np.bincount(level_index, direction < 0, minlength=levels.size) > 0
+    both = rising & falling
+    gaps = [abs(hold_m[(level_index == k) & (direction > 0)].mean() - hold_m[(level_index == k) & (direction < 0)].mean())
+            for k in np.flatnonzero(both)]
+    # The hysteresis-free curve: levels met from both sides (a turning point is met from one).
+    static = both if both.sum() >= 3 else np.ones(levels.size, bool)
+    span = float(curve[static].max() - curve[static].min())
+    out = {
+        "sensitivity": linearity(curve[static], levels[static]) if static.sum() >= 3 else {},
+        "hysteresis": {"hysteresis": float(max(gaps)) if gaps else float("nan"),
+                       "hysteresis_percent_fs": float(100 * max(gaps) / span) if gaps and span else float("nan"),
+                       "levels_compared": len(gaps)},
+        "errors": {
+            "accuracy": float(1.0 - np.mean(np.abs(m - v) / np.abs(v))),
+            "bias": float(np.mean(m - v)),
+            "noise_std": sigma,
+            "snr_db": float(20 * np.log10(np.sqrt(np.mean(v**2)) / sigma)) if sigma > 0 else float("inf"),
+            "noise_skewness": float(stats.skew(residual)),
+            "noise_excess_kurtosis": float(stats.kurtosis(residual)),
+            "samples": int(m.size),
+            "holds": int(holds.size),
+        },
+        "precision": {"precision_std": sigma, "groups": int(holds.size), "samples": int(m.size)},
+    }
+    if t is not None and holds.size > 2:
+        hold_t = np.bincount(index, t) / counts
+        drift_error = hold_m - curve[level_index]
+        out["errors"]["bias_drift_per_s"] = float(np.polyfit(hold_t - hold_t.min(), drift_error, 1)[0])
+    return out
+
+
 def precision(groups: list[np.ndarray]) -> dict[str, float]:
     """Spread of repeated measurements of one true value: pooled standard deviation over groups."""
     groups = [np.asarray(g, np.float64)[np.isfinite(g)] for g in groups]

@@ -107,22 +107,47 @@ def characterize_laser(scans: list[m.LaserScan], args: argparse.Namespace, reade
         }
         plots["beam_noise"] = (scans[0].angles(), std)
     if reference is not None:
-        truth = np.interp(stamps, *reference, left=np.nan, right=np.nan)
+        truth, hold = reference_at(stamps, *reference)
+        seconds = (stamps - stamps[0]) * 1e-9
         if args.beam == "all":
-            measured, true = ranges.reshape(-1), np.repeat(truth, ranges.shape[1])
-            times = np.repeat((stamps - stamps[0]) * 1e-9, ranges.shape[1])
+            beams = ranges.shape[1]
+            measured, true = ranges.reshape(-1), np.repeat(truth, beams)
+            times, holds = np.repeat(seconds, beams), np.repeat(hold, beams)
         else:
             beam = int(args.beam)
             if not 0 <= beam < ranges.shape[1]:
                 raise UserError(f"--beam {beam} is outside 0..{ranges.shape[1] - 1}")
-            measured, true, times = ranges[:, beam], truth, (stamps - stamps[0]) * 1e-9
-        figures.update(reference_figures(measured, true, times))
+            measured, true, times, holds = ranges[:, beam], truth, seconds, hold
+        figures.update(reference_figures(measured, true, times, holds))
         plots["sensitivity"] = (true, measured)
     return figures, plots
 
 
-def reference_figures(measured: np.ndarray, true: np.ndarray, times: np.ndarray) -> dict[str, Any]:
-    """Sensitivity/linearity, hysteresis, accuracy and errors against a reference."""
+def reference_at(stamps: np.ndarray, ref_t: np.ndarray, ref_v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """True value for each stamp: the nearest reference row within half the reference's median
+    spacing (NaN further away), and the number of the hold (run of equal values) it belongs to.
+
+    Reference rows are the true values at the sensor's measurement times (e.g. one per scan
+    from the simulator or an emulator), so matching is by nearest time, not interpolation.
+    """
+    spacing = np.median(np.diff(ref_t)) if ref_t.size > 1 else 0
+    right = np.clip(np.searchsorted(ref_t, stamps), 1, max(ref_t.size - 1, 1))
+    left = right - 1
+    nearest = np.where(np.abs(stamps - ref_t[left]) <= np.abs(ref_t[right] - stamps), left, right)
+    close = np.abs(ref_t[nearest] - stamps) <= spacing / 2
+    run = np.concatenate([[0], np.cumsum(np.diff(ref_v) != 0)])
+    return np.where(close, ref_v[nearest], np.nan), np.where(close, run[nearest], -1)
+
+
+def reference_figures(measured: np.ndarray, true: np.ndarray, times: np.ndarray, holds: np.ndarray) -> dict[str, Any]:
+    """Sensitivity/linearity, hysteresis, accuracy and errors against a reference.
+
+    A stepped reference (values held over several samples) is analysed by holds, which
+    separates noise from non-linearity and hysteresis; a continuous sweep sample by sample.
+    """
+    valid = holds >= 0
+    if valid.any() and np.unique(holds[valid]).size * 2 <= valid.sum():
+        return sc.sweep_figures(measured, true, holds, times)
     out: dict[str, Any] = {"sensitivity": sc.linearity(measured, true), "errors": sc.errors(measured, true, times)}
     try:
         out["hysteresis"] = sc.hysteresis(measured, true)

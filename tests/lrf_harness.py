@@ -1,0 +1,65 @@
+"""Test harness for the laser drivers: a recording sink, waiting on conditions, a running pair.
+
+Waits are on counters and message counts with a generous ceiling, never on wall-clock
+durations, so a loaded machine only makes the tests slower, not flaky.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from contextlib import contextmanager
+from typing import Callable, Iterator
+
+from drivers.lifecycle import Driver
+from logs import messages as m
+from tools.emulators.device_server import DeviceServer
+
+CEILING_S = 60.0
+
+
+class Recorder:
+    """A Sink keeping every message with its log time."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.messages: list[tuple[str, m.Message, int]] = []
+
+    def __call__(self, topic: str, msg: m.Message, log_time_ns: int) -> bool:
+        with self.lock:
+            self.messages.append((topic, msg, log_time_ns))
+        return True
+
+    def topic(self, name: str) -> list[m.Message]:
+        with self.lock:
+            return [msg for topic, msg, _ in self.messages if topic == name]
+
+    def scans(self) -> list[m.LaserScan]:
+        return self.topic("/scan")  # type: ignore[return-value]
+
+
+def wait_until(predicate: Callable[[], bool], what: str, timeout_s: float = CEILING_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+        time.sleep(0.02)
+
+
+@contextmanager
+def running(server: DeviceServer, driver: Driver) -> Iterator[tuple[DeviceServer, Driver]]:
+    """Serve the device (unless already served) and run the driver; stop both, driver first."""
+    if server._thread is None:
+        server.start()
+    driver.start()
+    try:
+        yield server, driver
+    finally:
+        driver.stop()
+        server.stop()
+
+
+def inject(server: DeviceServer, kind: str) -> None:
+    """Make the device inject ``kind`` into its next scan, exactly once."""
+    with server.lock:
+        server.device.faults.force(kind)

@@ -141,7 +141,7 @@ class CameraDriver(Driver):
             return
         if grabber.ended:
             self.finished.set()
-            self._stop.set()
+            self.finish()
             return
         error = grabber.error
         if error is None or isinstance(error, StallError):

@@ -122,6 +122,10 @@ class Driver(ABC):
         if self._thread is not None:
             self._thread.join(timeout)
 
+    def finish(self) -> None:
+        """End the run loop from inside the driver (e.g. a file source reached its end)."""
+        self._stop.set()
+
     @property
     def stopping(self) -> bool:
         return self._stop.is_set()

@@ -63,6 +63,7 @@ class _Item(NamedTuple):
     data: bytes
     log_time_ns: int
     publish_time_ns: int
+    latch_key: str = ""
 
 
 @dataclass
@@ -132,7 +133,11 @@ class Logger:
         ros_type, data = ros2.encode(msg)
         stamp = getattr(msg, "stamp_ns", None)
         log_time = time.time_ns() if log_time_ns is None else int(log_time_ns)
-        return self._put(_Item(topic, ros_type, data, log_time, log_time if stamp is None else int(stamp)))
+        # Static transforms from several publishers are all kept for the next split, one per
+        # set of child frames, as tf2's transient-local subscribers would see them.
+        key = topic + "|" + ",".join(sorted(t.child_frame_id for t in msg.transforms)) \
+            if isinstance(msg, m.TFMessage) else topic
+        return self._put(_Item(topic, ros_type, data, log_time, log_time if stamp is None else int(stamp), key))
 
     __call__ = write
 
@@ -224,14 +229,14 @@ class Logger:
             file = self._file
             assert file is not None
             file.first_log_time_ns = item.log_time_ns
-            for latched in list(self._latched.values()):
-                if latched.topic != item.topic:  # re-logged at the split time, publish time kept
+            for key, latched in list(self._latched.items()):
+                if key != (item.latch_key or item.topic):  # re-logged at the split time, publish time kept
                     self._add(file, latched._replace(log_time_ns=item.log_time_ns))
         latched_topic = self._topic_latched.get(item.topic)
         if latched_topic is None:
             latched_topic = self._topic_latched[item.topic] = is_latched(item.topic, self.latched_topics)
         if latched_topic:
-            self._latched[item.topic] = item
+            self._latched[item.latch_key or item.topic] = item
         self._add(file, item)
         self.stats[item.topic].written += 1
 

@@ -217,3 +217,17 @@ def test_replay_command_prints_per_topic_summary(tmp_path: Path, capsys: pytest.
     out = capsys.readouterr().out
     assert "replayed 50 messages" in out
     assert "/scan" in out and "40 msgs" in out and "/wheels" in out and "10 msgs" in out
+
+
+def test_static_transforms_of_every_publisher_repeat_in_each_split(tmp_path: Path) -> None:
+    laser = m.TFMessage((m.TransformStamped.planar(T0, "base_link", "laser", 0.2, 0.0, 0.0),))
+    camera = m.TFMessage((m.TransformStamped.planar(T0, "base_link", "camera", 0.1, 0.0, 0.0),))
+    with Logger(tmp_path / "tf.mcap", split_duration_s=1.0) as logger:
+        logger.write("/tf_static", laser, T0)
+        logger.write("/tf_static", camera, T0)
+        for i in range(80):
+            logger.write("/scan", scan(T0 + i * 25_000_000), T0 + i * 25_000_000)
+    assert len(logger.files) == 2
+    for path in logger.files:
+        children = {t.child_frame_id for x in LogReader(path).messages(["/tf_static"]) for t in x.msg.transforms}
+        assert children == {"laser", "camera"}

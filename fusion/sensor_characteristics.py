@@ -62,13 +62,17 @@ def measurement_range(values: np.ndarray, stated_min: float | None = None, state
 def resolution(values: np.ndarray, tolerance: float = 1e-9) -> float | None:
     """Smallest change the readings show: the least gap between distinct values.
 
-    Gaps below ``tolerance`` (float rounding of one quantised value) are merged. None when every
-    reading is equal.
+    Gaps below ``tolerance`` (float rounding of one quantised value) are merged, and the gaps
+    within 1.5x of the smallest are averaged (median), since float32 storage makes one quantum
+    come out a little different at different magnitudes. None when every reading is equal.
     """
     v = np.unique(np.asarray(values, np.float64)[np.isfinite(values)])
     gaps = np.diff(v)
     gaps = gaps[gaps > tolerance]
-    return float(gaps.min()) if gaps.size else None
+    if not gaps.size:
+        return None
+    # float32 storage spreads one quantum over a few neighbouring gaps: take their median
+    return float(np.median(gaps[gaps <= 1.5 * gaps.min()]))
 
 
 def linearity(measured: np.ndarray, reference: np.ndarray) -> dict[str, float]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -97,10 +98,13 @@ def characterize_laser(scans: list[m.LaserScan], args: argparse.Namespace, reade
     blocks = [blk for blk in blocks if blk.shape[0] >= 2]
     if blocks:
         per_beam = [sc.beam_statistics(blk) for blk in blocks]
-        std = np.nanmean(np.array([p["std"] for p in per_beam]), axis=0)
+        with warnings.catch_warnings():  # beams that never returned have no spread: NaN, said so
+            warnings.simplefilter("ignore", RuntimeWarning)
+            std = np.nanmean(np.array([p["std"] for p in per_beam]), axis=0)
         figures["static"] = {
             "intervals_s": [((a - stamps[0]) * 1e-9, (b - stamps[0]) * 1e-9) for a, b in intervals],
             "scans": int(sum(blk.shape[0] for blk in blocks)),
+            "beams_with_noise": int(np.isfinite(std).sum()),
             "beam_noise_std_median": float(np.nanmedian(std)),
             "beam_noise_std_p95": float(np.nanpercentile(std, 95)),
             "precision": sc.precision([blk[:, j] for blk in blocks for j in range(blk.shape[1])]),

@@ -75,8 +75,8 @@ class Running:
         self.thread = threading.Thread(target=self.daemon.run, kwargs={"install_signals": False})
 
     def _make(self, family, url, sink, options):
-        driver = ScriptedDriver(options["name"], sink)
-        self.drivers[options["name"]] = driver
+        driver = ScriptedDriver(family, sink)
+        self.drivers[family] = driver
         return driver
 
     def __enter__(self):
@@ -223,6 +223,6 @@ def test_disk_guard_stops_recording_and_resumes(tmp_path, monkeypatch):
 def test_second_daemon_on_the_same_socket_is_refused(tmp_path):
     from logs.errors import UserError
     with Running(config(tmp_path)):
-        other = Daemon(config(tmp_path), make_driver=lambda f, u, s, o: ScriptedDriver(o["name"], s))
+        other = Daemon(config(tmp_path), make_driver=lambda f, u, s, o: ScriptedDriver(f, s))
         with pytest.raises(UserError, match="another trundle daemon"):
             other._start_status_server()

@@ -358,7 +358,6 @@ class Daemon:
             self._latched["/tf_static"] = m.TFMessage(tuple(self._static_tf.values()))
         for device in cfg.devices:
             options = dict(device.options)
-            options.setdefault("name", device.name)
             if device.family == "can" and not cfg.processing.odometry:
                 options.pop("wheel_radius_m", None)
                 options.pop("track_m", None)

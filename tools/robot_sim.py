@@ -201,8 +201,8 @@ class RobotSim:
         return self._angles[k] + frac * self._speeds[k] * self.model.control_period_s
 
     def wheel_speeds_at(self, t: float) -> np.ndarray:
-        """Angular speed (rad/s) of the left and right wheel at ``t``."""
-        if t >= self.duration_s:
+        """Angular speed (rad/s) of the left and right wheel at ``t`` (still before 0 and after the end)."""
+        if t < 0.0 or t >= self.duration_s:
             return np.zeros(2)
         return self._speeds[self._step(t)[0]].copy()
 
@@ -234,9 +234,10 @@ class RobotSim:
     def renderer(self) -> CameraRenderer:
         return CameraRenderer(self.world, self.camera)
 
-    def frame_at(self, t: float) -> np.ndarray:
-        """The camera image (H, W, 3) BGR uint8 at ``t``."""
-        return self.renderer.render(self.camera_pose_at(t), self._rng(t, 4) if self.noise else None)
+    def frame_at(self, t: float, renderer: CameraRenderer | None = None) -> np.ndarray:
+        """The camera image (H, W, 3) BGR uint8 at ``t`` (``renderer``: another camera on the same mount)."""
+        renderer = renderer or self.renderer
+        return renderer.render(self.camera_pose_at(t), self._rng(t, 4) if self.noise else None)
 
     def _rng(self, t: float, stream: int) -> np.random.Generator:
         return np.random.default_rng([self.seed, stream, max(0, int(round(t * 1e6)))])

@@ -206,13 +206,15 @@ def _node_ok(b: np.ndarray) -> np.ndarray:
 @dataclass
 class Nodes:
     """Decoded samples: ``start`` flag, ``quality``, ``angle_q6``, ``distance_q2``, and ``broken``:
-    True where bytes were lost just before this sample (the stream is discontinuous there)."""
+    True where bytes were lost just before this sample (the stream is discontinuous there);
+    ``lost`` estimates how many samples those lost bytes held."""
 
     start: np.ndarray
     quality: np.ndarray
     angle_q6: np.ndarray
     distance_q2: np.ndarray
     broken: np.ndarray
+    lost: int = 0
 
     def __len__(self) -> int:
         return int(self.start.size)
@@ -223,11 +225,13 @@ class Nodes:
         return cls(z.astype(bool), z, z, z, z.astype(bool))
 
     @classmethod
-    def concat(cls, parts: list[Nodes]) -> Nodes:
+    def concat(cls, parts: list[Nodes], lost: int = 0) -> Nodes:
         if not parts:
-            return cls.empty()
+            empty = cls.empty()
+            empty.lost = lost
+            return empty
         return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                     ("start", "quality", "angle_q6", "distance_q2", "broken")))
+                     ("start", "quality", "angle_q6", "distance_q2", "broken")), lost + sum(p.lost for p in parts))
 
 
 def decode_nodes(data: np.ndarray) -> Nodes:
@@ -263,6 +267,7 @@ class NodeDecoder:
         self._buf += data
         a = np.frombuffer(bytes(self._buf), np.uint8)
         parts: list[Nodes] = []
+        skipped = self.skipped_bytes
         p = 0
         while len(a) - p >= NODE_SIZE:
             if not self._aligned:
@@ -300,7 +305,7 @@ class NodeDecoder:
                 self._aligned, self._broken = False, True
                 p += 1
         del self._buf[:p]
-        return Nodes.concat(parts)
+        return Nodes.concat(parts, round((self.skipped_bytes - skipped) / NODE_SIZE))
 
 
 def encode_capsule(start_angle_q6: int, distance_q2: np.ndarray, dtheta_q3: np.ndarray, new_scan: bool = False) -> bytes:
@@ -450,8 +455,11 @@ class ExpressNodeDecoder:
 
     def feed(self, data: bytes) -> Nodes:
         parts: list[Nodes] = []
+        skipped = self.capsules.skipped_bytes
+        lost = 0
         for capsule in self.capsules.feed(data):
             if capsule.broken:
+                lost += 2 * CABINS * len(self._held)
                 self._held.clear()
                 self._last_angle, self._broken = -1, True
             self._held.append(capsule)
@@ -467,4 +475,4 @@ class ExpressNodeDecoder:
             self._broken = False
             self._last_angle = int(angle[-1])
             parts.append(Nodes(start, np.zeros(angle.size, np.int64), angle, dist, broken))
-        return Nodes.concat(parts)
+        return Nodes.concat(parts, lost + round((self.capsules.skipped_bytes - skipped) * 2 * CABINS / CAPSULE_SIZE))

@@ -122,8 +122,9 @@ class RevolutionAssembler:
     ``incomplete_revolutions`` (angle gaps); ``late_data`` counts start samples that arrived
     over 50 ms later than the sample clock predicts.
 
-    Times come from the sample clock (``sample_ns`` apart), re-anchored on the earliest receive
-    time seen, so data held up by the host or a USB hiccup is not stamped late. The newest
+    Times come from the sample clock (``sample_ns`` apart, lost bytes counted as the samples
+    they held), re-anchored on the earliest receive time seen, so data held up by the host or a
+    USB hiccup is not stamped late. The newest
     sample of a chunk is taken as measured at its receive time, ``lag_samples`` after the last
     sample the decoder hands over (express capsules are held back two at a time).
     """
@@ -137,16 +138,21 @@ class RevolutionAssembler:
     _started: bool = False
     _clean: bool = True
     _prev_angle: int | None = None
+    _last_angle: int | None = None  # kept across breaks, to count the samples they swallowed
+    _step_q6: float = 0.0  # typical angle between samples
+    _pending_lost: int = 0
     _anchor_ns: int | None = None
     _since_anchor: int = 0
 
     def reset(self) -> None:
         self._parts.clear()
         self._started, self._clean, self._prev_angle, self._anchor_ns = False, True, None, None
+        self._last_angle, self._pending_lost = None, 0
 
     def feed(self, nodes: rp.Nodes, rx_ns: int) -> list[Revolution]:
         n = len(nodes)
         out: list[Revolution] = []
+        self._pending_lost += nodes.lost
         if not n:
             return out
         marks = np.flatnonzero(nodes.start | nodes.broken).tolist()
@@ -154,13 +160,14 @@ class RevolutionAssembler:
         for b in marks + [n]:
             if b > pos:
                 self._parts.append(_slice(nodes, pos, b))
-                self._prev_angle = int(nodes.angle_q6[b - 1])
+                self._prev_angle = self._last_angle = int(nodes.angle_q6[b - 1])
                 self._since_anchor += b - pos
             if b == n:
                 break
             pos = b
             if nodes.broken[b]:
-                self._clean, self._prev_angle, self._anchor_ns = False, None, None
+                self._since_anchor += self._lost(int(nodes.angle_q6[b]))
+                self._clean, self._prev_angle = False, None
             if nodes.start[b]:
                 wrap = (not nodes.broken[b] and self._prev_angle is not None
                         and self._prev_angle >= rp.FULL_CIRCLE_Q6 - WRAP_Q6 and nodes.angle_q6[b] < WRAP_Q6)
@@ -170,6 +177,16 @@ class RevolutionAssembler:
                 self._started, self._clean = wrap, True
                 self._start_ns = self._clock(rx_ns - (n - 1 - b + self.lag_samples) * self.sample_ns)
         return out
+
+    def _lost(self, angle_q6: int) -> int:
+        """Samples swallowed by a break: the angle gap before ``angle_q6`` in sample steps,
+        plus the whole turns the decoder's count of lost bytes implies."""
+        estimate, self._pending_lost = self._pending_lost, 0
+        if self._last_angle is None or self._step_q6 <= 0:
+            return estimate
+        per_turn = rp.FULL_CIRCLE_Q6 / self._step_q6
+        gap = ((angle_q6 - self._last_angle) % rp.FULL_CIRCLE_Q6) / self._step_q6 - 1
+        return max(0, round(gap + per_turn * round((estimate - gap) / per_turn)))
 
     def _clock(self, observed_ns: int) -> int:
         """Time of a start sample: the sample clock's prediction unless the receive time is earlier."""
@@ -199,6 +216,7 @@ class RevolutionAssembler:
                 or (self.monotonic and step.min() < 0) or step.min() < -limit):
             self.counters["incomplete_revolutions"] += 1
             return None
+        self._step_q6 = rp.FULL_CIRCLE_Q6 / angle.size
         return Revolution(angle, np.concatenate([p.distance_q2 for p in parts]),
                           np.concatenate([p.quality for p in parts]), self._start_ns, angle.size * self.sample_ns)
 

@@ -10,9 +10,12 @@ The map (a ``LogOddsGrid``) is only read, never updated. Three pieces:
   re-matches each scan locally and reweights them by match score (``log w += beta (score - 1)``),
   until one holds ``converged_probability`` of the weight and has been tracked ``min_scans``.
 - Once converged, one pose is tracked with a ``PoseEKF`` (odometry predict, scan-match correct).
-  A kidnapping shows as ``lost_after`` consecutive scans whose local match scores below
-  ``lost_score`` (or whose matches the EKF gate rejects); the localizer then searches globally
-  again.
+  A match the gate rejects is gated again against a prediction widened by a wheel slip
+  (``slip_sigma_*``: differential-drive odometry fails mostly in heading). A kidnapping shows as
+  ``lost_after`` consecutive scans whose local match scores below ``lost_score`` or disagrees
+  with the odometry even so. The localizer then searches globally; if the best place found is
+  where it was tracking, the odometry merely slipped (counted in ``stats.false_alarms``) and
+  tracking resumes there, otherwise it reports the kidnapping and follows the new hypotheses.
 """
 
 from __future__ import annotations
@@ -203,6 +206,8 @@ class LocalizerConfig:
     lost_score: float = 0.5
     lost_after: int = 2
     gate_chi2: float = 50.0
+    slip_sigma_xy_m: float = 0.05
+    slip_sigma_theta_rad: float = math.radians(10.0)
     odom_sigma_xy_per_m: float = 0.1
     odom_sigma_theta_per_m: float = math.radians(5.0)
     odom_sigma_theta_per_rad: float = 0.1
@@ -214,6 +219,7 @@ class LocalizerStats:
     global_searches: int = 0
     converged_at: list[int] = field(default_factory=list)
     kidnaps_at: list[int] = field(default_factory=list)
+    false_alarms: int = 0
 
 
 class Localizer:
@@ -245,8 +251,13 @@ class Localizer:
             update = self._track(points, odometry_delta_xyt)
             if update is not None:
                 return update
-            self.stats.kidnaps_at.append(index)
+            tracked = self._hypotheses[0].pose
             self._start_search(points)
+            best = self._hypotheses[0] if self._hypotheses else None
+            if best is not None and best.score >= self.config.good_score and self._same_place(best.pose, tracked):
+                self.stats.false_alarms += 1  # the map agrees with the track: the odometry slipped
+                return self._resume(best)
+            self.stats.kidnaps_at.append(index)
             return self._report(kidnapped=True)
         if not self._hypotheses:
             self._start_search(points)
@@ -257,13 +268,22 @@ class Localizer:
         best = self._hypotheses[0] if self._hypotheses else None
         if (best is not None and self._probabilities()[0] >= self.config.converged_probability
                 and best.scans >= self.config.min_scans and best.score >= self.config.good_score):
-            self.status = TRACKING
-            self._ekf = PoseEKF(best.pose, best.covariance)
-            self._hypotheses = [best]
-            self._bad = 0
             self.stats.converged_at.append(index)
+            self._resume(best)
             return self._report(converged=True)
         return self._report()
+
+    def _resume(self, best: _Hypothesis) -> LocalizationUpdate:
+        """Track ``best`` from here on."""
+        self.status = TRACKING
+        self._ekf = PoseEKF(best.pose, best.covariance)
+        self._hypotheses = [best]
+        self._bad = 0
+        return self._report()
+
+    def _same_place(self, a: np.ndarray, b: np.ndarray) -> bool:
+        return bool(np.hypot(*(a[:2] - b[:2])) < self.config.merge_m
+                    and abs(wrap_angle(a[2] - b[2])) < self.config.merge_rad)
 
     # --- searching ---------------------------------------------------------------------------
 
@@ -309,8 +329,7 @@ class Localizer:
         self._hypotheses.sort(key=lambda h: -h.log_weight)
         kept: list[_Hypothesis] = []
         for h in self._hypotheses:
-            twin = next((k for k in kept if np.hypot(*(h.pose[:2] - k.pose[:2])) < cfg.merge_m
-                         and abs(wrap_angle(h.pose[2] - k.pose[2])) < cfg.merge_rad), None)
+            twin = next((k for k in kept if self._same_place(h.pose, k.pose)), None)
             if twin is None:
                 kept.append(h)
             else:
@@ -346,8 +365,13 @@ class Localizer:
                             angular_step_rad=cfg.match_angular_step_rad)
         score = 0.0 if result is None else result.score
         good = result is not None and score >= cfg.lost_score
-        if good and result is not None:
-            good = self._ekf.correct(result.pose, result.covariance, cfg.gate_chi2)
+        if good and result is not None and not self._ekf.correct(result.pose, result.covariance, cfg.gate_chi2):
+            # the wheels may have slipped (mostly a turn): widen the prediction by a slip and gate again
+            slipped = PoseEKF(self._ekf.pose, self._ekf.covariance + np.diag(
+                [cfg.slip_sigma_xy_m, cfg.slip_sigma_xy_m, cfg.slip_sigma_theta_rad]) ** 2)
+            good = slipped.correct(result.pose, result.covariance, cfg.gate_chi2)
+            if good:
+                self._ekf.reset(slipped.pose, slipped.covariance)
         self._bad = 0 if good else self._bad + 1
         hypothesis.motion = relative(previous, self._ekf.pose)
         hypothesis.pose, hypothesis.covariance, hypothesis.score = self._ekf.pose.copy(), self._ekf.covariance.copy(), score

@@ -204,3 +204,46 @@ def test_intel_kidnapping_is_detected_and_recovered(intel):
     for u, pose in zip(updates[recovered[0]:], intel.poses[index][recovered[0]:]):
         assert np.hypot(*(u.pose[:2] - pose[:2])) < 0.15
     np.testing.assert_array_equal(intel.grid.log_odds, before)
+
+
+EXP2 = Path(__file__).parents[2] / "shared" / "data" / "breezyslam" / "exp2.dat"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not EXP2.exists(), reason=f"{EXP2} absent (shared data)")
+def test_exp2_converges_and_recovers_on_its_slam_map():
+    """exp2 (real URG-04LX scans, real wheel odometry): map by our SLAM, then localise from unknown starts."""
+    from fusion.odometry import DiffDriveOdometry
+    from fusion.slam import Slam
+    from logs.importers.breezyslam import ROBOT, messages, read_dat
+
+    slam = Slam(odometry=DiffDriveOdometry(ROBOT["wheel_radius_m"], ROBOT["track_m"]),
+                laser_pose=(ROBOT["laser_x_m"], 0.0, 0.0))
+    scans, odometry = [], []
+    for topic, msg, _ in messages(read_dat(EXP2)[0]):
+        slam.process(topic, msg)
+        if topic == "/scan":
+            scans.append(voxel_filter(scan_to_points(msg, np.array([ROBOT["laser_x_m"], 0.0, 0.0])), 0.05))
+            odometry.append(slam.odometry_at(msg.stamp_ns))
+    slam.finish()
+    reference = slam.trajectory()[1]
+    grid = slam.build_map()
+    odometry = np.array(odometry)
+    for start in range(0, 620, 60):
+        index = np.arange(start, min(start + 20, len(scans)))
+        localizer = Localizer(grid)
+        updates = run(localizer, reference[index], [scans[k] for k in index], odometry[index])
+        assert localizer.stats.converged_at and localizer.stats.converged_at[0] < 20
+        assert localizer.stats.kidnaps_at == []
+        assert np.hypot(*(updates[-1].pose[:2] - reference[index[-1]][:2])) < 0.15
+    index = np.concatenate([np.arange(50, 65), np.arange(400, 420)])  # carried 4.3 m after scan 15
+    spliced = odometry[index].copy()
+    shift = compose(compose(spliced[14], relative(spliced[13], spliced[14])), inverse(spliced[15]))
+    spliced[15:] = compose(shift, spliced[15:])
+    localizer = Localizer(grid)
+    updates = run(localizer, reference[index], [scans[k] for k in index], spliced)
+    kidnap = localizer.stats.kidnaps_at
+    assert kidnap and 15 <= kidnap[0] <= 17
+    recovered = [k for k in localizer.stats.converged_at if k > kidnap[0]]
+    assert recovered and recovered[0] - 15 < 20
+    assert np.hypot(*(updates[-1].pose[:2] - reference[index[-1]][:2])) < 0.15

@@ -150,25 +150,29 @@ class LogOddsGrid:
             self._cache[key] = factory()
         return self._cache[key]  # type: ignore[return-value]
 
-    def distance_field(self, max_distance_m: float = 1.0) -> np.ndarray:
-        """Metres from each cell centre to the nearest occupied cell centre, capped at ``max_distance_m``."""
+    def _distance_cells(self) -> np.ndarray:
+        """Exact Euclidean distance (cells) from each cell centre to the nearest occupied one (inf if none)."""
         def compute() -> np.ndarray:
             free = np.where(self.occupied(), 0, 255).astype(np.uint8)
-            if not free.size:
-                return np.zeros(self.shape, np.float32)
-            if free.all():
-                return np.full(self.shape, max_distance_m, np.float32)
-            cells = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-            return np.minimum(cells * self.resolution, max_distance_m).astype(np.float32)
-        return self.cached(("distance", float(max_distance_m)), compute)
+            if not free.size or free.all():
+                return np.full(self.shape, np.inf, np.float32)
+            return cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        return self.cached(("distance_cells",), compute)
+
+    def distance_field(self, max_distance_m: float = 1.0) -> np.ndarray:
+        """Metres from each cell centre to the nearest occupied cell centre, capped at ``max_distance_m``."""
+        return self.cached(("distance", float(max_distance_m)),
+                           lambda: np.minimum(self._distance_cells() * np.float32(self.resolution),
+                                              np.float32(max_distance_m)))
 
     def likelihood_field(self, sigma_m: float) -> np.ndarray:
-        """``exp(-d^2 / (2 sigma^2))`` of the distance to the nearest occupied cell, in [0, 1]."""
+        """``exp(-d^2 / (2 sigma^2))`` of the distance to the nearest occupied cell, 0 beyond 4 sigma."""
         def compute() -> np.ndarray:
-            d = self.distance_field(4.0 * sigma_m)
-            field = np.exp(-0.5 * (d / sigma_m) ** 2).astype(np.float32)
-            field[d >= 4.0 * sigma_m] = 0.0
-            return field
+            cells = self._distance_cells()
+            scale = np.float32(self.resolution / sigma_m)
+            field = np.exp(np.float32(-0.5) * np.square(np.minimum(cells, np.float32(4.0 / scale)) * scale))
+            field[cells * scale >= 4.0] = 0.0
+            return field.astype(np.float32, copy=False)
         return self.cached(("likelihood", float(sigma_m)), compute)
 
     def to_message(self, stamp_ns: int, frame_id: str = "map") -> OccupancyGrid:

@@ -66,18 +66,22 @@ def score_pyramid(field: np.ndarray, levels: int) -> list[np.ndarray]:
     return pyramid
 
 
-def _block_scores(grid: np.ndarray, ix: np.ndarray, iy: np.ndarray, candidates: np.ndarray) -> np.ndarray:
-    """Mean of ``grid`` under each candidate's points: ``candidates`` (M, 3) = angle index, dx, dy cells."""
-    count = ix.shape[1]
+def _block_scores(grid: np.ndarray, base: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """Mean of ``grid`` under each candidate's points.
+
+    ``base`` (angles, N) holds the flat index of each rotated point for offset (0, 0);
+    ``candidates`` (M, 3) = angle index, dx, dy in cells.
+    """
+    count = base.shape[1]
+    width = grid.shape[1]
+    flat = grid.reshape(-1)
     out = np.empty(len(candidates), np.float64)
     step = max(1, _CHUNK_ELEMENTS // max(count, 1))
-    height, width = grid.shape
     for start in range(0, len(candidates), step):
         c = candidates[start:start + step]
-        cols = np.clip(ix[c[:, 0]] + c[:, 1:2], 0, width - 1)
-        rows = np.clip(iy[c[:, 0]] + c[:, 2:3], 0, height - 1)
-        out[start:start + step] = grid[rows, cols].mean(axis=1)
-    return out
+        index = base[c[:, 0]] + (c[:, 2] * width + c[:, 1])[:, None]
+        out[start:start + step] = flat[index].sum(axis=1, dtype=np.float64)
+    return out / max(count, 1)
 
 
 def _shifts(level: int) -> np.ndarray:
@@ -95,14 +99,19 @@ def _children(candidates: np.ndarray, level: int, limit: int) -> np.ndarray:
 def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.ndarray, *,
                        window_xy_m: float = 0.3, window_theta_rad: float = math.radians(10.0),
                        angular_step_rad: float | None = None, sigma_m: float | None = None,
-                       min_score: float = 0.0) -> tuple[np.ndarray, float] | None:
+                       min_score: float = 0.0, prior_std_xy_m: float | None = None,
+                       prior_std_theta_rad: float | None = None) -> tuple[np.ndarray, float] | None:
     """Best pose on the search lattice around ``initial_pose_xyt`` and its score, or None below ``min_score``.
 
     ``points_xy`` (N, 2) are the scan's points in the robot frame. The lattice spans
     ``+-window_xy_m`` in x and y in steps of one cell and ``+-window_theta_rad`` in steps of
     ``angular_step_rad`` (default: one cell at the farthest point). ``sigma_m`` is the
-    likelihood-field width (default one cell). Branch and bound over a max-pooled pyramid makes
-    the result the exact lattice optimum at a fraction of the exhaustive cost.
+    likelihood-field width (default one cell). With ``prior_std_xy_m`` / ``prior_std_theta_rad``
+    each score is weighted by a Gaussian prior around the initial pose (as in Olson's real-time
+    correlative matcher), which keeps a corridor or a row of doors from pulling the match to a
+    look-alike place far from the prediction; the score returned is then the weighted one.
+    Branch and bound over a max-pooled pyramid makes the result the exact lattice optimum at a
+    fraction of the exhaustive cost.
     """
     points = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
     if len(points) == 0 or grid.shape[0] == 0:
@@ -122,22 +131,40 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
     wx = c * points[:, 0] - s * points[:, 1] + x0
     wy = s * points[:, 0] + c * points[:, 1] + y0
-    ix = np.floor((wx - grid.origin[0]) / res).astype(np.int64) + pad - limit
-    iy = np.floor((wy - grid.origin[1]) / res).astype(np.int64) + pad - limit
+    # Cell of each rotated point for offset (0, 0), clipped once so that every offset in
+    # [0, 2 limit] stays in the array: a point off the grid then lands in the zero border,
+    # which keeps level 0 exact and coarser levels upper bounds.
+    height, width = pyramid[0].shape
+    ix = np.clip(np.floor((wx - grid.origin[0]) / res).astype(np.int64) + pad - limit, 0, width - 1 - 2 * limit)
+    iy = np.clip(np.floor((wy - grid.origin[1]) / res).astype(np.int64) + pad - limit, 0, height - 1 - 2 * limit)
+    base = iy * width + ix
+
+    def scores_of(level: int, candidates: np.ndarray) -> np.ndarray:
+        raw = _block_scores(pyramid[level], base, candidates)
+        if prior_std_xy_m is None and prior_std_theta_rad is None:
+            return raw
+        cost = np.zeros(len(candidates))
+        if prior_std_xy_m is not None:
+            # nearest offset to the prediction inside each block: an upper bound of the prior there
+            near = np.clip(0, candidates[:, 1:] - limit, candidates[:, 1:] - limit + (1 << level) - 1)
+            cost += (res * res) * (near ** 2).sum(axis=1) / prior_std_xy_m ** 2
+        if prior_std_theta_rad is not None:
+            cost += ((thetas[candidates[:, 0]] - t0) / prior_std_theta_rad) ** 2
+        return raw * np.exp(-0.5 * cost)
 
     top = levels - 1
     step = 1 << top
     offsets = np.arange(0, 2 * limit + 1, step)
     a, ox, oy = np.meshgrid(np.arange(len(thetas)), offsets, offsets, indexing="ij")
     candidates = np.stack([a.ravel(), ox.ravel(), oy.ravel()], axis=1)
-    scores = _block_scores(pyramid[top], ix, iy, candidates)
+    scores = scores_of(top, candidates)
     bound = min_score
 
     # Greedy dives from the best top blocks reach leaves at once: a lower bound to prune with.
     dive = candidates[np.argsort(scores)[::-1][:8]]
     for level in range(top, 0, -1):
         kids = dive[:, None, :] + _shifts(level)[None]
-        kid_scores = _block_scores(pyramid[level - 1], ix, iy, kids.reshape(-1, 3)).reshape(len(dive), 4)
+        kid_scores = scores_of(level - 1, kids.reshape(-1, 3)).reshape(len(dive), 4)
         kid_scores[(kids[..., 1] > 2 * limit) | (kids[..., 2] > 2 * limit)] = -np.inf
         dive = kids[np.arange(len(dive)), np.argmax(kid_scores, axis=1)]
         if level == 1:
@@ -146,7 +173,7 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     for level in range(top, 0, -1):
         keep = scores >= bound
         candidates = _children(candidates[keep], level, 2 * limit)
-        scores = _block_scores(pyramid[level - 1], ix, iy, candidates)
+        scores = scores_of(level - 1, candidates)
     if len(scores) == 0:
         return None
     i = int(np.argmax(scores))
@@ -262,15 +289,17 @@ def match_scan(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.nd
                window_xy_m: float = 0.3, window_theta_rad: float = math.radians(10.0),
                angular_step_rad: float | None = None, sigma_m: float | None = None, min_score: float = 0.0,
                refine: bool = True, max_distance_m: float = 0.5, huber_m: float | None = None,
-               min_std_xy_m: float = 0.01, min_std_theta_rad: float = math.radians(0.25)) -> MatchResult | None:
+               min_std_xy_m: float = 0.01, min_std_theta_rad: float = math.radians(0.25),
+               prior_std_xy_m: float | None = None, prior_std_theta_rad: float | None = None) -> MatchResult | None:
     """Match ``points_xy`` (robot frame) against ``grid`` near ``initial_pose_xyt``; None if nothing scores ``min_score``.
 
-    A correlative search over ``+-window_xy_m`` / ``+-window_theta_rad`` finds the best lattice
-    pose, then (``refine``) Levenberg-Marquardt polishes it and estimates the covariance.
+    A correlative search over ``+-window_xy_m`` / ``+-window_theta_rad`` (optionally weighted by a
+    Gaussian prior, see :func:`correlative_search`) finds the best lattice pose, then (``refine``) Levenberg-Marquardt polishes it and estimates the covariance.
     """
     found = correlative_search(grid, points_xy, initial_pose_xyt, window_xy_m=window_xy_m,
                                window_theta_rad=window_theta_rad, angular_step_rad=angular_step_rad,
-                               sigma_m=sigma_m, min_score=min_score)
+                               sigma_m=sigma_m, min_score=min_score, prior_std_xy_m=prior_std_xy_m,
+                               prior_std_theta_rad=prior_std_theta_rad)
     if found is None:
         return None
     pose, search_score = found

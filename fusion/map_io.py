@@ -1,0 +1,145 @@
+"""Map and trajectory files: map_server PGM + YAML, PNG, trajectory CSV and a trajectory-over-map plot.
+
+The PGM/YAML pair is what ROS's ``map_saver`` writes in trinary mode (nav2 defaults): occupied
+cells (>= 65 %) black 0, free cells (<= 25 %) 254, unknown 205, top image row = largest y; the
+YAML gives ``image``, ``mode``, ``resolution``, ``origin [x, y, yaw]``, ``negate``,
+``occupied_thresh`` and ``free_thresh``, so ``map_server`` and nav2 load it as is.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from logs.errors import UserError
+from logs.messages import OccupancyGrid
+
+OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.25
+OCCUPIED, FREE, UNKNOWN = 0, 254, 205
+
+
+def map_image(grid: OccupancyGrid) -> np.ndarray:
+    """Trinary grey image (H, W) uint8 of a map, north (largest y) up."""
+    data = grid.data
+    image = np.full(data.shape, UNKNOWN, np.uint8)
+    image[(data >= 0) & (data <= FREE_THRESH * 100)] = FREE
+    image[data >= OCCUPIED_THRESH * 100] = OCCUPIED
+    return image[::-1].copy()
+
+
+def save_map(grid: OccupancyGrid, base: str | os.PathLike[str]) -> tuple[Path, Path, Path]:
+    """Write ``base.pgm``, ``base.yaml`` (map_server) and ``base.png``; returns the three paths."""
+    base = Path(base)
+    image = map_image(grid)
+    pgm, yaml, png = base.with_suffix(".pgm"), base.with_suffix(".yaml"), base.with_suffix(".png")
+    if not cv2.imwrite(str(pgm), image) or not cv2.imwrite(str(png), image):
+        raise UserError(f"cannot write map images next to {base}")
+    yaml.write_text(f"image: {pgm.name}\nmode: trinary\nresolution: {grid.resolution:.6g}\n"
+                    f"origin: [{grid.origin_x:.6g}, {grid.origin_y:.6g}, {grid.origin_theta:.6g}]\n"
+                    f"negate: 0\noccupied_thresh: {OCCUPIED_THRESH}\nfree_thresh: {FREE_THRESH}\n")
+    return pgm, yaml, png
+
+
+def _yaml_value(text: str, key: str) -> str:
+    found = re.search(rf"^\s*{key}\s*:\s*(.+?)\s*$", text, re.MULTILINE)
+    if not found:
+        raise UserError(f"map YAML has no {key!r}")
+    return found.group(1).strip().strip("'\"")
+
+
+def load_map(yaml_path: str | os.PathLike[str], stamp_ns: int = 0, frame_id: str = "map") -> OccupancyGrid:
+    """Read a map_server YAML + image as an OccupancyGrid (trinary: 100 occupied, 0 free, -1 unknown).
+
+    Follows map_server: ``p = (255 - v) / 255`` (or ``v / 255`` with ``negate: 1``), occupied
+    above ``occupied_thresh``, free below ``free_thresh``, unknown between.
+    """
+    yaml_path = Path(yaml_path)
+    if not yaml_path.is_file():
+        raise UserError(f"no such map file: {yaml_path}")
+    text = yaml_path.read_text()
+    try:
+        resolution = float(_yaml_value(text, "resolution"))
+        origin = [float(v) for v in _yaml_value(text, "origin").strip("[]").split(",")]
+        negate = int(_yaml_value(text, "negate")) if re.search(r"^\s*negate\s*:", text, re.MULTILINE) else 0
+        occupied = float(_yaml_value(text, "occupied_thresh"))
+        free = float(_yaml_value(text, "free_thresh"))
+    except ValueError as error:
+        raise UserError(f"{yaml_path}: bad value ({error})") from None
+    image_path = yaml_path.parent / _yaml_value(text, "image")
+    image = cv2.imread(str(image_path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise UserError(f"cannot read map image {image_path}")
+    p = image.astype(np.float64) / 255.0 if negate else (255.0 - image) / 255.0
+    data = np.full(image.shape, -1, np.int8)
+    data[p > occupied] = 100
+    data[p < free] = 0
+    return OccupancyGrid(stamp_ns, frame_id, resolution, origin[0], origin[1], origin[2] if len(origin) > 2 else 0.0,
+                         data[::-1])
+
+
+def write_trajectory_csv(path: str | os.PathLike[str], stamps_ns: np.ndarray, poses: np.ndarray) -> None:
+    """``t_ns,x,y,theta`` per row (metres, radians), header first."""
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["t_ns", "x", "y", "theta"])
+        for t, (x, y, theta) in zip(np.asarray(stamps_ns, np.int64), np.asarray(poses, np.float64)):
+            writer.writerow([int(t), f"{x:.6f}", f"{y:.6f}", f"{theta:.6f}"])
+
+
+def read_trajectory_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps (ns) and poses (N, 3) from a ``t_ns,x,y,theta`` file."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"no such trajectory file: {path}")
+    try:
+        table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, dtype=str)
+        stamps = np.array([int(v) for v in table[:, 0]], np.int64)
+        poses = table[:, 1:4].astype(np.float64)
+    except (ValueError, IndexError):
+        raise UserError(f"{path}: not a t_ns,x,y,theta trajectory") from None
+    return stamps, poses
+
+
+def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajectories: list[np.ndarray],
+                    colours: list[tuple[int, int, int]] | None = None, loops: list[tuple[np.ndarray, np.ndarray]] = (),
+                    min_size: int = 1000) -> Path:
+    """PNG of the map with trajectories (each (N, 3), map frame) drawn over it, scaled up to ``min_size`` px.
+
+    ``colours`` are BGR per trajectory (default red, then blue, green); ``loops`` are pairs of
+    positions drawn as thin lines (loop-closure constraints). Start is a circle, end a square.
+    """
+    base = map_image(grid)
+    scale = max(1, int(math.ceil(min_size / max(base.shape))))
+    image = cv2.cvtColor(cv2.resize(base, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST),
+                         cv2.COLOR_GRAY2BGR)
+    height = image.shape[0]
+    shift = 4  # sub-pixel bits for cv2 drawing
+
+    def pixels(xy: np.ndarray) -> np.ndarray:
+        u = (xy[:, 0] - grid.origin_x) / grid.resolution * scale
+        v = height - (xy[:, 1] - grid.origin_y) / grid.resolution * scale
+        return np.round(np.stack([u, v], axis=1) * (1 << shift)).astype(np.int32)
+
+    for a, b in loops:
+        ends = pixels(np.vstack([a[:2], b[:2]]))
+        cv2.line(image, tuple(ends[0]), tuple(ends[1]), (0, 200, 0), 1, cv2.LINE_AA, shift)
+    colours = colours or [(0, 0, 255), (255, 0, 0), (0, 160, 0)]
+    for k, poses in enumerate(trajectories):
+        if len(poses) == 0:
+            continue
+        colour = colours[k % len(colours)]
+        pts = pixels(np.asarray(poses)[:, :2])
+        cv2.polylines(image, [pts.reshape(-1, 1, 2)], False, colour, max(1, scale // 2), cv2.LINE_AA, shift)
+        cv2.circle(image, tuple(pts[0]), 4 * scale << shift, colour, 2, cv2.LINE_AA, shift)
+        end = pts[-1] >> shift
+        cv2.rectangle(image, tuple(end - 3 * scale), tuple(end + 3 * scale), colour, 2)
+    path = Path(path)
+    if not cv2.imwrite(str(path), image):
+        raise UserError(f"cannot write {path}")
+    return path

@@ -1,0 +1,458 @@
+"""Online 2-D SLAM: odometry-predicted scan-to-submap matching, keyframe pose graph, loop closure.
+
+Per scan (``process`` takes messages, so the same object runs on a live driver or a log):
+
+1. **Predict**: the wheel odometry increment since the previous scan moves an EKF
+   (``fusion.ekf.PoseEKF``) in the local tracking frame; without odometry a constant-velocity
+   guess with a wide covariance stands in.
+2. **Match**: the scan is matched against the older active submap: Levenberg-Marquardt from the
+   prediction when the prediction is tight, otherwise (or when that fails) a correlative search
+   over a window of three standard deviations first. The match corrects the EKF, gated by
+   Mahalanobis distance; with no laser match the odometry alone carries on, covariance growing.
+3. **Keyframes**: a scan that moved far enough (or waited long enough) becomes a pose-graph node
+   with an edge to the previous keyframe, and is inserted into the active submaps.
+4. **Loop closure**: each new keyframe is searched for, by branch-and-bound correlative search
+   with a window that grows with the distance travelled since, in finished submaps near its
+   current estimate; matches that score well become edges to the submap's anchor node. The graph
+   is optimised with a robust kernel, edges that still disagree afterwards are removed, and the
+   map frame follows the optimised poses.
+
+Every scan's map pose is kept relative to its keyframe, so after the final optimisation
+``trajectory()`` gives one optimised pose per scan and ``build_map()`` rebuilds the occupancy
+grid from the optimised keyframes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any, Mapping
+
+import numpy as np
+
+from fusion.ekf import PoseEKF
+from fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance,
+                             scan_to_points, voxel_filter, wrap_angle)
+from fusion.occupancy_grid import LogOddsGrid
+from fusion.odometry import DiffDriveOdometry
+from fusion.pose_graph import PoseGraph
+from fusion.scan_matching import MatchResult, match_scan, refine_pose
+from fusion.submaps import Submap, SubmapStack
+from logs import messages as m
+from logs.errors import UserError
+
+# chi-square 3 dof: 99.9 % quantile, for pruning loop edges that disagree after optimisation
+CHI2_3DOF_999 = 16.266236196238129
+
+
+@dataclass
+class SlamConfig:
+    """Parameters of :class:`Slam` (the ``[slam]`` table of a config file). Metres, radians, seconds."""
+
+    resolution: float = 0.05
+    scan_topic: str = "/scan"
+    min_range_m: float = 0.0
+    max_range_m: float = 30.0
+    voxel_m: float = 0.05
+    no_return_clear_m: float = 0.0
+    # motion filter: a keyframe every so far / so much turn / so long
+    keyframe_distance_m: float = 0.2
+    keyframe_angle_rad: float = math.radians(10.0)
+    keyframe_time_s: float = 5.0
+    scans_per_submap: int = 25
+    # tracking
+    search_above_xy_m: float = 0.05
+    search_above_theta_rad: float = math.radians(2.0)
+    search_window_xy_m: tuple[float, float] = (0.1, 1.0)
+    search_window_theta_rad: tuple[float, float] = (math.radians(3.0), math.radians(30.0))
+    search_angular_step_rad: float = math.radians(0.5)
+    search_prior_scale: float = 2.0
+    min_match_score: float = 0.3
+    gate_chi2: float = 50.0
+    # odometry noise model per scan step: a floor (wheel/laser timing) plus per metre travelled / radian turned
+    odom_sigma_xy_m: float = 0.01
+    odom_sigma_theta_rad: float = math.radians(0.5)
+    odom_sigma_xy_per_m: float = 0.2
+    odom_sigma_theta_per_m: float = math.radians(5.0)
+    odom_sigma_theta_per_rad: float = 0.2
+    no_odom_sigma_xy_per_s: float = 0.5
+    no_odom_sigma_theta_per_s: float = math.radians(30.0)
+    # loop closure
+    loop_closure: bool = True
+    loop_every_keyframes: int = 1
+    loop_min_node_gap: int = 30
+    loop_search_radius_m: float = 6.0
+    loop_max_candidates: int = 3
+    loop_window_xy_m: tuple[float, float] = (0.5, 3.0)
+    loop_window_theta_rad: tuple[float, float] = (math.radians(10.0), math.radians(30.0))
+    loop_window_per_m: float = 0.05
+    loop_angular_step_rad: float = math.radians(1.0)
+    loop_min_score: float = 0.55
+    loop_min_inliers: float = 0.6
+    loop_min_std_xy_m: float = 0.05
+    loop_min_std_theta_rad: float = math.radians(1.0)
+    optimize_every_keyframes: int = 10
+    robust_kernel: str = "cauchy"
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> SlamConfig:
+        """A config from a TOML table; unknown keys or wrong types are a UserError."""
+        known = {f.name: f for f in fields(cls)}
+        config = cls()
+        for key, value in values.items():
+            if key not in known:
+                raise UserError(f"unknown [slam] option {key!r} (known: {', '.join(sorted(known))})")
+            default = getattr(config, key)
+            try:
+                if isinstance(default, tuple):
+                    converted: Any = tuple(float(v) for v in value)
+                    if len(converted) != len(default):
+                        raise ValueError
+                elif isinstance(default, bool):
+                    if not isinstance(value, bool):
+                        raise ValueError
+                    converted = value
+                else:
+                    converted = type(default)(value)
+            except (TypeError, ValueError):
+                raise UserError(f"[slam] {key} = {value!r}: expected {type(default).__name__}") from None
+            setattr(config, key, converted)
+        return config
+
+
+@dataclass
+class ScanResult:
+    """What happened to one scan: its map pose, the match (None if none), keyframe node (or -1)."""
+
+    stamp_ns: int
+    pose_map: np.ndarray
+    match: MatchResult | None
+    matched: bool
+    searched: bool
+    node: int
+
+
+@dataclass
+class SlamStats:
+    scans: int = 0
+    keyframes: int = 0
+    matched: int = 0
+    searched: int = 0
+    gated_out: int = 0
+    odometry_only: int = 0
+    loop_attempts: int = 0
+    loop_closures: int = 0
+    loop_rejected: int = 0
+    optimizations: int = 0
+    scores: list[float] = field(default_factory=list)
+    residuals: list[float] = field(default_factory=list)
+
+
+class Slam:
+    """The online SLAM front end and back end; feed it messages with :meth:`process`.
+
+    ``odometry`` turns ``JointState`` wheel angles into odometry (None: use ``Odometry``
+    messages if any arrive); ``laser_pose`` is the laser's pose in base_link (also taken from
+    ``/tf_static`` when it arrives).
+    """
+
+    def __init__(self, config: SlamConfig | None = None, odometry: DiffDriveOdometry | None = None,
+                 laser_pose: tuple[float, float, float] | None = None) -> None:
+        self.config = config or SlamConfig()
+        self.wheels = odometry
+        self.laser_pose = None if laser_pose is None else np.asarray(laser_pose, np.float64)
+        self.submaps = SubmapStack(self.config.resolution, self.config.scans_per_submap)
+        self.graph = PoseGraph()
+        self.stats = SlamStats()
+        self.ekf: PoseEKF | None = None
+        self.map_from_local = np.zeros(3)
+        self._odom: list[tuple[int, np.ndarray]] = []
+        self._last_scan_odom: np.ndarray | None = None
+        self._last_stamp: int | None = None
+        self._velocity = np.zeros(3)
+        self._dt = 0.0
+        self._last_local: np.ndarray | None = None
+        self._static: dict[str, np.ndarray] = {}
+        self._mount = np.zeros(3)
+        self._kf_cov = np.zeros((3, 3))
+        self.map_to_odom = np.zeros(3)
+        self._kf_local: list[np.ndarray] = []
+        self._kf_points: list[np.ndarray] = []
+        self._kf_free: list[np.ndarray | None] = []
+        self._kf_stamp: list[int] = []
+        self._kf_path_m: list[float] = []
+        self._path_m = 0.0
+        self._scan_node: list[int] = []
+        self._scan_rel: list[np.ndarray] = []
+        self._scan_stamp: list[int] = []
+        self._loop_edges: list[int] = []
+        self._nodes_at_last_optimization = 0
+        self._loops_at_last_optimization = 0
+
+    # --- input -------------------------------------------------------------------------------
+
+    def process(self, topic: str, msg: m.Message) -> ScanResult | None:
+        """Route one message: scans on ``config.scan_topic`` return a :class:`ScanResult`."""
+        if isinstance(msg, m.LaserScan):
+            return self.add_scan(msg) if topic == self.config.scan_topic else None
+        if isinstance(msg, m.JointState) and self.wheels is not None:
+            odom = self.wheels.update(msg)
+            if odom is not None:
+                self.add_odometry(odom)
+        elif isinstance(msg, m.Odometry) and self.wheels is None:
+            self.add_odometry(msg)
+        elif isinstance(msg, m.TFMessage) and topic == "/tf_static":
+            for t in msg.transforms:
+                self._static[t.child_frame_id] = np.array([t.translation[0], t.translation[1], t.yaw])
+        return None
+
+    def add_odometry(self, odom: m.Odometry) -> None:
+        """Remember an odometry pose (odom frame) for interpolation at scan times.
+
+        A reading older than the last one (a clock that stepped back) starts the buffer afresh.
+        """
+        if self._odom and odom.stamp_ns < self._odom[-1][0]:
+            self._odom.clear()
+        self._odom.append((odom.stamp_ns, np.array([odom.x, odom.y, odom.theta])))
+        if len(self._odom) > 256:
+            del self._odom[:128]
+
+    def odometry_at(self, stamp_ns: int) -> np.ndarray | None:
+        """Odometry pose at ``stamp_ns``, interpolated between the readings around it (latest if newer)."""
+        if not self._odom:
+            return None
+        stamps = np.array([s for s, _ in self._odom])
+        k = int(np.searchsorted(stamps, stamp_ns))
+        if k == 0:
+            return self._odom[0][1].copy()
+        if k >= len(stamps):
+            return self._odom[-1][1].copy()
+        (s0, p0), (s1, p1) = self._odom[k - 1], self._odom[k]
+        f = (stamp_ns - s0) / (s1 - s0) if s1 > s0 else 1.0
+        step = relative(p0, p1)
+        return compose(p0, step * f)
+
+    # --- per scan ----------------------------------------------------------------------------
+
+    def add_scan(self, scan: m.LaserScan) -> ScanResult:
+        """Track one scan, add a keyframe if due, close loops; returns its map pose."""
+        cfg = self.config
+        mount = self.laser_pose if self.laser_pose is not None else self._static.get(scan.frame_id, np.zeros(3))
+        self._mount = mount
+        points = scan_to_points(scan, mount, max(cfg.min_range_m, scan.range_min), min(cfg.max_range_m, scan.range_max))
+        free_ends = None
+        if cfg.no_return_clear_m > 0:
+            free_ends = mount[:2] + cfg.no_return_clear_m * no_return_directions(scan, mount)
+        match_points = voxel_filter(points, cfg.voxel_m)
+        self.stats.scans += 1
+        odom = self.odometry_at(scan.stamp_ns)
+        self._predict(scan.stamp_ns, odom)
+        assert self.ekf is not None
+
+        result: MatchResult | None = None
+        matched = searched = False
+        submap = self.submaps.matching_submap()
+        if submap is not None and len(match_points) >= 10:
+            result, searched = self._track(submap, match_points)
+            if result is not None:
+                matched = self.ekf.correct(result.pose, result.covariance, cfg.gate_chi2)
+                if matched:
+                    self.stats.matched += 1
+                    self.stats.scores.append(result.score)
+                    self.stats.residuals.append(result.residual_m)
+                else:
+                    self.stats.gated_out += 1
+            else:
+                self.stats.odometry_only += 1
+        self.stats.searched += int(searched)
+        pose_local = self.ekf.pose.copy()
+        if self._last_local is not None:
+            self._path_m += float(np.hypot(*(pose_local[:2] - self._last_local[:2])))
+            if self._dt > 0:
+                self._velocity = relative(self._last_local, pose_local) / self._dt
+        self._last_local = pose_local
+
+        node = -1
+        if self._is_keyframe(pose_local, scan.stamp_ns):
+            node = self._add_keyframe(pose_local, points, mount, free_ends, scan.stamp_ns)
+        kf = len(self._kf_local) - 1
+        self._scan_node.append(kf)
+        self._scan_rel.append(relative(self._kf_local[kf], pose_local))
+        self._scan_stamp.append(scan.stamp_ns)
+        pose_map = compose(self.map_from_local, pose_local)
+        if odom is not None:
+            self.map_to_odom = compose(pose_map, inverse(odom))
+        return ScanResult(scan.stamp_ns, pose_map, result, matched, searched, node)
+
+    def _predict(self, stamp_ns: int, odom: np.ndarray | None) -> None:
+        cfg = self.config
+        dt = self._dt = 0.0 if self._last_stamp is None else max(0.0, (stamp_ns - self._last_stamp) * 1e-9)
+        self._last_stamp = stamp_ns
+        if self.ekf is None:
+            self.ekf = PoseEKF(np.zeros(3), np.diag([1e-6, 1e-6, 1e-8]))
+            self._last_scan_odom = odom
+            return
+        if odom is not None and self._last_scan_odom is not None:
+            delta = relative(self._last_scan_odom, odom)
+            distance, turn = float(np.hypot(delta[0], delta[1])), abs(float(delta[2]))
+            sxy = cfg.odom_sigma_xy_m + cfg.odom_sigma_xy_per_m * distance
+            sth = cfg.odom_sigma_theta_rad + cfg.odom_sigma_theta_per_m * distance + cfg.odom_sigma_theta_per_rad * turn
+            noise = np.diag([sxy ** 2, sxy ** 2, sth ** 2])
+        else:
+            delta = self._velocity * dt
+            sxy, sth = cfg.no_odom_sigma_xy_per_s * dt + 1e-3, cfg.no_odom_sigma_theta_per_s * dt + 1e-3
+            noise = np.diag([sxy ** 2, sxy ** 2, sth ** 2])
+        self.ekf.predict(delta, noise)
+        self._last_scan_odom = odom if odom is not None else self._last_scan_odom
+
+    def _track(self, submap: Submap, points: np.ndarray) -> tuple[MatchResult | None, bool]:
+        cfg = self.config
+        assert self.ekf is not None
+        prediction, cov = self.ekf.pose, self.ekf.covariance
+        sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2]).max()), 0.0))
+        sigma_theta = math.sqrt(max(float(cov[2, 2]), 0.0))
+        tight = sigma_xy <= cfg.search_above_xy_m and sigma_theta <= cfg.search_above_theta_rad
+        if tight:
+            result = refine_pose(submap.grid, points, prediction)
+            if result.score >= cfg.min_match_score and self.ekf.mahalanobis2(result.pose, result.covariance) <= cfg.gate_chi2:
+                return result, False
+        window_xy = float(np.clip(3.0 * sigma_xy, *cfg.search_window_xy_m))
+        window_theta = float(np.clip(3.0 * sigma_theta, *cfg.search_window_theta_rad))
+        result = match_scan(submap.grid, points, prediction, window_xy_m=window_xy, window_theta_rad=window_theta,
+                            angular_step_rad=cfg.search_angular_step_rad, min_score=cfg.min_match_score,
+                            prior_std_xy_m=cfg.search_prior_scale * max(sigma_xy, cfg.resolution),
+                            prior_std_theta_rad=cfg.search_prior_scale * max(sigma_theta, cfg.search_angular_step_rad))
+        if result is not None and result.score < cfg.min_match_score:
+            result = None
+        return result, True
+
+    def _is_keyframe(self, pose_local: np.ndarray, stamp_ns: int) -> bool:
+        cfg = self.config
+        if not self._kf_local:
+            return True
+        step = relative(self._kf_local[-1], pose_local)
+        return (float(np.hypot(step[0], step[1])) >= cfg.keyframe_distance_m
+                or abs(float(step[2])) >= cfg.keyframe_angle_rad
+                or (stamp_ns - self._kf_stamp[-1]) * 1e-9 >= cfg.keyframe_time_s)
+
+    def _add_keyframe(self, pose_local: np.ndarray, points: np.ndarray, mount: np.ndarray,
+                      free_ends: np.ndarray | None, stamp_ns: int) -> int:
+        assert self.ekf is not None
+        node = self.graph.add_node(compose(self.map_from_local, pose_local))
+        covariance = self.ekf.covariance.copy()
+        if self._kf_local:
+            previous = self._kf_local[-1]
+            relative_cov = rotate_covariance(covariance + self._kf_cov, -float(previous[2]))
+            relative_cov += np.diag([1e-4, 1e-4, 1e-6])
+            self.graph.add_edge(node - 1, node, relative(previous, pose_local), np.linalg.inv(relative_cov))
+        self._kf_cov = covariance
+        self._kf_local.append(pose_local.copy())
+        self._kf_points.append(points)
+        self._kf_free.append(free_ends)
+        self._kf_stamp.append(stamp_ns)
+        self._kf_path_m.append(self._path_m)
+        self.stats.keyframes += 1
+        self.submaps.insert(node, pose_local, points, mount[:2], free_ends)
+        if self.config.loop_closure and node % max(self.config.loop_every_keyframes, 1) == 0:
+            self._close_loops(node, voxel_filter(points, self.config.voxel_m))
+        due = len(self.graph) - self._nodes_at_last_optimization >= self.config.optimize_every_keyframes
+        if len(self._loop_edges) > self._loops_at_last_optimization and due:
+            self.optimize()
+        return node
+
+    # --- loop closure and optimisation -----------------------------------------------------
+
+    def _close_loops(self, node: int, points: np.ndarray) -> None:
+        cfg = self.config
+        poses = self.graph.poses
+        here = poses[node]
+        candidates = []
+        for submap in self.submaps.finished:
+            if node - submap.nodes[-1] < cfg.loop_min_node_gap:
+                continue
+            frame = submap.local_to_map(poses[submap.anchor_node])
+            guess = relative(frame, here)
+            distance = float(np.hypot(*(guess[:2] - submap.centre())))
+            if distance <= cfg.loop_search_radius_m:
+                candidates.append((distance, submap, guess))
+        candidates.sort(key=lambda c: c[0])
+        for _, submap, guess in candidates[: cfg.loop_max_candidates]:
+            travelled = self._path_m - self._kf_path_m[submap.nodes[-1]]
+            window_xy = float(np.clip(cfg.loop_window_per_m * travelled, *cfg.loop_window_xy_m))
+            window_theta = float(np.clip(cfg.loop_window_per_m * travelled, *cfg.loop_window_theta_rad))
+            self.stats.loop_attempts += 1
+            result = match_scan(submap.grid, points, guess, window_xy_m=window_xy, window_theta_rad=window_theta,
+                                angular_step_rad=cfg.loop_angular_step_rad, min_score=cfg.loop_min_score,
+                                min_std_xy_m=cfg.loop_min_std_xy_m, min_std_theta_rad=cfg.loop_min_std_theta_rad)
+            if result is None or result.score < cfg.loop_min_score or result.inlier_fraction < cfg.loop_min_inliers:
+                continue
+            measurement = relative(submap.anchor_local, result.pose)
+            covariance = rotate_covariance(result.covariance, -float(submap.anchor_local[2]))
+            edge = self.graph.add_edge(submap.anchor_node, node, measurement, np.linalg.inv(covariance))
+            self._loop_edges.append(edge)
+            self.stats.loop_closures += 1
+
+    def optimize(self, max_iterations: int = 50) -> None:
+        """Optimise the pose graph (robust kernel), drop loop edges that still disagree, move the map frame."""
+        if len(self.graph) < 2:
+            return
+        cfg = self.config
+        kernel = cfg.robust_kernel if cfg.robust_kernel in ("huber", "cauchy") else None
+        self.graph.optimize(max_iterations=max_iterations, robust_kernel=kernel, kernel_width=3.0)
+        chi2 = self.graph.edge_chi2()
+        ij = self.graph.edges[0]
+        loops = np.flatnonzero(np.abs(ij[:, 1] - ij[:, 0]) > 1)
+        bad = loops[chi2[loops] > CHI2_3DOF_999]
+        if len(bad):
+            self.graph.remove_edges(bad)
+            self.stats.loop_closures -= len(bad)
+            self.stats.loop_rejected += len(bad)
+            self.graph.optimize(max_iterations=max_iterations, robust_kernel=kernel, kernel_width=3.0)
+        self._loop_edges = list(np.flatnonzero(np.abs(self.graph.edges[0][:, 1] - self.graph.edges[0][:, 0]) > 1))
+        self._nodes_at_last_optimization = len(self.graph)
+        self._loops_at_last_optimization = len(self._loop_edges)
+        self.stats.optimizations += 1
+        last = len(self._kf_local) - 1
+        self.map_from_local = compose(self.graph.poses[last], inverse(self._kf_local[last]))
+
+    def finish(self) -> None:
+        """End of the run: a final optimisation when loops were added since the last one."""
+        if len(self._loop_edges) != self._loops_at_last_optimization or self.stats.optimizations == 0:
+            self.optimize(max_iterations=100)
+
+    # --- output ------------------------------------------------------------------------------
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """Stamps (ns) and optimised map poses (N, 3) of every scan, in arrival order."""
+        if not self._scan_stamp:
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        nodes = self.graph.poses[np.array(self._scan_node)]
+        return np.array(self._scan_stamp, np.int64), compose(nodes, np.array(self._scan_rel))
+
+    def keyframe_poses(self) -> np.ndarray:
+        """Optimised map poses (K, 3) of the keyframes."""
+        return self.graph.poses
+
+    def loop_edges(self) -> np.ndarray:
+        """Node pairs (L, 2) of the loop-closure edges kept."""
+        ij = self.graph.edges[0]
+        return ij[np.abs(ij[:, 1] - ij[:, 0]) > 1]
+
+    def build_map(self, resolution: float | None = None) -> LogOddsGrid:
+        """A fresh occupancy grid from every keyframe scan at its optimised pose."""
+        grid = LogOddsGrid(resolution or self.config.resolution)
+        mount = self._mount
+        for pose, points, free in zip(self.graph.poses, self._kf_points, self._kf_free):
+            origin = compose(pose, mount)[:2]
+            c, s = math.cos(pose[2]), math.sin(pose[2])
+            rot = np.array([[c, -s], [s, c]])
+            hits = points @ rot.T + pose[:2]
+            free_ends = None if free is None else free @ rot.T + pose[:2]
+            grid.insert_rays(origin, hits, free_ends)
+        return grid
+
+    def map_residuals(self, grid: LogOddsGrid) -> np.ndarray:
+        """Mean distance (m) of each keyframe's points to ``grid``'s occupied cells at its optimised pose."""
+        residuals = [refine_pose(grid, voxel_filter(points, self.config.voxel_m), pose, max_iterations=0).residual_m
+                     for pose, points in zip(self.graph.poses, self._kf_points)]
+        return np.array(residuals)

@@ -1,0 +1,61 @@
+"""Readers of public dataset formats (CARMEN logs, BreezySLAM ``.dat``) that write trundle MCAP logs.
+
+An importer turns a file into the messages our own drivers publish (LaserScan, JointState,
+Odometry, static transforms), so public data runs through exactly the code path of our logs.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Iterable
+
+from logs import messages as m
+from logs.errors import UserError
+from logs.writer import Logger, metadata_json
+
+Item = tuple[str, m.Message, int]  # topic, message, log time (ns)
+
+
+def write_log(items: Iterable[Item], out: str | os.PathLike[str], *, metadata: dict[str, object],
+              compression: str = "zstd") -> dict[str, int]:
+    """Write ``(topic, message, log_time_ns)`` items to the MCAP file ``out``; returns messages per topic.
+
+    Waits for the logger's queue instead of dropping, so an import is always complete.
+    ``metadata`` values that are not strings are stored as JSON.
+    """
+    out = Path(out)
+    if out.suffix != ".mcap":
+        raise UserError(f"output must be an .mcap file, got {out}")
+    text = {k: v if isinstance(v, str) else metadata_json(v) for k, v in metadata.items()}  # type: ignore[arg-type]
+    counts: dict[str, int] = {}
+    logger = Logger(out, compression=compression, metadata=text, latched_topics=("/tf_static",), salvage=False)
+    try:
+        for topic, msg, log_time_ns in items:
+            while logger.queue_length >= logger.queue_size // 2:
+                if logger.error is not None:
+                    break
+                time.sleep(0.001)
+            if not logger.write(topic, msg, log_time_ns):
+                break
+            counts[topic] = counts.get(topic, 0) + 1
+    finally:
+        logger.close()
+    return counts
+
+
+def open_text(path: str | os.PathLike[str]) -> list[str]:
+    """Lines of a text dataset file (``.gz`` transparently); a missing or binary file is a UserError."""
+    path = Path(path)
+    if path.is_dir():
+        raise UserError(f"{path} is a folder, not a log file")
+    if not path.exists():
+        raise UserError(f"no such file: {path}")
+    raw = path.read_bytes()
+    if raw[:2] == b"\x1f\x8b":
+        import gzip
+        raw = gzip.decompress(raw)
+    if b"\x00" in raw[:4096]:
+        raise UserError(f"{path} is not a text log (binary data)")
+    return raw.decode("utf-8", errors="replace").splitlines()

@@ -1,0 +1,111 @@
+"""Online SLAM on a simulated robot in a known polygon world: drifting odometry, no odometry, laser gaps."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fusion.geometry import compose, relative, wrap_angle
+from fusion.odometry_drift import drifting_odometry
+from fusion.slam import Slam, SlamConfig
+from logs import messages as m
+from logs.errors import UserError
+from tests.planar_world import ROOM, scan
+
+WAYPOINTS = np.array([(-4.2, -2.3), (0.0, -2.3), (0.0, 0.3), (4.4, 0.3), (4.4, 3.3), (-4.2, 3.3), (-4.2, -2.3)])
+
+
+def loop_path(laps: int = 2, step_m: float = 0.25, turn_step_rad: float = math.radians(30.0)) -> np.ndarray:
+    """Poses driving the waypoint loop ``laps`` times: straight steps, turning on the spot at corners."""
+    poses = []
+    heading = 0.0
+    for _ in range(laps):
+        for a, b in zip(WAYPOINTS[:-1], WAYPOINTS[1:]):
+            target = math.atan2(b[1] - a[1], b[0] - a[0])
+            turn = wrap_angle(target - heading)
+            for k in range(1, int(math.ceil(abs(turn) / turn_step_rad)) + 1):
+                poses.append((a[0], a[1], heading + turn * min(1.0, k * turn_step_rad / abs(turn))))
+            heading = target
+            length = float(np.hypot(*(b - a)))
+            for s in np.arange(0.0, length, step_m):
+                poses.append((a[0] + s * math.cos(heading), a[1] + s * math.sin(heading), heading))
+    return np.array(poses)
+
+
+def run(truth: np.ndarray, odometry: np.ndarray | None, config: SlamConfig | None = None,
+        drop: range = range(0)) -> tuple[Slam, np.ndarray, list]:
+    """Feed scans (and odometry) at 2 Hz; returns the SLAM, its trajectory in the truth frame, results."""
+    slam = Slam(config or SlamConfig())
+    results = []
+    for k, pose in enumerate(truth):
+        stamp = 1_000_000_000 + k * 500_000_000
+        if odometry is not None:
+            x, y, theta = odometry[k]
+            slam.process("/odom", m.Odometry(stamp, "odom", "base_link", x, y, theta))
+        if k in drop:
+            continue
+        result = slam.process("/scan", scan(ROOM, pose, beams=271, fov=math.radians(270.0), noise_m=0.01, seed=k,
+                                            stamp_ns=stamp, max_range=10.0))
+        results.append(result)
+    slam.finish()
+    _, poses = slam.trajectory()
+    return slam, compose(truth[0], poses), results
+
+
+def test_tracks_a_drifting_odometry_and_closes_the_loop() -> None:
+    truth = loop_path()
+    odometry = drifting_odometry(truth, seed=5)
+    assert np.hypot(*(odometry[-1, :2] - truth[-1, :2])) > 0.5  # the odometry alone is lost
+    slam, estimate, _ = run(truth, odometry)
+    error = np.hypot(*(estimate[:, :2] - truth[:, :2]).T)
+    heading = np.abs(wrap_angle(estimate[:, 2] - truth[:, 2]))
+    assert error.mean() < 0.03 and error.max() < 0.08
+    assert math.degrees(heading.mean()) < 0.5
+    assert slam.stats.loop_closures >= 3 and slam.stats.optimizations >= 1
+    assert slam.stats.scans == len(truth) and slam.stats.gated_out <= 2
+    steps = relative(relative(truth[:-1], truth[1:]), relative(estimate[:-1], estimate[1:]))
+    assert np.hypot(steps[:, 0], steps[:, 1]).mean() < 0.02
+
+
+def test_works_without_odometry() -> None:
+    truth = loop_path(laps=1, turn_step_rad=math.radians(20.0))
+    slam, estimate, _ = run(truth, None)
+    error = np.hypot(*(estimate[:, :2] - truth[:, :2]).T)
+    assert error.mean() < 0.05 and slam.stats.searched > 0
+
+
+def test_recovers_after_a_laser_gap_on_odometry_alone() -> None:
+    truth = loop_path(laps=1)
+    odometry = drifting_odometry(truth, seed=2)
+    gap = range(40, 50)
+    slam, estimate, results = run(truth, odometry, drop=gap)
+    kept = np.array([k for k in range(len(truth)) if k not in gap])
+    error = np.hypot(*(estimate[:, :2] - truth[kept, :2]).T)
+    assert error.max() < 0.08
+    after = results[gap.start]  # first scan after the gap: wide prediction, so a correlative search
+    assert after.searched and after.matched
+
+
+def test_keyframes_trajectory_and_map_are_consistent() -> None:
+    truth = loop_path(laps=1)
+    slam, estimate, results = run(truth, drifting_odometry(truth, seed=1))
+    stamps, poses = slam.trajectory()
+    assert len(stamps) == len(truth) and np.all(np.diff(stamps) > 0)
+    nodes = [r.node for r in results if r.node >= 0]
+    assert nodes == list(range(slam.stats.keyframes)) and len(slam.graph) == slam.stats.keyframes
+    np.testing.assert_allclose(slam.keyframe_poses()[0], poses[0], atol=1e-9)
+    grid = slam.build_map()
+    residuals = slam.map_residuals(grid)
+    assert len(residuals) == slam.stats.keyframes and np.nanmean(residuals) < 0.02
+    message = grid.to_message(int(stamps[-1]))
+    assert message.width == grid.shape[1] and (message.data == 100).sum() == 0  # clamped: below 100 %
+
+
+def test_config_from_mapping_checks_keys_and_types() -> None:
+    config = SlamConfig.from_mapping({"resolution": 0.1, "loop_closure": False, "search_window_xy_m": [0.2, 2]})
+    assert config.resolution == 0.1 and config.loop_closure is False and config.search_window_xy_m == (0.2, 2.0)
+    for bad in ({"resolutoin": 0.1}, {"resolution": "fine"}, {"loop_closure": 1}, {"search_window_xy_m": [1]}):
+        with pytest.raises(UserError):
+            SlamConfig.from_mapping(bad)

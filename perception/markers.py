@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 from logs.errors import UserError
 from logs.messages import CameraInfo
 
+FALLBACK_PX = 1.0   # RMS reprojection error above which IPPE is deemed to have failed
 CORNER_REFINEMENT = {"none": cv2.aruco.CORNER_REFINE_NONE, "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
                      "contour": cv2.aruco.CORNER_REFINE_CONTOUR, "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG}
 
@@ -108,31 +109,37 @@ def marker_object_points(size: float) -> np.ndarray:
 def marker_pose(marker: Marker, camera: CameraInfo, size: float) -> MarkerPose:
     """Pose of a detected marker of side ``size`` metres seen by the calibrated ``camera``.
 
-    Uses K and the plumb-bob/rational distortion D of the CameraInfo. Both IPPE solutions, the
-    SQPnP solution and the Levenberg-Marquardt refinement of each are candidates; the one with
-    the smallest reprojection error wins. Measured on rendered markers: OpenCV's IPPE closed
-    form alone errs by degrees near fronto-parallel views (2.8 deg with 0.1 px corner error)
-    and returns the identity rotation (60 px reprojection error) for a marker centred on the
-    optical axis facing the camera; LM alone can diverge from such a start.
+    Uses K and the plumb-bob/rational distortion D of the CameraInfo. Both IPPE solutions and
+    their Gauss-Newton (virtual visual servoing) refinements are candidates, and when none
+    reprojects within ``FALLBACK_PX`` the SQPnP solution and its refinement too; the smallest
+    RMS reprojection error wins. Measured on rendered markers: OpenCV's IPPE closed form alone
+    errs by degrees near fronto-parallel views (2.8 deg with 0.1 px corner error) and returns
+    the identity rotation (60 px reprojection error) for a marker centred on the optical axis
+    facing the camera.
     """
     if size <= 0:
         raise ValueError("marker size must be positive")
     points = marker_object_points(size)
+
+    def rms(rvec: np.ndarray, tvec: np.ndarray) -> float:
+        projected, _ = cv2.projectPoints(points, rvec, tvec, camera.k, camera.d)
+        return float(np.sqrt(((projected.reshape(4, 2) - marker.corners) ** 2).sum(axis=1).mean()))
+
+    def refined(candidates: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[float, np.ndarray, np.ndarray]]:
+        out = []
+        for rvec, tvec in candidates:
+            out.append((rms(rvec, tvec), rvec, tvec))
+            rvec, tvec = cv2.solvePnPRefineVVS(points, marker.corners, camera.k, camera.d, rvec.copy(), tvec.copy())
+            out.append((rms(rvec, tvec), rvec, tvec))
+        return out
+
     count, rvecs, tvecs, _ = cv2.solvePnPGeneric(points, marker.corners, camera.k, camera.d,
                                                  flags=cv2.SOLVEPNP_IPPE_SQUARE)
-    if not count:
+    scored = refined(list(zip(rvecs, tvecs))) if count else []
+    if not scored or min(c[0] for c in scored) > FALLBACK_PX:
+        ok, rvec, tvec = cv2.solvePnP(points, marker.corners, camera.k, camera.d, flags=cv2.SOLVEPNP_SQPNP)
+        scored += refined([(rvec, tvec)]) if ok else []
+    if not scored:
         raise ValueError(f"no pose for marker {marker.id}")
-    candidates = list(zip(rvecs, tvecs))
-    ok, rvec, tvec = cv2.solvePnP(points, marker.corners, camera.k, camera.d, flags=cv2.SOLVEPNP_SQPNP)
-    if ok:
-        candidates.append((rvec, tvec))
-    candidates += [cv2.solvePnPRefineLM(points, marker.corners, camera.k, camera.d, rvec.copy(), tvec.copy())
-                   for rvec, tvec in candidates]
-    best: tuple[float, np.ndarray, np.ndarray] | None = None
-    for rvec, tvec in candidates:
-        projected, _ = cv2.projectPoints(points, rvec, tvec, camera.k, camera.d)
-        error = float(np.sqrt(((projected.reshape(4, 2) - marker.corners) ** 2).sum(axis=1).mean()))
-        if best is None or error < best[0]:
-            best = (error, rvec, tvec)
-    error, rvec, tvec = best
+    error, rvec, tvec = min(scored, key=lambda c: c[0])
     return MarkerPose(marker.id, cv2.Rodrigues(rvec)[0], tvec.ravel(), rvec.ravel(), error)

@@ -98,8 +98,10 @@ def _check_pose(rvec: np.ndarray, tvec: np.ndarray) -> None:
     assert np.abs(markers[0].corners - expected_corners).max() < 0.5
     pose = marker_pose(markers[0], CAMERA, SIZE_M)
     assert np.linalg.norm(pose.translation - tvec) < 0.01 * np.linalg.norm(tvec)
+    # Facing the camera, tilt shows only through perspective: a corner error e on a side of s px
+    # tilts the pose by about (e / s) (2 Z / L) rad, ~1.9 deg for 0.2 px at 1.06 m (measured 1.1).
     angle = Rotation.from_matrix(pose.rotation.T @ cv2.Rodrigues(rvec)[0]).magnitude()
-    assert math.degrees(angle) < 1.0
+    assert math.degrees(angle) < 2.0
     assert pose.error < 0.5
     assert np.allclose(Rotation.from_quat(pose.quaternion()).as_matrix(), pose.rotation)
 
@@ -108,6 +110,12 @@ def test_pose_of_a_rendered_marker_facing_the_camera() -> None:
     # Facing the camera: marker y up is camera y down, marker z towards the camera.
     rvec = cv2.Rodrigues(np.diag([1.0, -1.0, -1.0]))[0].ravel()
     _check_pose(rvec, np.array([0.05, -0.02, 0.8]))
+
+
+def test_pose_of_a_marker_centred_on_the_optical_axis() -> None:
+    """OpenCV's IPPE returns the identity rotation here (60 px reprojection error): SQPnP steps in."""
+    rvec = cv2.Rodrigues(np.diag([1.0, -1.0, -1.0]))[0].ravel()
+    _check_pose(rvec, np.array([0.0, 0.0, 1.0625]))
 
 
 @given(st.floats(-35, 35), st.floats(-35, 35), st.floats(-180, 180), st.floats(-0.15, 0.15),

@@ -11,19 +11,17 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from collections import Counter
-from dataclasses import dataclass
-from typing import Hashable
+from typing import Hashable, NamedTuple
 
 import can
 
 from drivers.can_bus import CanBus
 
 
-@dataclass(frozen=True)
-class WheelReading:
+class WheelReading(NamedTuple):
     """One wheel's position in device counts (int for a counter, float for turns), its velocity
     in counts per second (NaN if the frame has none) and the counter period for unwrapping
-    (None for a position that does not wrap)."""
+    (None for a position that does not wrap). A named tuple: one is made per frame."""
 
     wheel: int
     position: int | float

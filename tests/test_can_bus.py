@@ -26,7 +26,7 @@ def test_urls():
     assert (spec.interface, spec.channel, spec.device_stamps) == ("socketcan", "can0", True)
     assert parse_url("virtual://bench?timestamps=device").device_stamps
     for bad in ("can0", "pcan://PCAN_USBBUS1", "slcan:///dev/x@123", "slcan:///dev/x@fast", "virtual://",
-                "virtual://a?timestamps=gps"):
+                "virtual://a?timestamps=gps", "slcan:///dev/x?reader=fast"):
         with pytest.raises(UserError):
             parse_url(bad)
 
@@ -157,10 +157,11 @@ def test_slcan_unplug_raises_device_error_and_reopens(tmp_path):
         bus.close()
 
 
-def test_slcan_status_flags_and_bus_off_recovery(tmp_path):
+@pytest.mark.parametrize("reader", ["lines", "python-can"])
+def test_slcan_status_flags_and_bus_off_recovery(tmp_path, reader):
     link = tmp_path / "ttyACM0"
     with SlcanEmulator(str(link)) as adapter:
-        bus = CanBus(f"slcan://{link}", status_poll_s=0.0)
+        bus = CanBus(f"slcan://{link}?reader={reader}", status_poll_s=0.0)
         bus.open()
         assert bus.slcan_status() == 0
         adapter.raise_flags(0x04 | 0x08)
@@ -174,6 +175,8 @@ def test_slcan_status_flags_and_bus_off_recovery(tmp_path):
         bus.maybe_poll_status()  # sees the bus error flag, sends C then O
         assert bus.counters["bus_off"] == 1 and bus.counters["restarts"] == 1 and bus.state == "active"
         assert wait_for(lambda: adapter.passing)
+        adapter.bus.send_many([can.Message(arbitration_id=i, data=bytes([i]), is_extended_id=False) for i in range(50)])
+        assert [bus.recv(1.0).msg.arbitration_id for _ in range(50)] == list(range(50))
         bus.close()
 
 

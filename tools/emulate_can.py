@@ -4,7 +4,7 @@
     trundle record --can slcan:///tmp/ttyCAN0 --encoders odrive:0,1 -o run.mcap
 
 Faults are scheduled with ``--fault T:KIND[:NODE]`` (T seconds after start; NODE = wheel index):
-heartbeat-stop, heartbeat-resume, silent, alive (node), errors, bus-off, unplug, replug (adapter).
+heartbeat-stop, heartbeat-resume, silent, alive (node), errors, bus-off, noise, unplug, replug (adapter).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from tools.emulators.slcan_emulator import SlcanEmulator
 VESC_DBC = Path(__file__).resolve().parents[1] / "drivers" / "data" / "vesc_status.dbc"
 DEFAULT_NODES = {"odrive": "0,1", "cia406": "5,6", "dbc": "9,10"}
 NODE_FAULTS = ("heartbeat-stop", "heartbeat-resume", "silent", "alive")
-BUS_FAULTS = ("errors", "bus-off", "unplug", "replug")
+BUS_FAULTS = ("errors", "bus-off", "noise", "unplug", "replug")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -76,6 +76,8 @@ def apply_fault(kind: str, node: EmulatedNode, runner: CanNodeRunner, adapter: S
         runner.error_frames(1)
     elif kind == "bus-off":
         runner.bus_off()
+    elif kind == "noise":
+        adapter.inject_noise()
     elif kind == "unplug":
         adapter.unplug()
     else:

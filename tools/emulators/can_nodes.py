@@ -84,18 +84,23 @@ class VelocityScript:
 
 class WheelMotion:
     """Motor turns and speeds of the wheels over time: exact for a :class:`VelocityScript`,
-    trapezoid-integrated per tick for a ``wheel_speeds_at(t_s)`` callable (the world simulator)."""
+    trapezoid-integrated per tick for a ``wheel_speeds_at(t_s)`` callable (the world simulator).
+    The motion's clock starts at ``start_s`` on the emulator's clock (standing still before)."""
 
-    def __init__(self, source: VelocityScript | SpeedSource, wheels: int | None = None) -> None:
+    def __init__(self, source: VelocityScript | SpeedSource, wheels: int | None = None, start_s: float = 0.0) -> None:
         self.source = source
         n = source.wheels if isinstance(source, VelocityScript) else wheels
         if not n:
             raise ValueError("give the wheel count for a speed callable")
+        self.start_s = start_s
         self.turns = np.zeros(n)
         self.speeds = np.zeros(n)
         self._t = 0.0
 
     def advance(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        if t < self.start_s:
+            return self.turns, self.speeds  # still standing
+        t -= self.start_s
         if isinstance(self.source, VelocityScript):
             self.turns, self.speeds = self.source.turns_at(t), self.source.speeds_at(t)
         else:

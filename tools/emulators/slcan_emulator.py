@@ -13,7 +13,8 @@ stamps (4 hex digits of ms, 0..59999, appended to frames), ``t``/``T``/``r``/``R
 
 Faults: :meth:`bus_off` (the adapter stops passing frames and reports the bus error flag until
 the host sends ``C`` then ``O``, as real Lawicel adapters do), :meth:`raise_flags` (error
-warning / passive / overrun bits shown once by ``F``), :meth:`unplug` / :meth:`replug`.
+warning / passive / overrun bits shown once by ``F``), :meth:`inject_noise` (garbled lines),
+:meth:`unplug` / :meth:`replug`.
 """
 
 from __future__ import annotations
@@ -148,6 +149,11 @@ class SlcanEmulator:
     def bus_off(self) -> None:
         """The controller goes bus-off: no frames pass until the host sends ``C`` and ``O``."""
         self._bus_off = True
+
+    def inject_noise(self, data: bytes = b"t1X3\rT1234\rtZZZ8\r") -> None:
+        """Write garbled bytes to the host, as a noisy serial line would."""
+        with self._lock:
+            self.link.write(data)
 
     def raise_flags(self, flags: int) -> None:
         """Set status flag bits reported (once) by the next ``F``."""

@@ -1,4 +1,4 @@
-"""Grey and binary images, 256-bin histograms, fixed and Otsu thresholds.
+"""Image messages to arrays; grey and binary images, 256-bin histograms, fixed and Otsu thresholds.
 
 Images are OpenCV-style uint8 arrays: H x W (grey) or H x W x 3 in BGR order. Binary images
 are uint8 masks holding 0 and 255 so they feed straight into OpenCV morphology and labelling.
@@ -8,6 +8,46 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
+from logs.messages import CompressedImage, Image
+
+# sensor_msgs/Image encodings (REP 104 names) -> conversion to BGR or grey (None: use as is)
+_RAW_ENCODINGS = {
+    "mono8": None, "8uc1": None, "bgr8": None, "8uc3": None,
+    "rgb8": cv2.COLOR_RGB2BGR, "bgra8": cv2.COLOR_BGRA2BGR, "rgba8": cv2.COLOR_RGBA2BGR,
+    "yuv422_yuy2": cv2.COLOR_YUV2BGR_YUY2, "yuyv": cv2.COLOR_YUV2BGR_YUY2,
+    "uyvy": cv2.COLOR_YUV2BGR_UYVY, "yuv422": cv2.COLOR_YUV2BGR_UYVY,
+}
+
+
+def decode_image(msg: CompressedImage | Image) -> np.ndarray:
+    """The pixels of an image message as BGR (or grey for mono8) uint8.
+
+    Handles CompressedImage (any format OpenCV decodes: JPEG, PNG, ...) and the 8-bit Image
+    encodings mono8, bgr8, rgb8, bgra8, rgba8 and YUV 4:2:2 (yuyv / uyvy). Raises ValueError
+    for a corrupt or unsupported image.
+    """
+    if isinstance(msg, CompressedImage):
+        try:
+            pixels = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+        except cv2.error:            # e.g. an empty buffer
+            pixels = None
+        if pixels is None:
+            raise ValueError(f"cannot decode a {len(msg.data)}-byte {msg.format or 'compressed'} image")
+        if pixels.dtype != np.uint8:
+            raise ValueError(f"unsupported {pixels.dtype} compressed image")
+        return cv2.cvtColor(pixels, cv2.COLOR_BGRA2BGR) if pixels.ndim == 3 and pixels.shape[2] == 4 else pixels
+    encoding = msg.encoding.lower()
+    if encoding not in _RAW_ENCODINGS:
+        raise ValueError(f"unsupported image encoding {msg.encoding!r}")
+    channels = 2 if encoding in ("yuv422_yuy2", "yuyv", "uyvy", "yuv422") else 4 if encoding.endswith("a8") else \
+        3 if encoding in ("bgr8", "rgb8", "8uc3") else 1
+    if msg.height <= 0 or msg.width <= 0 or msg.step < msg.width * channels or msg.data.size < msg.height * msg.step:
+        raise ValueError(f"image data ({msg.data.size} bytes) does not fit {msg.width}x{msg.height} {msg.encoding}")
+    rows = msg.data[: msg.height * msg.step].reshape(msg.height, msg.step)[:, : msg.width * channels]
+    pixels = rows.reshape(msg.height, msg.width, channels) if channels > 1 else rows
+    conversion = _RAW_ENCODINGS[encoding]
+    return np.ascontiguousarray(pixels) if conversion is None else cv2.cvtColor(pixels, conversion)
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:

@@ -9,8 +9,71 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from perception.images import histogram, otsu_level, otsu_threshold, threshold, to_gray
+from logs.messages import CompressedImage, Image
+from perception.images import decode_image, histogram, otsu_level, otsu_threshold, threshold, to_gray
 from tests.conftest import shared_file
+
+
+def _bgr(height: int = 6, width: int = 8) -> np.ndarray:
+    return np.arange(height * width * 3, dtype=np.uint8).reshape(height, width, 3)
+
+
+def test_decode_compressed_png_and_jpeg() -> None:
+    bgr = _bgr()
+    png = cv2.imencode(".png", bgr)[1].tobytes()
+    assert np.array_equal(decode_image(CompressedImage(0, "cam", "png", png)), bgr)
+    grey = cv2.imencode(".png", bgr[:, :, 0])[1].tobytes()
+    assert np.array_equal(decode_image(CompressedImage(0, "cam", "png", grey)), bgr[:, :, 0])
+    flat = np.full((16, 16, 3), (10, 120, 230), np.uint8)
+    jpeg = cv2.imencode(".jpg", flat, (cv2.IMWRITE_JPEG_QUALITY, 95))[1].tobytes()
+    assert np.abs(decode_image(CompressedImage(0, "cam", "jpeg", jpeg)).astype(int) - flat).max() <= 3
+
+
+@pytest.mark.parametrize("encoding, convert", [("bgr8", None), ("rgb8", cv2.COLOR_BGR2RGB),
+                                               ("bgra8", cv2.COLOR_BGR2BGRA), ("rgba8", cv2.COLOR_BGR2RGBA)])
+def test_decode_raw_colour_encodings(encoding: str, convert: int | None) -> None:
+    bgr = _bgr()
+    pixels = bgr if convert is None else cv2.cvtColor(bgr, convert)
+    assert np.array_equal(decode_image(Image.from_array(0, "cam", pixels, encoding)), bgr)
+
+
+def test_decode_mono_with_row_padding() -> None:
+    grey = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    padded = np.zeros((3, 6), np.uint8)
+    padded[:, :4] = grey
+    msg = Image(0, "cam", 3, 4, "mono8", 6, padded.reshape(-1))
+    assert np.array_equal(decode_image(msg), grey)
+
+
+def test_decode_yuyv() -> None:
+    # Y0 U Y1 V per two pixels; U = V = 128 is colourless, so every channel equals Y (BT.601)
+    row = np.array([16, 128, 235, 128] * 2, np.uint8)
+    msg = Image(0, "cam", 2, 4, "yuv422_yuy2", 8, np.tile(row, 2))
+    pixels = decode_image(msg)
+    assert pixels.shape == (2, 4, 3)
+    assert pixels[0, :, 0].tolist() == [0, 255, 0, 255]
+    assert np.array_equal(pixels, cv2.cvtColor(np.tile(row, 2).reshape(2, 4, 2), cv2.COLOR_YUV2BGR_YUY2))
+
+
+def test_decode_rejects_bad_images() -> None:
+    with pytest.raises(ValueError, match="cannot decode"):
+        decode_image(CompressedImage(0, "cam", "jpeg", b"\xff\xd8 not a jpeg"))
+    with pytest.raises(ValueError, match="unsupported"):
+        decode_image(Image(0, "cam", 2, 2, "32FC1", 8, np.zeros(16, np.uint8)))
+    with pytest.raises(ValueError, match="does not fit"):
+        decode_image(Image(0, "cam", 4, 4, "bgr8", 12, np.zeros(20, np.uint8)))
+
+
+@given(st.binary(max_size=300))
+@settings(max_examples=200, deadline=None)
+def test_decode_of_garbage_raises_only_valueerror(data: bytes) -> None:
+    for msg in (CompressedImage(0, "cam", "jpeg", data), CompressedImage(0, "cam", "png", b"\x89PNG\r\n\x1a\n" + data),
+                Image(0, "cam", 3, 5, "rgb8", 15, np.frombuffer(data, np.uint8))):
+        try:
+            pixels = decode_image(msg)
+        except ValueError:
+            continue
+        assert pixels.dtype == np.uint8
 
 
 def test_gray_of_bgr_uses_bt601_weights() -> None:

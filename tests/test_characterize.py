@@ -110,3 +110,26 @@ def test_bad_topic_and_reference_are_one_line_errors(tmp_path: Path, capsys: pyt
         pass
     assert main(["characterize", str(log), "--topic", "/scan"]) == 2
     assert "not in" in capsys.readouterr().err
+
+
+def test_real_hokuyo_log_gives_per_beam_noise_where_the_robot_stands_still(tmp_path: Path) -> None:
+    """exp2.dat (a real URG-04LX with wheel encoders): standing-still stretches are found from
+    the wheel angles; every beam that returned gets a noise figure, plotted."""
+    from conftest import shared_file
+    from logs.importers.breezyslam import import_breezyslam
+
+    log = tmp_path / "exp2.mcap"
+    import_breezyslam(shared_file("breezyslam/exp2.dat"), log)
+    out = tmp_path / "report"
+    assert main(["characterize", str(log), "--topic", "/scan", "-o", str(out)]) == 0
+    fig = json.loads((out / "report.json").read_text())
+    assert fig["still_from"] == "odometry"
+    static = fig["static"]
+    assert len(static["intervals_s"]) >= 1 and static["scans"] >= 20
+    assert static["beams_with_noise"] > 200
+    # URG-04LX datasheet accuracy: +-10 mm (60 mm - 1 m), 1 % of distance beyond
+    assert 0.001 < static["beam_noise_std_median"] < 0.02
+    assert fig["range"]["resolution"] == pytest.approx(0.001, rel=0.01)  # millimetre output
+    assert fig["range"]["upper"] <= fig["range"]["stated_upper"]
+    assert fig["bandwidth"]["rate_hz"] == pytest.approx(10.0, rel=0.05)
+    assert (out / "beam_noise.png").stat().st_size > 5000

@@ -133,3 +133,36 @@ def test_real_hokuyo_log_gives_per_beam_noise_where_the_robot_stands_still(tmp_p
     assert fig["range"]["upper"] <= fig["range"]["stated_upper"]
     assert fig["bandwidth"]["rate_hz"] == pytest.approx(10.0, rel=0.05)
     assert (out / "beam_noise.png").stat().st_size > 5000
+
+
+def test_encoder_counts_per_revolution_from_real_ticks(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """exp2's wheel encoders give 2000 ticks per revolution (BreezySLAM's robot model)."""
+    from conftest import shared_file
+    from logs.importers.breezyslam import import_breezyslam
+
+    log = tmp_path / "exp2.mcap"
+    import_breezyslam(shared_file("breezyslam/exp2.dat"), log)
+    assert main(["characterize", str(log), "--topic", "/joint_states", "--json"]) == 0
+    fig = json.loads(capsys.readouterr().out)
+    assert fig["class"]["sense"] == "proprioceptive"
+    for joint in ("left", "right"):
+        assert fig["joints"][joint]["counts_per_revolution"] == pytest.approx(2000, rel=1e-4)
+    assert fig["bandwidth"]["rate_hz"] == pytest.approx(10.0, rel=0.05)
+
+
+def test_camera_rate_jitter_and_dropped_frames(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from logs import messages as m
+
+    period = 1_000_000_000 // 30
+    frames = [k for k in range(90) if k not in (10, 40, 41)]
+    log = tmp_path / "cam.mcap"
+    with Logger(log) as logger:
+        for k in frames:
+            logger.write("/camera/image_raw/compressed", m.CompressedImage(k * period, "camera", "jpeg", b"\xff\xd8\xff\xd9"),
+                         k * period)
+    assert main(["characterize", str(log), "--topic", "/camera/image_raw/compressed", "--json"]) == 0
+    fig = json.loads(capsys.readouterr().out)
+    assert fig["class"]["energy"] == "passive"
+    assert fig["dropped_frames"] == 3
+    assert fig["bandwidth"]["rate_hz"] == pytest.approx(30.0, rel=1e-6)
+    assert fig["bandwidth"]["jitter_s"] < 1e-8

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from fusion.geometry import compose, relative, wrap_angle
+from fusion.map_io import read_trajectory_csv
 from logs.errors import UserError
 
 DEFAULT_TOLERANCE_NS = 1_000_000  # 1 ms: scans are tens of milliseconds apart
@@ -125,35 +126,6 @@ def seconds_to_ns(token: str) -> int:
     return int((Decimal(token) * 1_000_000_000).to_integral_value())
 
 
-def read_trajectory_csv(path: str | Path) -> Trajectory:
-    """A ``t_ns,x,y,theta`` CSV (header line, as ``trundle slam`` writes); extra columns ignored."""
-    path = Path(path)
-    with path.open("r", encoding="utf-8") as handle:
-        header = handle.readline().strip().split(",")
-        if header[:4] != ["t_ns", "x", "y", "theta"]:
-            raise UserError(f"{path}: expected a CSV with header t_ns,x,y,theta, got {','.join(header[:4])!r}")
-        stamps, poses = [], []
-        for number, line in enumerate(handle, 2):
-            fields = line.strip().split(",")
-            if fields == [""]:
-                continue
-            try:
-                stamps.append(int(fields[0]))
-                poses.append([float(v) for v in fields[1:4]])
-                if len(poses[-1]) != 3 or not all(math.isfinite(v) for v in poses[-1]):
-                    raise ValueError
-            except ValueError:
-                raise UserError(f"{path}:{number}: expected t_ns,x,y,theta numbers, got {line.strip()!r}") from None
-    return Trajectory(np.array(stamps, np.int64), np.array(poses, np.float64).reshape(-1, 3))
-
-
-def write_trajectory_csv(path: str | Path, trajectory: Trajectory) -> None:
-    """Write ``t_ns,x,y,theta`` with a header line."""
-    lines = ["t_ns,x,y,theta"]
-    lines += [f"{t},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f}" for t, p in zip(trajectory.stamps_ns, trajectory.poses)]
-    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
-
-
 def read_relations(path: str | Path) -> Relations:
     """A Freiburg ``.relations`` file: ``t1 t2 x y z roll pitch yaw`` per line (s, m, rad)."""
     path = Path(path)
@@ -180,13 +152,10 @@ def read_relations(path: str | Path) -> Relations:
 
 
 def read_carmen_trajectory(path: str | Path) -> Trajectory:
-    """The robot poses of a CARMEN log's laser lines (FLASER, else ROBOTLASER1), at their ipc times."""
+    """The robot poses of a CARMEN log's front-laser lines (FLASER, ROBOTLASER1), at their ipc times."""
     from logs.importers.carmen import read_carmen, scan_poses
 
-    log = read_carmen(path)
-    kinds = [laser.kind for laser in log.lasers]
-    kind = "FLASER" if "FLASER" in kinds else "ROBOTLASER1"
-    stamps, poses = scan_poses(log, kind)
+    stamps, poses = scan_poses(read_carmen(path))
     if not len(stamps):
         raise UserError(f"{path}: no FLASER or ROBOTLASER1 line with a pose")
     return Trajectory(stamps, poses)
@@ -202,7 +171,7 @@ def read_reference(path: str | Path) -> Trajectory | Relations:
     with path.open("rb") as handle:
         start = handle.read(64)
     if start.startswith(b"t_ns,"):
-        return read_trajectory_csv(path)
+        return Trajectory(*read_trajectory_csv(path))
     return read_carmen_trajectory(path)
 
 

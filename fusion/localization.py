@@ -30,6 +30,8 @@ from fusion.ekf import PoseEKF
 from fusion.geometry import compose, relative, voxel_filter, wrap_angle
 from fusion.occupancy_grid import LogOddsGrid
 from fusion.scan_matching import MatchResult, match_scan
+from logs.errors import UserError
+from logs.messages import OccupancyGrid
 
 SEARCHING, TRACKING = "searching", "tracking"
 
@@ -45,6 +47,25 @@ class CoarseMap:
     free: np.ndarray
     origin: np.ndarray
     resolution: float
+
+
+def grid_from_map(occupancy: OccupancyGrid) -> LogOddsGrid:
+    """A read-only ``LogOddsGrid`` from a saved map (e.g. ``fusion.map_io.load_map``).
+
+    Cells of at least 50 % occupancy become occupied (``l_max``), known cells below free
+    (``l_min``), -1 unknown (unobserved). The arrays are made read-only so nothing can update the
+    map while localising. A rotated map origin is not supported.
+    """
+    if abs(occupancy.origin_theta) > 1e-9:
+        raise UserError(f"maps with a rotated origin ({occupancy.origin_theta} rad) are not supported")
+    grid = LogOddsGrid(float(occupancy.resolution), origin_xy=(occupancy.origin_x, occupancy.origin_y))
+    data = occupancy.data
+    log_odds = np.where(data >= 50, grid.l_max, np.where(data >= 0, grid.l_min, 0.0)).astype(np.float32)
+    observed = data >= 0
+    log_odds.flags.writeable = False
+    observed.flags.writeable = False
+    grid.log_odds, grid.observed = log_odds, observed
+    return grid
 
 
 def coarse_map(grid: LogOddsGrid, resolution_m: float = 0.2, sigma_m: float | None = None) -> CoarseMap:

@@ -12,9 +12,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fusion.evaluation import (Relations, Trajectory, absolute_trajectory_error, align_se2, read_reference,
-                               read_relations, read_trajectory_csv, relation_error, relative_pose_error,
-                               seconds_to_ns, trajectory_relations, write_trajectory_csv)
+                               read_relations, relation_error, relative_pose_error, seconds_to_ns,
+                               trajectory_relations)
 from fusion.geometry import compose
+from fusion.map_io import write_trajectory_csv
 from logs.errors import UserError
 
 INTEL = Path(__file__).parents[2] / "shared" / "data" / "intel" / "intel.gfs.log"
@@ -136,22 +137,24 @@ def test_bad_relations_line_is_a_user_error(tmp_path, line):
         read_relations(path)
 
 
-def test_trajectory_csv_round_trip_and_errors(tmp_path):
+def test_trajectory_csv_and_carmen_references(tmp_path):
     path = tmp_path / "trajectory.csv"
-    original = Trajectory([1232658478161285000, 1232658478261285000], [[1.5, -2.25, 0.125], [1.75, -2.0, -3.0]])
-    write_trajectory_csv(path, original)
+    write_trajectory_csv(path, [1232658478161285000, 1232658478261285000], [[1.5, -2.25, 0.125], [1.75, -2.0, -3.0]])
     again = read_reference(path)
     assert isinstance(again, Trajectory)
-    assert again.stamps_ns.tolist() == original.stamps_ns.tolist()
-    np.testing.assert_array_equal(again.poses, original.poses)
-    path.write_text("t_ns,x,y,theta\n1,2,3\n")
-    with pytest.raises(UserError, match="trajectory.csv:2"):
-        read_trajectory_csv(path)
-    path.write_text("time,x,y\n")
-    with pytest.raises(UserError, match="header"):
-        read_trajectory_csv(path)
+    assert again.stamps_ns.tolist() == [1232658478161285000, 1232658478261285000]
+    np.testing.assert_array_equal(again.poses, [[1.5, -2.25, 0.125], [1.75, -2.0, -3.0]])
+    path.write_text("t_ns,x,y,theta\n1,2,x,4\n")
+    with pytest.raises(UserError, match="trajectory"):
+        read_reference(path)
     with pytest.raises(UserError, match="no such file"):
         read_reference(tmp_path / "absent.csv")
+    carmen = tmp_path / "run.clf"
+    carmen.write_text("FLASER 3 1.0 2.0 3.0 0.5 0.25 0.1 0.5 0.25 0.1 1232658478.161285 host 0.5\n"
+                      "ODOM 0 0 0 0 0 0 1232658478.2 host 0.6\n")
+    reference = read_reference(carmen)
+    assert abs(int(reference.stamps_ns[0]) - 1232658478161285000) < 1000  # float seconds: < 1 us off
+    np.testing.assert_allclose(reference.poses, [[0.5, 0.25, 0.1]])
 
 
 @pytest.mark.skipif(not INTEL.exists(), reason=f"{INTEL} absent (shared data)")
@@ -178,8 +181,9 @@ def test_slam_eval_command(tmp_path, capsys):
     from tools.cli import main
 
     result, reference = tmp_path / "trajectory.csv", tmp_path / "reference.csv"
-    write_trajectory_csv(result, trajectory((0, 0, 0), (1.1, 0, 0), (2.1, 0.2, math.pi / 2 + 0.1)))
-    write_trajectory_csv(reference, REFERENCE)
+    estimate = trajectory((0, 0, 0), (1.1, 0, 0), (2.1, 0.2, math.pi / 2 + 0.1))
+    write_trajectory_csv(result, estimate.stamps_ns, estimate.poses)
+    write_trajectory_csv(reference, REFERENCE.stamps_ns, REFERENCE.poses)
     assert main(["slam-eval", str(result), str(reference), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["relation_error"]["count"] == 2
@@ -202,8 +206,8 @@ def test_slam_eval_user_errors_are_one_line(tmp_path, capsys, monkeypatch, args)
     from tools.cli import main
 
     monkeypatch.chdir(tmp_path)
-    write_trajectory_csv(tmp_path / "traj.csv", REFERENCE)
-    write_trajectory_csv(tmp_path / "ref.csv", REFERENCE)
+    write_trajectory_csv(tmp_path / "traj.csv", REFERENCE.stamps_ns, REFERENCE.poses)
+    write_trajectory_csv(tmp_path / "ref.csv", REFERENCE.stamps_ns, REFERENCE.poses)
     (tmp_path / "bad.relations").write_text("1 2 3\n")
     assert main(["slam-eval", *args]) == 2
     err = capsys.readouterr().err

@@ -7,6 +7,7 @@ simulator) and the Intel Research Lab map built from the GMapping-corrected pose
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -15,7 +16,8 @@ import pytest
 
 from fusion.geometry import compose, inverse, relative, scan_to_points, transform_points, voxel_filter
 from fusion.localization import (CoarseMap, Localizer, LocalizerConfig, coarse_map, correlate_headings,
-                                 global_search)
+                                 global_search, grid_from_map)
+from fusion.map_io import read_trajectory_csv
 from fusion.occupancy_grid import LogOddsGrid
 from fusion.odometry_drift import drifting_odometry
 
@@ -247,3 +249,56 @@ def test_exp2_converges_and_recovers_on_its_slam_map():
     recovered = [k for k in localizer.stats.converged_at if k > kidnap[0]]
     assert recovered and recovered[0] - 15 < 20
     assert np.hypot(*(updates[-1].pose[:2] - reference[index[-1]][:2])) < 0.15
+
+
+def test_localize_command_on_a_spliced_intel_log(intel, tmp_path, capsys):
+    """`trundle localize` on a saved map and an MCAP whose scans jump 500 scans ahead half way."""
+    from fusion.map_io import save_map
+    from logs.importers import write_log
+    from logs.importers.carmen import CarmenLog, messages, read_carmen
+    from tools.cli import main
+
+    lasers = [laser for laser in read_carmen(INTEL).lasers if laser.kind == "FLASER"]
+    index = np.concatenate([np.arange(101, 131, 2), np.arange(601, 641, 2)])
+    odometry = intel.odometry[index].copy()
+    shift = compose(compose(odometry[14], relative(odometry[13], odometry[14])), inverse(odometry[15]))
+    odometry[15:] = compose(shift, odometry[15:])  # the wheels saw an ordinary step at the splice
+    spliced = CarmenLog(lasers=[lasers[k] for k in index], order=[("laser", k) for k in range(len(index))])
+    write_log(messages(spliced, odometry="laser", laser_odometry=odometry), tmp_path / "spliced.mcap", metadata={})
+    save_map(intel.grid.to_message(0), tmp_path / "map")
+    before = (tmp_path / "map.pgm").read_bytes()
+    assert main(["localize", str(tmp_path / "spliced.mcap"), "--map", str(tmp_path / "map.yaml"),
+                 "-o", str(tmp_path / "poses.csv"), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["scans"] == 35 and report["odometry"]
+    assert report["converged_at_scans"][0] < 15
+    assert 15 <= report["kidnaps_detected_at_scans"][0] <= 17
+    assert len(report["converged_at_scans"]) == 2 and report["converged_at_scans"][1] - 15 < 20
+    assert np.hypot(*(np.array(report["final_pose"][:2]) - intel.poses[index[-1]][:2])) < 0.15
+    assert (tmp_path / "map.pgm").read_bytes() == before
+    stamps, poses = read_trajectory_csv(tmp_path / "poses.csv")
+    assert len(stamps) == report["tracked_scans"]
+
+
+def test_localize_command_user_errors(tmp_path, capsys):
+    from tools.cli import main
+
+    assert main(["localize", str(tmp_path / "absent.mcap"), "--map", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("trundle localize: ") and err.count("\n") == 1
+
+
+def test_grid_from_map_is_trinary_and_read_only():
+    from logs.messages import OccupancyGrid
+
+    data = np.array([[100, 0, -1], [70, 20, 0]], np.int8)
+    grid = grid_from_map(OccupancyGrid(0, "map", 0.1, -1.0, 2.0, 0.0, data))
+    assert grid.resolution == pytest.approx(0.1) and grid.origin.tolist() == [-1.0, 2.0]
+    np.testing.assert_array_equal(grid.occupied(), [[True, False, False], [True, False, False]])
+    np.testing.assert_array_equal(grid.observed, data >= 0)
+    assert np.all(grid.log_odds[data == 0] < 0) and grid.log_odds[0, 2] == 0
+    with pytest.raises(ValueError):
+        grid.insert_rays([-0.95, 2.05], [[-0.75, 2.05]])  # the map cannot be written
+    from logs.errors import UserError
+    with pytest.raises(UserError, match="rotated"):
+        grid_from_map(OccupancyGrid(0, "map", 0.1, 0.0, 0.0, 0.5, data))

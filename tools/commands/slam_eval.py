@@ -12,8 +12,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from fusion.evaluation import (Trajectory, absolute_trajectory_error, read_reference, read_trajectory_csv,
-                               relation_error, relative_pose_error, trajectory_relations)
+from fusion.evaluation import (Trajectory, absolute_trajectory_error, read_reference, relation_error,
+                               relative_pose_error, trajectory_relations)
 from logs.errors import UserError
 
 

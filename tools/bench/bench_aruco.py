@@ -12,9 +12,7 @@ Run: python tools/bench/bench_aruco.py [--repeat N]
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -22,6 +20,7 @@ import numpy as np
 from logs.messages import CameraInfo
 from perception.markers import CORNER_REFINEMENT, MarkerDetector, dictionary_by_name, marker_object_points, marker_pose
 from tools.bench import report
+from tools.bench.bench_color import cpu_per_call
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "aruco"
 PHOTOS = ("singlemarkersoriginal.jpg", "choriginal.jpg", "chocclusion_original.jpg")
@@ -38,13 +37,6 @@ def synthetic_frame() -> np.ndarray:
         frame[y:y + 100, x:x + 100] = cv2.aruco.generateImageMarker(dictionary, i, 100)
     noise = np.random.default_rng(0).normal(0, 3, frame.shape)
     return np.clip(frame + noise, 0, 255).astype(np.uint8)
-
-
-def cpu_per_call(fn: Callable[[], object], number: int = 5) -> float:
-    start = time.process_time()
-    for _ in range(number):
-        fn()
-    return (time.process_time() - start) / number
 
 
 def bare_detector(dictionary: str) -> cv2.aruco.ArucoDetector:

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from logs.errors import UserError
-from tools.daemon_config import default_socket_path, load_config, parse_config
+from tools.daemon_config import default_socket_path, format_config, load_config, parse_config
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "tools" / "daemon_example.toml"
 
@@ -106,3 +106,18 @@ def test_any_mutation_gives_a_config_or_one_user_error_line(data):
         parse_config(document, "robot.toml")
     except UserError as error:
         assert "\n" not in str(error) and str(error).startswith("robot.toml: ")
+
+
+toml_values = st.one_of(st.booleans(), st.integers(-2**63, 2**63 - 1), st.floats(allow_nan=False), st.text(),
+                        st.lists(st.integers(-5, 5), max_size=4), st.lists(st.text(max_size=4), max_size=3))
+bare_keys = st.text(alphabet="abcdefghijklmnopqrstuvwxyz_", min_size=1, max_size=8)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.dictionaries(bare_keys, st.dictionaries(bare_keys, toml_values, max_size=4), max_size=4))
+def test_format_config_round_trips_through_tomllib(tables):
+    assert tomllib.loads(format_config(tables)) == tables
+
+
+def test_formatted_example_parses_to_the_same_config():
+    assert parse_config(tomllib.loads(format_config(example()))) == parse_config(example())

@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 import time
-import tomllib
 from pathlib import Path
 
 import cv2
@@ -18,30 +17,12 @@ import pytest
 from logs.reader import LogReader
 from tools.camera_render import project
 from tools.daemon import query_status
+from tools.daemon_config import format_config
 from tools.robot_sim import RobotSim
 from tools.sim_devices import SimDevices
 from tools.world import load_world
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, list):
-        return "[" + ", ".join(toml_value(v) for v in value) + "]"
-    return repr(value)
-
-
-def write_toml(path: Path, tables: dict) -> None:
-    lines = []
-    for name, table in tables.items():
-        lines.append(f"[{name}]")
-        lines += [f"{key} = {toml_value(value)}" for key, value in table.items()]
-    path.write_text("\n".join(lines) + "\n")
-    tomllib.loads(path.read_text())
 
 
 @pytest.fixture(scope="module")
@@ -61,10 +42,10 @@ def test_daemon_logs_every_emulated_device_consistently_with_ground_truth(tmp_pa
     stamps only loosely (this machine may be loaded: latency is the drivers' business)."""
     with SimDevices(sim, tmp_path / "dev", camera_fps=10.0) as devices:
         config = tmp_path / "robot.toml"
-        write_toml(config, {"robot": {"name": "sim"}, **devices.device_tables(),
+        config.write_text(format_config({"robot": {"name": "sim"}, **devices.device_tables(),
                             "logger": {"folder": str(tmp_path / "logs"), "flush_period_s": 0.2},
                             "status": {"socket": str(tmp_path / "status.sock"), "diagnostics_period_s": 0.5},
-                            "disk": {"min_free_mb": 1.0}})
+                            "disk": {"min_free_mb": 1.0}}))
         proc = subprocess.Popen([sys.executable, "-m", "tools.cli", "daemon", "--config", str(config)],
                                 cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(REPO)},
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -16,7 +16,9 @@ so a message stamped ``stamp_ns`` is compared with ``sim.pose_at(sim_time(stamp_
 
 from __future__ import annotations
 
+import collections
 import math
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -78,6 +80,7 @@ class SimDevices:
         self.can_adapter: SlcanEmulator | None = None
         self.can_nodes: CanNodeRunner | None = None
         self.camera_emulator: CameraEmulator | None = None
+        self.activity: dict[str, collections.deque[int]] = {k: collections.deque(maxlen=1 << 20) for k in ("can", "camera")}
 
     # ------------------------------------------------------------------ clock
     def sim_time(self, wall_ns: int) -> float:
@@ -92,11 +95,22 @@ class SimDevices:
         return self.sim.ranges_at(rear_s - self.t0_ns / 1e9, self.laser_model)
 
     def _motor_turns_per_s(self, _runner_t: float) -> np.ndarray:
-        left, right = self.sim.wheel_speeds_at(self.now()) / (2.0 * math.pi)
+        now = time.time_ns()
+        self.activity["can"].append(now)
+        left, right = self.sim.wheel_speeds_at(self.sim_time(now)) / (2.0 * math.pi)
         return np.array([left, right] * (self.wheels // 2))
 
     def _frame_at(self, _emulator_t: float) -> np.ndarray:
-        return self.sim.frame_at(self.now(), self.renderer)
+        now = time.time_ns()
+        self.activity["camera"].append(now)
+        return self.sim.frame_at(self.sim_time(now), self.renderer)
+
+    def produced(self, name: str) -> np.ndarray:
+        """Wall-clock times (ns) at which emulator ``name`` (lrf, can, camera) produced data: scans
+        passing the rear, encoder ticks, rendered frames; to tell a daemon's gap from a starved emulator."""
+        if name == "lrf":
+            return np.array([q.rear_ns for q in (self.lrf_device.sent if self.lrf_device else [])], np.int64)
+        return np.array(self.activity[name], np.int64)
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> SimDevices:
@@ -123,6 +137,26 @@ class SimDevices:
             self.can_adapter.close()
         if self.lrf is not None:
             self.lrf.stop()
+
+    # ------------------------------------------------------------------ faults (for soak tests)
+    def unplug_lrf(self, away_s: float) -> None:
+        """Pull the laser's cable for ``away_s`` seconds; it comes back rebooted (clock reset)."""
+        assert self.lrf is not None and self.lrf_device is not None
+        with self.lrf.lock:
+            self.lrf_device.link_request = ("unplug", away_s)
+
+    def unplug_can(self, away_s: float) -> None:
+        """Pull the SLCAN adapter for ``away_s`` seconds (a fresh, closed adapter comes back)."""
+        assert self.can_adapter is not None
+        self.can_adapter.unplug()
+        timer = threading.Timer(away_s, self.can_adapter.replug)
+        timer.daemon = True
+        timer.start()
+
+    def stall_camera(self, seconds: float) -> None:
+        """The camera sends nothing for ``seconds`` while its connection stays open."""
+        assert self.camera_emulator is not None
+        self.camera_emulator.stall(seconds)
 
     def __enter__(self) -> SimDevices:
         return self.start()

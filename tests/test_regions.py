@@ -164,3 +164,17 @@ def test_find_regions_limits_and_connectivity() -> None:
     with pytest.raises(ValueError):
         find_regions(mask, connectivity=6)
     assert find_regions(np.zeros((5, 5), np.uint8))[1] == []
+
+
+def test_moment_functions_work_on_stacks() -> None:
+    """central_moments, ellipse and hu_moments take (N, n, n) stacks (any order >= 2 for the ellipse)."""
+    masks = [_sampled_ellipse(180, 160, 90, 30, 20), _sampled_ellipse(150.5, 170.25, 60, 45, -70)]
+    singles = [region_of(mask) for mask in masks]
+    stack = np.stack([r.moments for r in singles])
+    mu = central_moments(stack)
+    assert np.allclose(mu, np.stack([r.central for r in singles]), rtol=1e-9, atol=1e-6)
+    a, b, theta = ellipse(mu[:, :3, :3])                       # second order suffices
+    assert np.allclose(a, [r.a for r in singles]) and np.allclose(theta, [r.theta for r in singles])
+    assert np.allclose(hu_moments(mu), np.stack([r.hu for r in singles]), rtol=1e-9, atol=0)
+    with pytest.raises(ValueError):
+        central_moments(np.zeros((2, 4, 4)))

@@ -11,13 +11,15 @@ options; see ``ScipConfig`` and ``RplidarConfig`` for the keys. Use a stable pat
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+import dataclasses
+from typing import Any, Mapping, TypeVar
 from urllib.parse import parse_qsl, urlsplit
 
 from drivers.lifecycle import Driver, Sink
 from logs.errors import UserError
 
 SCHEMES = ("scip2", "scip2+tcp", "rplidar")
+Config = TypeVar("Config")
 
 
 def _value(text: str) -> Any:
@@ -31,6 +33,27 @@ def _value(text: str) -> Any:
         except ValueError:
             pass
     return text
+
+
+def make_config(cls: type[Config], port: str, options: Mapping[str, Any], device: str) -> Config:
+    """A driver config dataclass from a table of options (``url`` ignored); UserError on a bad one."""
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.name != "port"}
+    unknown = sorted(set(options) - set(fields) - {"url", "port"})
+    if unknown:
+        raise UserError(f"lrf: unknown option(s) {', '.join(unknown)} for {device}; known: {', '.join(sorted(fields))}")
+    values = {}
+    for key, value in options.items():
+        if key not in fields:
+            continue
+        default = fields[key].default
+        kind = type(default) if default is not None else float
+        if kind is bool and not isinstance(value, bool):
+            raise UserError(f"lrf: {key} must be true or false, got {value!r}")
+        try:
+            values[key] = kind(value)
+        except (TypeError, ValueError):
+            raise UserError(f"lrf: {key} must be a {kind.__name__}, got {value!r}") from None
+    return cls(port=port, **values)
 
 
 def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = None) -> Driver:
@@ -56,7 +79,7 @@ def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = Non
     if scheme == "rplidar":
         from drivers.rplidar_driver import RplidarConfig, RplidarDriver
 
-        return RplidarDriver(RplidarConfig.from_mapping(port, options), sink)
+        return RplidarDriver(make_config(RplidarConfig, port, options, "an RPLIDAR"), sink)
     from drivers.scip2_driver import ScipConfig, ScipDriver
 
-    return ScipDriver(ScipConfig.from_mapping(port, options), sink)
+    return ScipDriver(make_config(ScipConfig, port, options, "a SCIP 2.0 laser"), sink)

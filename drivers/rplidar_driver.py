@@ -11,19 +11,19 @@ angular grid. Shutdown sends STOP and stops the motor.
 
 from __future__ import annotations
 
-import errno
 import math
 import struct
 import time
 from collections import Counter
-from dataclasses import dataclass, field, fields
-from typing import Any, Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import serial
 
 from drivers import rplidar as rp
 from drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
+from drivers.serial_link import SerialLink, set_modem_line
 from logs import messages as m
 from logs.errors import UserError
 
@@ -71,25 +71,6 @@ class RplidarConfig:
             raise UserError(f"lrf: mode must be standard or express, not {self.mode!r}")
         if not 8 <= self.beams <= 8192 or not 0 <= self.motor_pwm <= 1023:
             raise UserError("lrf: beams must be 8-8192 and motor_pwm 0-1023")
-
-    @classmethod
-    def from_mapping(cls, port: str, options: Mapping[str, Any]) -> RplidarConfig:
-        """Build from a config table, ignoring ``url``; unknown keys or bad types are a UserError."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(options) - known - {"url"})
-        if unknown:
-            raise UserError(f"lrf: unknown option(s) {', '.join(unknown)} for an RPLIDAR; "
-                            f"known: {', '.join(sorted(known - {'port'}))}")
-        values = {}
-        for key, value in options.items():
-            if key in ("url", "port"):
-                continue
-            kind = type(getattr(cls, key))
-            try:
-                values[key] = kind(value)
-            except (TypeError, ValueError):
-                raise UserError(f"lrf: {key} must be a {kind.__name__}, got {value!r}") from None
-        return cls(port=port, **values)
 
     @property
     def limits(self) -> tuple[int, float, float]:
@@ -260,17 +241,6 @@ def revolution_scan(rev: Revolution, beams: int, range_min: float, range_max: fl
                        period_s, range_min, range_max, ranges, quality)
 
 
-def set_modem_line(port: serial.SerialBase, name: str, value: bool) -> bool:
-    """Set DTR or RTS; False when the port has no modem lines (a pty: ENOTTY/EINVAL)."""
-    try:
-        setattr(port, name, value)
-        return True
-    except OSError as error:
-        if error.errno in (errno.ENOTTY, errno.EINVAL):
-            return False
-        raise
-
-
 class RplidarDriver(Driver):
     """The RPLIDAR life cycle on a pyserial port (see the module docstring)."""
 
@@ -286,11 +256,10 @@ class RplidarDriver(Driver):
         self.info: rp.DeviceInfo | None = None
         self.health: rp.Health | None = None
         self.motor = ""
-        self._serial: serial.SerialBase | None = None
+        self.link: SerialLink | None = None
         self._buf = bytearray()
         self._decoder: rp.NodeDecoder | rp.ExpressNodeDecoder = rp.NodeDecoder()
         self._assembler = RevolutionAssembler(LEGACY_SAMPLE_US * 1000, counters=self.counters)
-        self._last_rx = 0.0
         self._bad_in_row = 0
         self._static = m.TFMessage((m.TransformStamped.planar(
             clock(), config.parent_frame, config.frame_id, config.x, config.y, config.yaw, config.z),))
@@ -301,17 +270,13 @@ class RplidarDriver(Driver):
     # --- transport ---------------------------------------------------------------------------
 
     def _read(self) -> bytes:
-        port = self._serial
-        if port is None:
+        if self.link is None:
             raise DeviceError("port closed")
-        data = port.read(max(port.in_waiting, 1))
-        if data:
-            self._last_rx = time.monotonic()
-        return data
+        return self.link.read()
 
     def _send(self, command: int, payload: bytes | None = None) -> None:
-        assert self._serial is not None
-        self._serial.write(rp.request(command, payload))
+        assert self.link is not None
+        self.link.write(rp.request(command, payload))
 
     def _response(self, expected: rp.Descriptor, timeout_s: float | None = None) -> bytes:
         """Wait for ``expected``'s descriptor (skipping and counting other bytes); return its
@@ -331,28 +296,20 @@ class RplidarDriver(Driver):
                 return payload
             self._buf += self._read()
         raise DeviceError(f"no {expected.type:#04x} response from {self.config.port} "
-                          f"(wrong port or baud rate {self._serial.baudrate if self._serial else '?'}?)")
+                          f"(wrong port or baud rate {self.link.port.baudrate if self.link else '?'}?)")
 
-    def _flush(self, quiet_s: float = 0.02, limit_s: float = 2.0) -> int:
+    def _flush(self, quiet_s: float = 0.02) -> int:
         """Drop input until the line has been quiet for ``quiet_s``; returns how many bytes."""
-        assert self._serial is not None
+        assert self.link is not None
         dropped = len(self._buf)
         self._buf.clear()
-        start = quiet_since = time.monotonic()
-        while time.monotonic() - quiet_since < quiet_s:
-            if time.monotonic() - start > limit_s:
-                raise DeviceError(f"{self.config.port} keeps sending after STOP")
-            data = self._read()
-            if data:
-                dropped += len(data)
-                quiet_since = time.monotonic()
-        return dropped
+        return dropped + self.link.drain(quiet_s)
 
     # --- start-up ----------------------------------------------------------------------------
 
     def open(self) -> None:
         baud, range_min, range_max = self.config.limits
-        self._serial = serial.serial_for_url(self.config.port, baudrate=baud, timeout=0.05, write_timeout=1.0)
+        self.link = SerialLink(self.config.port, baud)
         self._buf = bytearray()
         self._send(rp.STOP)
         time.sleep(0.01)
@@ -377,7 +334,6 @@ class RplidarDriver(Driver):
         self._assembler = RevolutionAssembler(sample_us * 1000, monotonic=not express,
                                               lag_samples=4 * rp.CABINS if express else 0, counters=self.counters)
         self._bad_in_row = 0
-        self._last_rx = time.monotonic()
         if rest:
             self._process(rest, self.clock())
 
@@ -410,7 +366,7 @@ class RplidarDriver(Driver):
 
     def _start_motor(self) -> None:
         """S series: rpm command; A series: PWM if the accessory board says so, else DTR."""
-        assert self.info is not None and self._serial is not None
+        assert self.info is not None and self.link is not None
         if self.info.major_model >= 6:
             self.motor = "rpm"
             self._send(rp.HQ_MOTOR_SPEED_CTRL, struct.pack("<H", self.config.motor_rpm))
@@ -425,32 +381,27 @@ class RplidarDriver(Driver):
             self._send(rp.SET_MOTOR_PWM, struct.pack("<H", self.config.motor_pwm))
         else:
             self.motor = "dtr"
-            if not set_modem_line(self._serial, "dtr", False):  # SDK: DTR cleared = motor runs
+            if not set_modem_line(self.link.port, "dtr", False):  # SDK: DTR cleared = motor runs
                 self.counters["modem_lines_unsupported"] += 1
 
     def close(self) -> None:
         """STOP, then stop the motor, then close; never raises."""
-        port, self._serial = self._serial, None
-        if port is None:
+        link, self.link = self.link, None
+        if link is None:
             return
-        try:
-            if port.is_open:
-                port.write(rp.request(rp.STOP))
-                port.flush()
-                time.sleep(0.002)
-                if self.motor == "pwm":
-                    port.write(rp.request(rp.SET_MOTOR_PWM, struct.pack("<H", 0)))
-                elif self.motor == "rpm":
-                    port.write(rp.request(rp.HQ_MOTOR_SPEED_CTRL, struct.pack("<H", 0)))
-                elif self.motor == "dtr" and not set_modem_line(port, "dtr", True):
-                    self.counters["modem_lines_unsupported"] += 1
-                port.flush()
-        except (OSError, serial.SerialException, ValueError):
-            pass
-        try:
-            port.close()
-        except (OSError, serial.SerialException):
-            pass
+
+        def farewell(port: serial.SerialBase) -> None:
+            port.write(rp.request(rp.STOP))
+            port.flush()
+            time.sleep(0.002)
+            if self.motor == "pwm":
+                port.write(rp.request(rp.SET_MOTOR_PWM, struct.pack("<H", 0)))
+            elif self.motor == "rpm":
+                port.write(rp.request(rp.HQ_MOTOR_SPEED_CTRL, struct.pack("<H", 0)))
+            elif self.motor == "dtr" and not set_modem_line(port, "dtr", True):
+                self.counters["modem_lines_unsupported"] += 1
+
+        link.close(farewell)
 
     # --- streaming ---------------------------------------------------------------------------
 
@@ -461,7 +412,7 @@ class RplidarDriver(Driver):
         if self._bad_in_row >= self.config.error_limit:
             self._bad_in_row = 0
             raise DeviceError(f"{self.config.error_limit} bad revolutions in a row")
-        if time.monotonic() - self._last_rx > self.config.timeout_s:
+        if self.link is not None and self.link.silent_s > self.config.timeout_s:
             self.counters["timeouts"] += 1
             raise DeviceError(f"no data from {self.config.port} for {self.config.timeout_s:.2f} s")
 

@@ -85,14 +85,24 @@ def decode_values(chars: bytes | np.ndarray, width: int) -> np.ndarray:
     c = np.frombuffer(chars, dtype=np.uint8) if isinstance(chars, (bytes, bytearray, memoryview)) else chars
     if c.size % width:
         raise ScipError("truncated", f"{c.size} characters is not a multiple of {width}")
-    if c.size and (c.min() < CHAR_BASE or c.max() > CHAR_TOP):
+    d = c - np.uint8(CHAR_BASE)  # wraps below 0x30, so one test catches both ends of the range
+    if (d & 0xC0).any():
         raise ScipError("format", "character outside the SCIP encoding range 0x30-0x6F")
-    groups = (c.reshape(-1, width).astype(np.uint32) - CHAR_BASE)
-    out = groups[:, 0].copy()
+    groups = d.reshape(-1, width).astype(np.uint32)
+    out = groups[:, 0]
     for k in range(1, width):
-        out <<= 6
-        out |= groups[:, k]
+        out = (out << 6) | groups[:, k]
     return out
+
+
+def decode_value(chars: bytes) -> int:
+    """Decode one short value (a timestamp) without numpy; ScipError on bad characters."""
+    value = 0
+    for c in chars:
+        if not CHAR_BASE <= c <= CHAR_TOP:
+            raise ScipError("format", "character outside the SCIP encoding range 0x30-0x6F")
+        value = (value << 6) | (c - CHAR_BASE)
+    return value
 
 
 def encode_data(payload: bytes) -> bytes:
@@ -128,13 +138,12 @@ def decode_data(region: bytes, n_chars: int) -> np.ndarray:
     arr = np.frombuffer(region, dtype=np.uint8)
     body = arr[: full * (LINE_CHARS + 2)].reshape(full, LINE_CHARS + 2)
     last = arr[full * (LINE_CHARS + 2):]
-    if (full and not np.all(body[:, -1] == LF)) or (rest and last[-1] != LF):
+    if (body[:, -1] != LF).any() or (rest and last[-1] != LF):
         raise ScipError("truncated", "data line boundaries out of place")
-    if full and not np.array_equal((body[:, :LINE_CHARS].sum(axis=1, dtype=np.uint32) & 0x3F) + CHAR_BASE,
-                                   body[:, LINE_CHARS]):
+    # uint8 sums wrap modulo 256, which keeps the low 6 bits the checksum uses
+    sums = (np.add.reduce(body[:, :LINE_CHARS], axis=1, dtype=np.uint8) & 0x3F) + CHAR_BASE
+    if (sums != body[:, LINE_CHARS]).any() or (rest and checksum(last[:rest].tobytes()) != last[rest]):
         raise ScipError("checksum", "bad sum in a data line")
-    if rest and checksum(last[:rest].tobytes()) != last[rest]:
-        raise ScipError("checksum", "bad sum in the last data line")
     if not rest:
         return body[:, :LINE_CHARS].reshape(-1)
     return np.concatenate((body[:, :LINE_CHARS].reshape(-1), last[:rest]))
@@ -336,10 +345,9 @@ def decode_scan(reply: Reply, measure: Measure) -> Scan:
     stamp_line = body[4:4 + TIMESTAMP_CHARS + 2]
     if len(stamp_line) != TIMESTAMP_CHARS + 2 or stamp_line[-1] != LF:
         raise ScipError("truncated", "timestamp line")
-    stamp = verify_line(stamp_line[:-1])
+    timestamp = decode_value(verify_line(stamp_line[:-1]))
     chars = decode_data(body[4 + TIMESTAMP_CHARS + 2:], measure.data_chars)
     values = decode_values(chars, measure.width)
-    timestamp = int(decode_values(stamp, TIMESTAMP_CHARS)[0])
     remaining = int(reply.echo[13:15]) if measure.continuous and reply.echo[13:15].isdigit() else 0
     if measure.intensity:
         pairs = values.reshape(-1, 2)

@@ -12,16 +12,16 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from dataclasses import dataclass, field, fields
-from typing import Any, Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
-import serial
 
 from drivers import scip2
 from drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
 from drivers.scip2 import Measure, Reply, ScipError, ScipFramer, SensorParams
 from drivers.sensor_clock import SensorClock
+from drivers.serial_link import SerialLink
 from logs import messages as m
 from logs.errors import UserError
 
@@ -70,28 +70,6 @@ class ScipConfig:
             raise UserError(f"lrf: angle_min {self.angle_min} must be below angle_max {self.angle_max}")
         if self.error_limit < 1 or self.tm_samples < 0:
             raise UserError("lrf: error_limit must be at least 1 and tm_samples non-negative")
-
-    @classmethod
-    def from_mapping(cls, port: str, options: Mapping[str, Any]) -> ScipConfig:
-        """Build from a config table, ignoring ``url``; unknown keys or bad types are a UserError."""
-        known = {f.name: f for f in fields(cls)} | {"url": None}
-        unknown = sorted(set(options) - set(known))
-        if unknown:
-            raise UserError(f"lrf: unknown option(s) {', '.join(unknown)} for a SCIP 2.0 laser; "
-                            f"known: {', '.join(sorted(k for k in known if k not in ('port', 'url')))}")
-        values = {}
-        for key, value in options.items():
-            if key in ("url", "port"):
-                continue
-            default = getattr(cls, key)
-            kind = type(default) if default is not None else float
-            if kind is bool and not isinstance(value, bool):
-                raise UserError(f"lrf: {key} must be true or false")
-            try:
-                values[key] = kind(value)
-            except (TypeError, ValueError):
-                raise UserError(f"lrf: {key} must be a {kind.__name__}, got {value!r}") from None
-        return cls(port=port, **values)
 
 
 def error_code_ranges(model: str, dmin: int) -> np.ndarray:
@@ -223,7 +201,7 @@ class ScipScanStream:
         try:
             if len(line) != 6 or line[-1] != scip2.LF:
                 raise ScipError("truncated", "timestamp line")
-            raw = int(scip2.decode_values(scip2.verify_line(line[:-1]), 4)[0])
+            raw = scip2.decode_value(scip2.verify_line(line[:-1]))
         except ScipError as error:
             self._unreadable += 1
             self._bad({"checksum": "checksum_errors", "format": "format_errors"}.get(error.kind, "truncated"))
@@ -257,10 +235,9 @@ class ScipDriver(Driver):
         self.version: dict[str, str] = {}
         self.state_info: dict[str, str] = {}
         self.stream: ScipScanStream | None = None
-        self._serial: serial.SerialBase | None = None
+        self.link: SerialLink | None = None
         self._framer = ScipFramer()
         self._session = 0
-        self._last_rx = 0.0
         self._static = m.TFMessage((m.TransformStamped.planar(
             clock(), config.parent_frame, config.frame_id, config.x, config.y, config.yaw, config.z),))
 
@@ -270,41 +247,26 @@ class ScipDriver(Driver):
     # --- transport ---------------------------------------------------------------------------
 
     def open(self) -> None:
-        self._serial = serial.serial_for_url(self.config.port, baudrate=self.config.baudrate, timeout=0.05,
-                                             write_timeout=1.0)
+        self.link = SerialLink(self.config.port, self.config.baudrate)
         self._framer = ScipFramer()
         self._handshake()
 
     def close(self) -> None:
-        port, self._serial = self._serial, None
-        if port is None:
-            return
-        try:
-            if port.is_open:
-                port.write(b"QT\n")
-                port.flush()
-        except (OSError, serial.SerialException, ValueError):
-            pass
-        try:
-            port.close()
-        except (OSError, serial.SerialException):
-            pass
+        link, self.link = self.link, None
+        if link is not None:
+            link.close(lambda port: port.write(b"QT\n"))
 
     def _read(self) -> bytes:
-        port = self._serial
-        if port is None:
+        if self.link is None:
             raise DeviceError("port closed")
-        data = port.read(max(port.in_waiting, 1))
-        if data:
-            self._last_rx = time.monotonic()
-        return data
+        return self.link.read()
 
     def _request(self, command: bytes, timeout_s: float | None = None) -> Reply:
         """Send one command and return its reply (other bytes are skipped and counted)."""
         echo = command.rstrip(b"\n")
         self._framer.expect(echo)
-        assert self._serial is not None
-        self._serial.write(command)
+        assert self.link is not None
+        self.link.write(command)
         deadline = time.monotonic() + (timeout_s or self.config.reply_timeout_s)
         while time.monotonic() < deadline and not self.stopping:
             replies = self._framer.feed(self._read())
@@ -317,7 +279,9 @@ class ScipDriver(Driver):
     def _handshake(self) -> None:
         garbage = self._framer.garbage_bytes
         self._stop_sensor()
-        drained = self._framer.garbage_bytes - garbage + self._drain()
+        self._framer.clear()
+        assert self.link is not None
+        drained = self._framer.garbage_bytes - garbage + self.link.drain(0.05)
         self.counters["drained_bytes"] += drained
         if drained:
             self.counters["stale_streams"] += 1
@@ -347,33 +311,19 @@ class ScipDriver(Driver):
 
     def _request_any_baud(self, command: bytes) -> Reply:
         """Send ``command``; with no answer try the other SCIP bauds (urg_c), except over TCP."""
-        assert self._serial is not None
+        assert self.link is not None
         bauds = [self.config.baudrate] + [b for b in (19200, 38400, 115200) if b != self.config.baudrate]
         if "://" in self.config.port:
             bauds = bauds[:1]
         for baud in bauds:
-            if self._serial.baudrate != baud:
-                self._serial.baudrate = baud
+            if self.link.port.baudrate != baud:
+                self.link.port.baudrate = baud
             try:
                 return self._request(command)
             except DeviceError:
                 continue
         raise DeviceError(f"no SCIP answer on {self.config.port} at {', '.join(map(str, bauds))} baud "
                           "(wrong port, not a Hokuyo, or no permission?)")
-
-    def _drain(self, quiet_s: float = 0.05, limit_s: float = 2.0) -> int:
-        """Read and drop bytes until the line has been quiet for ``quiet_s``; returns how many."""
-        dropped, start = 0, time.monotonic()
-        quiet_since = start
-        self._framer.clear()
-        while time.monotonic() - quiet_since < quiet_s:
-            if time.monotonic() - start > limit_s:
-                raise DeviceError(f"{self.config.port} keeps sending after QT")
-            data = self._read()
-            if data:
-                dropped += len(data)
-                quiet_since = time.monotonic()
-        return dropped
 
     def _status(self, reply: Reply) -> str:
         try:
@@ -417,7 +367,7 @@ class ScipDriver(Driver):
                 if self._status(reply) != "00" or len(reply.lines()) != 1:
                     continue
                 try:
-                    raw = int(scip2.decode_values(scip2.verify_line(reply.lines()[0]), 4)[0])
+                    raw = scip2.decode_value(scip2.verify_line(reply.lines()[0]))
                 except ScipError:
                     continue
                 samples.append((sent, raw, received))
@@ -442,7 +392,6 @@ class ScipDriver(Driver):
             what = "intensities (ME)" if c.intensity else "MD streaming"
             raise DeviceError(f"{p.model} refused {what} {measure.encode().strip().decode()} with status {status}")
         self.stream = ScipScanStream(p, measure, self.sensor_clock, c.frame_id, self._framer, self.counters)
-        self._last_rx = time.monotonic()
 
     # --- streaming ---------------------------------------------------------------------------
 
@@ -462,7 +411,7 @@ class ScipDriver(Driver):
             stream.consecutive_errors = 0
             raise DeviceError(f"{self.config.error_limit} bad scans in a row")
         timeout = self.config.timeout_s or max(0.5, 16 * self.params.scan_period_s)
-        if time.monotonic() - self._last_rx > timeout:
+        if self.link is not None and self.link.silent_s > timeout:
             self.counters["timeouts"] += 1
             raise DeviceError(f"no data from {self.config.port} for {timeout:.2f} s")
 

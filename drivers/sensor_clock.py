@@ -77,6 +77,7 @@ class SensorClock:
         self._bins = 0
         self._bin = -1
         self._bin_min = np.inf
+        self._median_at = (0, 0, 0)  # (readings in the window, readings seen, median) when computed
         self._target: int | None = None  # median latency to restore after a re-anchoring
         self._refine: list[int] = []
 
@@ -118,6 +119,7 @@ class SensorClock:
         self._last_host = host_ns
         self._unwrapped = self._ref = raw
         self._n_recent = self._outside = self._bins = 0
+        self._median_at = (0, 0, 0)
         self._bin, self._bin_min = -1, np.inf
 
     def update(self, raw: int, host_rx_ns: int) -> ClockReading:
@@ -163,8 +165,11 @@ class SensorClock:
         self._bin, self._bin_min = -1, np.inf
 
     def _median_latency(self) -> int:
+        """Median of the recent latencies (recomputed every 8 readings: it moves slowly)."""
         n = min(self._n_recent, self.RECENT)
-        return int(np.median(self._recent[:n])) if n else 0
+        if n != self._median_at[0] and (n < self.RECENT or self._n_recent - self._median_at[1] >= 8):
+            self._median_at = (n, self._n_recent, int(np.median(self._recent[:n])) if n else 0)
+        return self._median_at[2]
 
     def _track(self, host_rx_ns: int, stamp_ns: int) -> bool:
         """Record a receive latency, update the drift; True when the offset needs re-anchoring."""

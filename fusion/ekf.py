@@ -10,12 +10,30 @@ keep predicting and the covariance grows.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from fusion.geometry import compose, rotation, wrap_angle
 
 # chi-square quantile for 3 degrees of freedom at 99 %: scipy.stats.chi2.ppf(0.99, 3)
 GATE_CHI2_99 = 11.344866730144373
+
+
+def odometry_noise(delta_xyt, sigma_xy_m: float = 0.01, sigma_theta_rad: float = math.radians(0.5),
+                   sigma_xy_per_m: float = 0.2, sigma_theta_per_m: float = math.radians(5.0),
+                   sigma_theta_per_rad: float = 0.2) -> np.ndarray:
+    """3x3 covariance (robot frame) of an odometry increment for :meth:`PoseEKF.predict`.
+
+    Standard deviations: a floor per step (wheel/laser timing) plus a share per metre travelled
+    and per radian turned, ``sigma_xy = sigma_xy_m + sigma_xy_per_m * d`` and
+    ``sigma_theta = sigma_theta_rad + sigma_theta_per_m * d + sigma_theta_per_rad * |dtheta|``.
+    """
+    u = np.asarray(delta_xyt, dtype=np.float64).reshape(3)
+    distance, turn = float(np.hypot(u[0], u[1])), abs(float(u[2]))
+    sxy = sigma_xy_m + sigma_xy_per_m * distance
+    sth = sigma_theta_rad + sigma_theta_per_m * distance + sigma_theta_per_rad * turn
+    return np.diag([sxy ** 2, sxy ** 2, sth ** 2])
 
 
 class PoseEKF:

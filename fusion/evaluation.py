@@ -15,7 +15,7 @@ errors at a fixed separation.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
@@ -83,9 +83,6 @@ class RelationError:
     translation_max_m: float
     rotation_max_deg: float
 
-    def as_dict(self) -> dict:
-        return asdict(self)
-
 
 @dataclass(frozen=True)
 class AbsoluteError:
@@ -100,9 +97,6 @@ class AbsoluteError:
     rotation_rmse_deg: float
     alignment_xyt: tuple[float, float, float]
 
-    def as_dict(self) -> dict:
-        return asdict(self)
-
 
 @dataclass(frozen=True)
 class RelativeError:
@@ -114,9 +108,6 @@ class RelativeError:
     translation_mean_m: float
     rotation_rmse_deg: float
     rotation_mean_deg: float
-
-    def as_dict(self) -> dict:
-        return asdict(self)
 
 
 # --- inputs ----------------------------------------------------------------------------------

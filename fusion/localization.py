@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from fusion.ekf import PoseEKF
+from fusion.ekf import PoseEKF, odometry_noise
 from fusion.geometry import compose, relative, voxel_filter, wrap_angle
 from fusion.occupancy_grid import LogOddsGrid
 from fusion.scan_matching import MatchResult, match_scan
@@ -162,15 +162,6 @@ def global_search(grid: LogOddsGrid, points_xy: np.ndarray, *, coarse: CoarseMap
     return sorted((r for r in results if r is not None), key=lambda r: -r.score)
 
 
-def odometry_noise(delta_xyt: np.ndarray, sigma_xy_per_m: float = 0.1, sigma_theta_per_m: float = math.radians(5.0),
-                   sigma_theta_per_rad: float = 0.1) -> np.ndarray:
-    """3x3 covariance (robot frame) of an odometry increment, growing with distance and turn."""
-    distance, turn = float(np.hypot(delta_xyt[0], delta_xyt[1])), abs(float(delta_xyt[2]))
-    sxy = sigma_xy_per_m * distance + 1e-3
-    sth = sigma_theta_per_m * distance + sigma_theta_per_rad * turn + 1e-3
-    return np.diag([sxy ** 2, sxy ** 2, sth ** 2])
-
-
 @dataclass(frozen=True)
 class LocalizationUpdate:
     """Result of one scan: the best pose (map frame) and its covariance, status and match quality.
@@ -229,6 +220,8 @@ class LocalizerConfig:
     gate_chi2: float = 50.0
     slip_sigma_xy_m: float = 0.05
     slip_sigma_theta_rad: float = math.radians(10.0)
+    odom_sigma_xy_m: float = 0.001
+    odom_sigma_theta_rad: float = 0.001
     odom_sigma_xy_per_m: float = 0.1
     odom_sigma_theta_per_m: float = math.radians(5.0)
     odom_sigma_theta_per_rad: float = 0.1
@@ -380,7 +373,8 @@ class Localizer:
         if delta is None:  # no odometry: constant velocity, with noise as wide as the search window
             self._ekf.predict(hypothesis.motion, np.diag([window_xy / 3, window_xy / 3, window_theta / 3]) ** 2)
         else:
-            self._ekf.predict(delta, odometry_noise(delta, cfg.odom_sigma_xy_per_m, cfg.odom_sigma_theta_per_m,
+            self._ekf.predict(delta, odometry_noise(delta, cfg.odom_sigma_xy_m, cfg.odom_sigma_theta_rad,
+                                                    cfg.odom_sigma_xy_per_m, cfg.odom_sigma_theta_per_m,
                                                     cfg.odom_sigma_theta_per_rad))
         result = match_scan(self.grid, points, self._ekf.pose, window_xy_m=window_xy, window_theta_rad=window_theta,
                             angular_step_rad=cfg.match_angular_step_rad)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fusion.ekf import GATE_CHI2_99, PoseEKF
+from fusion.ekf import GATE_CHI2_99, PoseEKF, odometry_noise
 
 
 def test_gate_constant_is_the_chi2_quantile():
@@ -108,3 +108,10 @@ def test_filter_is_consistent_nees():
     inside = np.mean((average > low) & (average < high))
     assert inside > 0.8
     assert 2.5 < average.mean() < 3.5
+
+
+def test_odometry_noise_hand_computed():
+    # 0.3 m and 0.1 rad: sigma_xy = 0.01 + 0.2 * 0.3 = 0.07; sigma_theta = 0.02 + 0.1 * 0.3 + 0.2 * 0.1 = 0.07
+    q = odometry_noise([0.0, 0.3, -0.1], sigma_xy_m=0.01, sigma_theta_rad=0.02, sigma_xy_per_m=0.2,
+                       sigma_theta_per_m=0.1, sigma_theta_per_rad=0.2)
+    np.testing.assert_allclose(q, np.diag([0.07 ** 2, 0.07 ** 2, 0.07 ** 2]), atol=1e-15)

@@ -198,21 +198,11 @@ def test_intel_converges_to_gtsam_final_error():
     result = graph.optimize()
     assert result.converged and result.chi2 < 1e-4 * result.initial_chi2
     assert result.chi2 == pytest.approx(graph.chi2())
-    gtsam = pytest.importorskip("gtsam", reason="GTSAM not installed: pip install gtsam to compare")
-    factors, _ = gtsam.readG2o(str(INTEL_G2O), False)
-    factors.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*start[0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-3)))
-    initial = gtsam.Values()
-    for k, pose in enumerate(start):
-        initial.insert(k, gtsam.Pose2(*pose))
-    params = gtsam.LevenbergMarquardtParams()
-    # GTSAM's Cholesky declares this graph's near-singular information matrices indeterminate
-    params.setLinearSolverType("MULTIFRONTAL_QR")
-    optimizer = gtsam.LevenbergMarquardtOptimizer(factors, initial, params)
-    solution = optimizer.optimize()
-    gtsam_chi2 = 2.0 * factors.error(solution)
+    pytest.importorskip("gtsam", reason="GTSAM not installed: pip install gtsam to compare")
+    from tools.bench.bench_pose_graph import gtsam_problem, gtsam_solve
+
+    gtsam_chi2, gtsam_poses, _ = gtsam_solve(*gtsam_problem(INTEL_G2O, start))
     assert result.chi2 == pytest.approx(gtsam_chi2, rel=0.01)
-    gtsam_poses = np.array([[solution.atPose2(k).x(), solution.atPose2(k).y(), solution.atPose2(k).theta()]
-                            for k in range(len(start))])
     assert np.abs(gtsam_poses[:, :2] - graph.poses[:, :2]).max() < 0.05
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import asdict
 
 from fusion.evaluation import (Trajectory, absolute_trajectory_error, read_reference, relation_error,
                                relative_pose_error, trajectory_relations)
@@ -38,12 +39,11 @@ def evaluate(result: Trajectory, reference, step: int = 1, tolerance_ns: int = 1
         if len(reference) <= step:
             raise UserError(f"the reference has {len(reference)} poses: too few for relations {step} apart")
         report = {"relations": f"reference poses {step} apart",
-                  "relation_error": relation_error(result, trajectory_relations(reference, step), tolerance_ns).as_dict(),
-                  "ate": absolute_trajectory_error(result, reference, tolerance_ns).as_dict(),
-                  "rpe": relative_pose_error(result, reference, step, tolerance_ns).as_dict()}
+                  "relation_error": asdict(relation_error(result, trajectory_relations(reference, step), tolerance_ns)),
+                  "ate": asdict(absolute_trajectory_error(result, reference, tolerance_ns)),
+                  "rpe": asdict(relative_pose_error(result, reference, step, tolerance_ns))}
     else:
-        report = {"relations": "relations file",
-                  "relation_error": relation_error(result, reference, tolerance_ns).as_dict()}
+        report = {"relations": "relations file", "relation_error": asdict(relation_error(result, reference, tolerance_ns))}
     return report
 
 

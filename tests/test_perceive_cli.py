@@ -137,8 +137,14 @@ def test_features_pipeline(log: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "features.mcap"
     code, summary = _run(capsys, str(log), "--pipeline", "features", "--method", "orb", "-o", str(out))
     assert code == 0 and summary["keypoints"] > 0
-    points = _by_topic(out)["/camera/image_raw/compressed/keypoints"]
+    topics = _by_topic(out)
+    points = topics["/camera/image_raw/compressed/keypoints"]
     assert len(points) == 3 and all(len(p.msg.points) > 0 for p in points)
+    assert sum(len(p.msg.points) for p in points) == summary["keypoints"]
+    ticks = topics["/camera/image_raw/compressed/keypoint_orientations"]
+    assert all(len(t.msg.points) == 2 * len(p.msg.points) for t, p in zip(ticks, points))   # ORB orients all
+    assert main(["perceive", str(log), "--pipeline", "features", "--method", "nope", "-o", str(tmp_path / "n.mcap")]) == 2
+    assert "unknown feature detector 'nope'" in capsys.readouterr().err
 
 
 def test_text_summary(log: Path, tmp_path: Path, capsys) -> None:

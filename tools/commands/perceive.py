@@ -245,9 +245,13 @@ class FeaturePipeline(Pipeline):
 
     def __init__(self, args: argparse.Namespace) -> None:
         try:
-            from perception.features import detect
+            from perception.features import METHODS, available, detect
         except ImportError:
             raise UserError("the features pipeline needs perception.features, which is not installed") from None
+        if args.method not in METHODS:
+            raise UserError(f"unknown feature detector {args.method!r} (choose from {', '.join(METHODS)})")
+        if not available(args.method):
+            raise UserError(f"{args.method} is not in this OpenCV build (cv2 {cv2.__version__})")
         self.detect = detect
         self.method = args.method
         self.params: dict[str, Any] = {}
@@ -344,7 +348,7 @@ def _print(summary: dict[str, Any], as_json: bool) -> None:
     lines += [f"  skipped {n}x {reason}" for reason, n in summary["corrupt_reasons"].items()]
     stats = summary["detections_per_frame"]
     lines.append(f"detections per frame: mean {stats['mean']:.2f}, min {stats['min']}, max {stats['max']}")
-    for key in ("regions", "markers", "marker_ids", "poses", "poses_missing_camera_info", "keypoints"):
+    for key in ("regions", "markers", "marker_ids", "poses", "poses_missing_camera_info", "poses_failed", "keypoints"):
         if key in summary:
             lines.append(f"{key.replace('_', ' ')}: {summary[key]}")
     lines.append(f"wrote {summary['output']}:")

@@ -73,7 +73,7 @@ def in_range(hsv8: np.ndarray, lower: tuple[float, float, float], upper: tuple[f
     return cv2.bitwise_or(below, above)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class HsvTemplate:
     """Per-channel histograms of a colour template in OpenCV 8-bit HSV, each scaled to max 1.
 
@@ -146,7 +146,7 @@ def masked(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return cv2.bitwise_and(image, image, mask=mask)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ColorSegmentation:
     """What ``segment_color`` found: likeness (None on the fast path), cleaned mask, regions."""
 

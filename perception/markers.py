@@ -32,7 +32,7 @@ def dictionary_by_name(name: str) -> cv2.aruco.Dictionary:
     return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, known[key]))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Marker:
     """One detected marker: its id and (4, 2) corners in pixels (TL, TR, BR, BL)."""
 
@@ -49,7 +49,7 @@ class Marker:
         return float(x), float(y)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MarkerPose:
     """Pose of a marker in the camera optical frame: rotation (3x3) and translation (m).
 

@@ -106,7 +106,7 @@ def hu_moments(mu: np.ndarray) -> np.ndarray:
     ], axis=-1)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Region:
     """One connected region: label in the label image, moments and the equivalent ellipse.
 

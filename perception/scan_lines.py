@@ -25,7 +25,7 @@ from logs.messages import LaserScan
 from perception.ransac import fit_line, line_residuals, ransac
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LineSegment:
     """A wall piece: line (r m, alpha rad), end points (x, y) m and supporting beam indices."""
 

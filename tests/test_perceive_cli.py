@@ -39,14 +39,15 @@ def _frame(shift: int) -> np.ndarray:
 def log(tmp_path: Path) -> Path:
     path = tmp_path / "camera.mcap"
     with Logger(path, salvage=False) as logger:
-        logger.write("/camera/camera_info", m.CameraInfo(T0, "camera_optical", 240, 320, "plumb_bob", np.zeros(5), K), T0)
+        calibration = m.CameraInfo(T0, "camera_optical", 240, 320, "plumb_bob", np.zeros(5), K)
+        logger.write("/camera/camera_info", calibration, T0)
         for i, fmt in enumerate(["png", "png", "jpeg"]):
             data = cv2.imencode(f".{fmt}", _frame(i), (cv2.IMWRITE_JPEG_QUALITY, 98))[1].tobytes()
             stamp = T0 + (i + 1) * 100_000_000
             logger.write("/camera/image_raw/compressed", m.CompressedImage(stamp, "camera_optical", fmt, data), stamp)
         stamp = T0 + 400_000_000
-        logger.write("/camera/image_raw/compressed", m.CompressedImage(stamp, "camera_optical", "jpeg", b"\xff\xd8junk"),
-                     stamp)
+        corrupt = m.CompressedImage(stamp, "camera_optical", "jpeg", b"\xff\xd8junk")
+        logger.write("/camera/image_raw/compressed", corrupt, stamp)
     return path
 
 
@@ -143,7 +144,8 @@ def test_features_pipeline(log: Path, tmp_path: Path, capsys) -> None:
     assert sum(len(p.msg.points) for p in points) == summary["keypoints"]
     ticks = topics["/camera/image_raw/compressed/keypoint_orientations"]
     assert all(len(t.msg.points) == 2 * len(p.msg.points) for t, p in zip(ticks, points))   # ORB orients all
-    assert main(["perceive", str(log), "--pipeline", "features", "--method", "nope", "-o", str(tmp_path / "n.mcap")]) == 2
+    assert main(["perceive", str(log), "--pipeline", "features", "--method", "nope",
+                 "-o", str(tmp_path / "n.mcap")]) == 2
     assert "unknown feature detector 'nope'" in capsys.readouterr().err
 
 
@@ -170,7 +172,8 @@ def test_user_errors_are_one_line(log: Path, tmp_path: Path, capsys, extra: list
 
 
 def test_bad_logs_are_user_errors(log: Path, tmp_path: Path, capsys) -> None:
-    assert main(["perceive", str(tmp_path / "missing.mcap"), "--pipeline", "markers", "-o", str(tmp_path / "o.mcap")]) == 2
+    assert main(["perceive", str(tmp_path / "missing.mcap"), "--pipeline", "markers",
+                 "-o", str(tmp_path / "o.mcap")]) == 2
     no_images = tmp_path / "scan.mcap"
     with Logger(no_images, salvage=False) as logger:
         logger.write("/camera/camera_info", m.CameraInfo(T0, "cam", 2, 2, "plumb_bob", np.zeros(5), K), T0)

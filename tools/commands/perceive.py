@@ -184,7 +184,8 @@ class ColorPipeline(Pipeline):
         outlines = [ellipse_outline(r.centroid, r.a, r.b, r.theta) for r in found.regions]
         centroids = np.array([r.centroid for r in found.regions]).reshape(-1, 2)
         return len(found.regions), [
-            (f"{topic}/color_ellipses", _marker(msg, "color_ellipses", m.LINE_LIST, _closed_line_list(outlines), GREEN)),
+            (f"{topic}/color_ellipses",
+             _marker(msg, "color_ellipses", m.LINE_LIST, _closed_line_list(outlines), GREEN)),
             (f"{topic}/color_centroids", _marker(msg, "color_centroids", m.POINTS, centroids, YELLOW, 4.0))]
 
     def summary(self) -> dict[str, Any]:

@@ -149,12 +149,11 @@ def global_search(grid: LogOddsGrid, points_xy: np.ndarray, *, coarse: CoarseMap
     poses = np.column_stack([coarse.origin[0] + (c + 0.5) * coarse.resolution,
                              coarse.origin[1] + (r + 0.5) * coarse.resolution, headings[h]])[order]
     chosen: list[np.ndarray] = []
-    for pose in poses:
-        if all(np.hypot(*(pose[:2] - other[:2])) > separation_m or abs(wrap_angle(pose[2] - other[2])) > separation_rad
-               for other in chosen):
-            chosen.append(pose)
-            if len(chosen) == max_candidates:
-                break
+    while len(poses) and len(chosen) < max_candidates:  # greedy non-maximum suppression, best first
+        chosen.append(poses[0])
+        apart = ((np.hypot(poses[:, 0] - poses[0, 0], poses[:, 1] - poses[0, 1]) > separation_m)
+                 | (np.abs(wrap_angle(poses[:, 2] - poses[0, 2])) > separation_rad))
+        poses = poses[apart]
     window_xy = coarse.resolution if refine_window_xy_m is None else refine_window_xy_m
     window_theta = angular_step_rad if refine_window_theta_rad is None else refine_window_theta_rad
     results = [match_scan(grid, points, pose, window_xy_m=window_xy, window_theta_rad=window_theta,

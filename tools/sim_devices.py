@@ -57,11 +57,14 @@ class SimDevices:
     wheels : 2 (left, right) or 4 (left front, right front, left rear, right rear) encoder axes.
     camera_fps, camera_size : the camera stream; intrinsics are ``sim.camera`` scaled to the size.
     lrf_faults : a fault plan for the laser (checksum errors, stalls, unplugs, ...).
+    camera_clip : serve this MJPEG clip (packets byte for byte, looped) instead of rendering live;
+        for benchmarks, where the emulator's own rendering would compete with the daemon.
     """
 
     def __init__(self, sim: RobotSim, folder: str | Path, *, lrf_model: str = "utm-30lx", wheels: int = 2,
                  camera_fps: float = 30.0, camera_size: tuple[int, int] = (640, 480), camera_quality: int = 85,
-                 lrf_faults: FaultPlan | None = None, odrive_ids: tuple[int, ...] | None = None) -> None:
+                 lrf_faults: FaultPlan | None = None, odrive_ids: tuple[int, ...] | None = None,
+                 camera_clip: str | Path | None = None) -> None:
         if wheels not in (2, 4):
             raise ValueError("wheels must be 2 or 4")
         self.sim = sim
@@ -74,7 +77,7 @@ class SimDevices:
         self.camera = sim.camera.scaled(*camera_size)
         self.renderer = sim.renderer if self.camera == sim.camera else CameraRenderer(sim.world, self.camera)
         self._lrf_faults = lrf_faults
-        self._camera_fps, self._camera_quality = camera_fps, camera_quality
+        self._camera_fps, self._camera_quality, self._camera_clip = camera_fps, camera_quality, camera_clip
         self.lrf: DeviceServer | None = None
         self.lrf_device: scip2_emulator.ScipDevice | None = None
         self.can_adapter: SlcanEmulator | None = None
@@ -124,8 +127,9 @@ class SimDevices:
         self.can_nodes = CanNodeRunner(self.can_adapter.bus, odrive_nodes(self.odrive_ids),
                                        WheelMotion(self._motor_turns_per_s, self.wheels), tick_s=0.002,
                                        adapter=self.can_adapter).start()
-        self.camera_emulator = CameraEmulator(self._frame_at, fps=self._camera_fps, width=self.camera.width,
-                                              height=self.camera.height, quality=self._camera_quality).start()
+        self.camera_emulator = CameraEmulator(self._frame_at, source=self._camera_clip, fps=self._camera_fps,
+                                              width=self.camera.width, height=self.camera.height,
+                                              quality=self._camera_quality).start()
         return self
 
     def stop(self) -> None:

@@ -1,5 +1,6 @@
-"""Wheel-encoder driver on a CAN bus: raw frames on ``/can/rx``, wheel angles on ``/wheels``,
-and (when the wheel geometry is configured) odometry on ``/odom`` with ``odom -> base_link`` on ``/tf``.
+"""Wheel-encoder driver on a CAN bus: raw frames on ``/can/rx``, wheel angles on ``/wheels``.
+Odometry is ``fusion.odometry.OdometrySink`` wrapped around the driver's sink (live) or run over
+a log's ``/wheels`` (replay): the same code either way.
 
 Configuration (the ``[can]`` table of the robot TOML; ``encoders`` also from ``--encoders``)::
 
@@ -9,14 +10,15 @@ Configuration (the ``[can]`` table of the robot TOML; ``encoders`` also from ``-
     direction = [1, -1]              # +1 / -1 per wheel (or one number): forward = positive
     gear_ratio = 1.0                 # motor turns per wheel turn (per wheel or one number)
     counts_per_rev = 8192            # override the device's counts per motor turn (optional)
-    wheel_radius_m = 0.08            # with track_m: publish odometry
+    wheel_radius_m = 0.08            # with track_m: odometry (fusion.odometry.OdometrySink)
     track_m = 0.35
     [can.odrive]   firmware = "0.5", source = "estimates", poll_hz = 0, heartbeat_timeout_s = 0.35
     [can.cia406]   eds = "...", counts_per_rev = 4096, tpdo_period_ms = 10, heartbeat_ms = 100
     [can.dbc]      signals = ["Msg.Signal", ...], units_per_rev = 42, velocity_signals = [...]
 
-A wheel whose node stops its heartbeat or its positions is published as NaN (stale): the
-odometry then stops, and restarts from the next good reading without a jump.
+A wheel whose node stops its heartbeat or its positions is published as NaN (stale); so is
+every wheel when the bus is lost. Odometry stops there and restarts from the next good reading
+without a jump.
 """
 
 from __future__ import annotations
@@ -35,11 +37,13 @@ from drivers.dbc_wheels import DbcWheels
 from drivers.encoder_protocol import EncoderProtocol, WheelReading, per_wheel
 from drivers.lifecycle import Driver, Sink
 from drivers.odrive_encoders import OdriveEncoders
-from fusion.odometry import DiffDriveOdometry, odometry_transform
 from logs import messages as m
 from logs.errors import UserError
 
 PROTOCOLS = ("odrive", "cia406", "dbc")
+VELOCITY_WINDOW_S = 0.05  # shortest span for a velocity from two positions
+MAX_CARRY_S = 0.05  # a reading older than this at the publish instant is not carried forward:
+# that much lag is a receive stall (stamps of a burst), not the phase between two nodes
 
 
 def _per_wheel(config: Mapping[str, Any], key: str, n: int, default: float) -> list[float]:
@@ -92,11 +96,11 @@ def build_protocols(spec: str, config: Mapping[str, Any]) -> list[EncoderProtoco
 
 
 class WheelsDriver(Driver):
-    """Reads a CAN bus, decodes wheel encoders, publishes frames, wheel states and odometry."""
+    """Reads a CAN bus, decodes wheel encoders, publishes raw frames and wheel states."""
 
     def __init__(self, bus: CanBus, protocols: list[EncoderProtocol], sink: Sink, *, names: tuple[str, ...],
                  direction: list[float], gear_ratio: list[float], counts_per_rev: list[float | None],
-                 odometry: DiffDriveOdometry | None = None, publish_frames: bool = True, name: str = "can",
+                 publish_frames: bool = True, name: str = "can",
                  poll_period_s: float = 0.005) -> None:
         super().__init__(name, sink, hardware_id=bus.spec.url)
         self.bus = bus
@@ -108,14 +112,15 @@ class WheelsDriver(Driver):
         self.direction = np.asarray(direction, dtype=np.float64)
         self.gear_ratio = np.asarray(gear_ratio, dtype=np.float64)
         self.counts_override = counts_per_rev
-        self.odometry = odometry
         self.publish_frames = publish_frames
         self.poll_period_ns = int(poll_period_s * 1e9)
         self.frame_id = bus.spec.channel.rsplit("/", 1)[-1]
         self._unwrap: list[CounterUnwrapper | None] = [None] * n
         self._position = np.full(n, math.nan)  # rad, at _sampled_ns
-        self._velocity = np.full(n, math.nan)  # rad/s: the device's, else from the last two positions
+        self._velocity = np.full(n, math.nan)  # rad/s: the device's, else from positions >= 50 ms apart
         self._sampled_ns = np.zeros(n, dtype=np.int64)
+        self._ref_angle = np.full(n, math.nan)  # reference for the position-difference velocity
+        self._ref_ns = np.zeros(n, dtype=np.int64)
         self._fresh = np.zeros(n, dtype=bool)
         self._healthy: set[int] = set()
         self._next_poll = 0
@@ -205,11 +210,23 @@ class WheelsDriver(Driver):
         scale = 2.0 * math.pi * self.direction[w] / (counts * self.gear_ratio[w])
         angle = position * scale
         velocity = reading.velocity * scale
-        dt = (stamp_ns - self._sampled_ns[w]) * 1e-9
-        if math.isnan(velocity) and dt > 0:
-            velocity = (angle - self._position[w]) / dt  # NaN after a gap
+        if math.isnan(velocity):
+            velocity = self._difference_velocity(w, angle, stamp_ns)
         self._position[w], self._velocity[w], self._sampled_ns[w] = angle, velocity, stamp_ns
         self._fresh[w] = True
+
+    def _difference_velocity(self, w: int, angle: float, stamp_ns: int) -> float:
+        """Velocity from positions at least ``VELOCITY_WINDOW_S`` apart: receive stamps of frames
+        read in a burst are nearly equal, and a difference over them would be wild."""
+        if math.isnan(self._ref_angle[w]) or math.isnan(self._position[w]):
+            self._ref_angle[w], self._ref_ns[w] = angle, stamp_ns
+            return math.nan
+        dt = (stamp_ns - self._ref_ns[w]) * 1e-9
+        if dt < VELOCITY_WINDOW_S:
+            return float(self._velocity[w])
+        velocity = (angle - self._ref_angle[w]) / dt
+        self._ref_angle[w], self._ref_ns[w] = angle, stamp_ns
+        return velocity
 
     def _counts_per_rev(self, wheel: int) -> float:
         for protocol in self.protocols:
@@ -222,6 +239,7 @@ class WheelsDriver(Driver):
         own clock) are carried forward by their velocity, so the pair describes one instant."""
         velocities = self._velocity.copy()
         lag_s = (stamp_ns - self._sampled_ns) * 1e-9
+        lag_s = np.where((lag_s > 0) & (lag_s <= MAX_CARRY_S), lag_s, 0.0)
         positions = self._position + np.where(np.isfinite(velocities), velocities, 0.0) * lag_s
         stale = [w for w in range(len(self.names)) if w not in healthy]
         positions[stale] = math.nan
@@ -241,11 +259,6 @@ class WheelsDriver(Driver):
     def _emit(self, state: m.JointState, log_ns: int) -> None:
         self.counters["joint_states"] += 1
         self.publish("/wheels", state, log_ns)
-        if self.odometry is not None:
-            odom = self.odometry.update(state)
-            if odom is not None:
-                self.publish("/odom", odom, log_ns)
-                self.publish("/tf", odometry_transform(odom), log_ns)
 
     # -- health --------------------------------------------------------------------------------
     def diagnostics(self) -> m.DiagnosticStatus:
@@ -257,8 +270,6 @@ class WheelsDriver(Driver):
         for protocol in self.protocols:
             values += protocol.diagnostics()
         level, message = status.level, status.message
-        if self.odometry is not None:
-            values += [("odometry_gaps", str(self.odometry.gaps)), ("odometry_stale", str(self.odometry.stale))]
         if status.level == m.OK and (stale or self.bus.state != "active"):
             level = m.WARN
             message = f"stale wheels: {', '.join(stale)}" if stale else f"bus {self.bus.state}"
@@ -283,14 +294,6 @@ def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any]) -> WheelsDr
     counts = _per_wheel(config, "counts_per_rev", n, 0.0) if "counts_per_rev" in config else [0.0] * n
     if any(g <= 0 for g in gear) or any(c < 0 for c in counts):
         raise UserError("gear_ratio and counts_per_rev must be positive")
-    odometry = None
-    if "wheel_radius_m" in config or "track_m" in config:
-        if n < 2:
-            raise UserError("odometry needs two wheels")
-        left, right = config.get("odometry_wheels", names[:2])
-        odometry = DiffDriveOdometry(float(config.get("wheel_radius_m", 0)), float(config.get("track_m", 0)),
-                                     left=left, right=right,
-                                     wheel_variance_per_m=float(config.get("wheel_variance_per_m", 1e-4)))
     return WheelsDriver(CanBus(spec), protocols, sink, names=names, direction=direction, gear_ratio=gear,
-                        counts_per_rev=[c or None for c in counts], odometry=odometry,
+                        counts_per_rev=[c or None for c in counts],
                         publish_frames=bool(config.get("publish_frames", True)), name=str(config.get("name", "can")))

@@ -6,10 +6,14 @@ Covariance follows the usual wheel-slip model: each wheel's travelled distance `
 variance ``wheel_variance_per_m * |d|`` (m^2), propagated through the exact Jacobians, so the
 uncertainty grows with distance travelled, not with time. Poses follow REP 103 (x forward,
 y left, yaw counter-clockwise, metres and radians). The same class runs live on the wheels
-driver and on a replayed log (it only reads ``JointState`` messages).
+driver (:class:`OdometrySink` around the driver's sink) and on a replayed log (it only reads
+``JointState`` messages).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -244,3 +248,52 @@ def odometry_transform(odom: m.Odometry) -> m.TFMessage:
     """The ``odom -> base_link`` transform of an odometry message, for ``/tf``."""
     return m.TFMessage((m.TransformStamped.planar(odom.stamp_ns, odom.frame_id, odom.child_frame_id,
                                                   odom.x, odom.y, odom.theta),))
+
+
+def odometry_from_config(config: Mapping[str, Any]) -> DiffDriveOdometry | None:
+    """Odometry from a robot config table (the ``[can]`` table): ``wheel_radius_m`` and
+    ``track_m`` (both, or neither: None), optional ``wheels`` / ``odometry_wheels`` (left and
+    right joint names; default the first two wheels, or left/right) and ``wheel_variance_per_m``."""
+    if "wheel_radius_m" not in config and "track_m" not in config:
+        return None
+    try:
+        radius, track = float(config["wheel_radius_m"]), float(config["track_m"])
+        variance = float(config.get("wheel_variance_per_m", 1e-4))
+    except KeyError as missing:
+        raise UserError(f"odometry needs both wheel_radius_m and track_m (missing {missing})") from None
+    except (TypeError, ValueError):
+        raise UserError("wheel_radius_m, track_m and wheel_variance_per_m must be numbers") from None
+    names = list(config.get("odometry_wheels", config.get("wheels", ("left", "right"))))
+    if len(names) < 2:
+        raise UserError("odometry needs two wheels (left, right)")
+    return DiffDriveOdometry(radius, track, left=str(names[0]), right=str(names[1]), wheel_variance_per_m=variance)
+
+
+class OdometrySink:
+    """A sink that passes every message on to ``sink`` and runs ``odometry`` on the wheel states
+    (``wheels_topic``): ``Odometry`` on ``/odom``, the ``odom -> base_link`` transform on ``/tf``,
+    and a ``/diagnostics`` status whenever the odometry goes stale (a wheel lost) or recovers."""
+
+    def __init__(self, sink: Callable[[str, m.Message, int], object], odometry: DiffDriveOdometry, *,
+                 wheels_topic: str = "/wheels", name: str = "odometry") -> None:
+        self.sink, self.odometry = sink, odometry
+        self.wheels_topic, self.name = wheels_topic, name
+
+    def __call__(self, topic: str, msg: m.Message, log_time_ns: int) -> object:
+        result = self.sink(topic, msg, log_time_ns)
+        if topic == self.wheels_topic and isinstance(msg, m.JointState):
+            was_stale = self.odometry.stale
+            odom = self.odometry.update(msg)
+            if odom is not None:
+                self.sink("/odom", odom, log_time_ns)
+                self.sink("/tf", odometry_transform(odom), log_time_ns)
+            if self.odometry.stale != was_stale:
+                self.sink("/diagnostics", m.DiagnosticArray(msg.stamp_ns, (self.status(),)), log_time_ns)
+        return result
+
+    def status(self) -> m.DiagnosticStatus:
+        odo = self.odometry
+        values = (("gaps", str(odo.gaps)), ("distance_m", f"{odo.distance_m:.3f}"))
+        if odo.stale:
+            return m.DiagnosticStatus(m.WARN, self.name, "stale: a wheel is not reporting; pose held", "", values)
+        return m.DiagnosticStatus(m.OK, self.name, "ok" if not odo.gaps else f"ok after {odo.gaps} gap(s)", "", values)

@@ -15,6 +15,7 @@ import can
 import numpy as np
 
 from drivers.wheels import WheelsDriver, driver_from_url
+from fusion.odometry import DiffDriveOdometry, OdometrySink, odometry_from_config
 from logs import messages as m
 from tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes,
                                        odrive_nodes, vesc_nodes)
@@ -50,6 +51,7 @@ class Rig:
     runner: CanNodeRunner
     adapter: SlcanEmulator | None
     script: VelocityScript
+    odometry: DiffDriveOdometry | None = None
     log: list[tuple[str, m.Message, int]] = field(default_factory=list)
 
     @property
@@ -68,8 +70,11 @@ class Rig:
         return predicate()
 
     def wait_until_script_done(self, settle_s: float = 0.3, timeout_s: float = 30.0) -> None:
+        """Until the emulator is past the script's end and the driver has read all it was sent."""
         end = self.runner.motion.start_s + float(self.script.starts[-1]) + settle_s
         assert self.wait_for(lambda: self.runner.t >= end, timeout_s), "emulator did not reach the end of the script"
+        sent = self.runner.stats["sent"]
+        assert self.wait_for(lambda: self.driver.counters["frames"] >= sent, timeout_s), "driver did not catch up"
 
     def last_good_wheels(self) -> m.JointState:
         states = [s for s in self.topic("/wheels") if np.isfinite(s.position).all()]
@@ -101,8 +106,9 @@ def can_rig(tmp_path: Path, protocol: str, transport: str, script: str, *, node_
         url = f"virtual://{channel}"
     velocity = VelocityScript.parse(script)
     runner = CanNodeRunner(device_bus, nodes, WheelMotion(velocity, start_s=math.inf), adapter=adapter)
-    rig = Rig(None, runner, adapter, velocity)  # type: ignore[arg-type]
-    rig.driver = driver_from_url(url, lambda topic, msg, t: rig.log.append((topic, msg, t)), cfg)
+    rig = Rig(None, runner, adapter, velocity, odometry_from_config(cfg))  # type: ignore[arg-type]
+    sink = OdometrySink(lambda topic, msg, t: rig.log.append((topic, msg, t)), rig.odometry)
+    rig.driver = driver_from_url(url, sink, cfg)
     rig.driver.backoff.initial_s = 0.05
     rig.driver.start()
     if transport == "virtual":  # the host bus must exist before the nodes talk

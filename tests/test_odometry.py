@@ -10,7 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fusion.geometry import wrap_angle
-from fusion.odometry import DiffDriveOdometry, integrate, integrate_path, odometry_transform
+from fusion.odometry import (DiffDriveOdometry, OdometrySink, integrate, integrate_path, odometry_from_config,
+                             odometry_transform)
 from logs import messages as m
 from logs.errors import UserError
 from tests.conftest import shared_file
@@ -156,3 +157,28 @@ def test_breezyslam_ticks_give_the_published_dead_reckoning():
     path_poses = integrate_path((0, 0, 0), np.diff(rows[:, 2]) * 2 * math.pi / 2000 * 0.077,
                                 np.diff(rows[:, 3]) * 2 * math.pi / 2000 * 0.077, 0.33)
     assert np.allclose(path_poses[-1], odo.pose, atol=1e-9)
+
+
+def test_sink_publishes_odometry_and_flags_gaps():
+    out = []
+    sink = OdometrySink(lambda topic, msg, t: out.append((topic, msg)), DiffDriveOdometry(R, B))
+    for k, (a, b) in enumerate([(0.0, 0.0), (1.0, 1.0), (math.nan, 2.0), (3.0, 3.0), (4.0, 4.0)]):
+        sink("/wheels", js(k * 10_000_000, a, b), k)
+    sink("/can/rx", m.CanFrame(0, "can0", 1, b""), 9)
+    topics = [t for t, _ in out]
+    assert topics.count("/wheels") == 5 and topics.count("/odom") == 4 and topics.count("/tf") == 4
+    assert topics[-1] == "/can/rx"
+    flags = [msg.status[0] for t, msg in out if t == "/diagnostics"]
+    assert [f.level for f in flags] == [m.WARN, m.OK] and "1 gap" in flags[1].message
+    odoms = [msg for t, msg in out if t == "/odom"]
+    assert odoms[-1].x == pytest.approx(0.2)  # 0.1 before the gap + 0.1 after; the gap's 0.1 is not integrated
+
+
+def test_odometry_from_config():
+    assert odometry_from_config({"encoders": "odrive:0,1"}) is None
+    odo = odometry_from_config({"wheel_radius_m": 0.08, "track_m": 0.35, "wheels": ["l", "r"]})
+    assert (odo.left_radius_m, odo.track_m, odo.left, odo.right) == (0.08, 0.35, "l", "r")
+    for bad in ({"wheel_radius_m": 0.1}, {"wheel_radius_m": -1, "track_m": 0.3}, {"wheel_radius_m": "x", "track_m": 1},
+                {"wheel_radius_m": 0.1, "track_m": 0.3, "wheels": ["only"]}):
+        with pytest.raises(UserError):
+            odometry_from_config(bad)

@@ -3,7 +3,9 @@
     trundle emulate can --protocol odrive --link /tmp/ttyCAN0 --script "0:0.5,0.5;4:0.5,-0.5;6:0,0"
     trundle record --can slcan:///tmp/ttyCAN0 --encoders odrive:0,1 -o run.mcap
 
-Faults are scheduled with ``--fault T:KIND[:NODE]`` (T seconds after start; NODE = wheel index):
+The velocity script and the faults run on a clock that starts when the host first opens the
+adapter (so a recording always begins at the script's start). Faults are scheduled with
+``--fault T:KIND[:NODE]`` (T seconds on that clock; NODE = wheel index):
 heartbeat-stop, heartbeat-resume, silent, alive (node), errors, bus-off, noise, unplug, replug (adapter).
 """
 
@@ -34,7 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--nodes", help="node ids, one per wheel (default odrive 0,1; cia406 5,6; dbc 9,10)")
     parser.add_argument("--script", default="0:0.5,0.5",
                         help="motor speeds in turns/s from T seconds on: 'T:left,right;T:left,right' (default 0:0.5,0.5)")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
+    parser.add_argument("--duration", type=float,
+                        help="stop this many seconds after the host opened the adapter (default: until Ctrl-C)")
     parser.add_argument("--drop", type=float, default=0.0, metavar="P", help="drop each frame with probability P")
     parser.add_argument("--wrap", action="store_true", help="start the position counters just below their wrap")
     parser.add_argument("--firmware", default="0.5", choices=("0.5", "0.6"), help="ODrive firmware line")
@@ -104,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     adapter = SlcanEmulator(str(args.link)).start()
-    runner = CanNodeRunner(adapter.bus, nodes, WheelMotion(script), adapter=adapter)
+    runner = CanNodeRunner(adapter.bus, nodes, WheelMotion(script, start_s=float("inf")), adapter=adapter)
     runner.drop_probability = args.drop
     spec = {"odrive": "odrive", "cia406": "cia406", "dbc": f"dbc:{VESC_DBC}"}[args.protocol]
     encoders = spec if args.protocol == "dbc" else f"{spec}:{','.join(map(str, ids))}"
@@ -116,9 +119,16 @@ def run(args: argparse.Namespace) -> int:
         signals = ", ".join(f'"VESC_Status5_id{i}.Tachometer"' for i in ids)
         print(f"  with --config holding:\n  [can.dbc]\n  signals = [{signals}]\n  units_per_rev = 42", flush=True)
     runner.start()
-    start = time.monotonic()
+    start = None
     try:
         while not stop.is_set():
+            if start is None:
+                if not adapter.is_open:
+                    stop.wait(0.005)
+                    continue
+                start = time.monotonic()
+                runner.motion = WheelMotion(script, start_s=runner.t)
+                print("host opened the adapter: script and fault clock started", flush=True)
             elapsed = time.monotonic() - start
             while faults and faults[0][0] <= elapsed:
                 at, kind, wheel = faults.pop(0)

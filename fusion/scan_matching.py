@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -201,9 +202,72 @@ def _bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarr
     return value, du, dv, inside
 
 
+def huber_loss(residuals: np.ndarray, k: float) -> tuple[float, np.ndarray]:
+    """Total Huber cost of ``residuals`` (quadratic within ``k``, linear beyond) and the IRLS weights."""
+    size = np.abs(residuals)
+    quadratic = size <= k
+    cost = float(np.sum(np.where(quadratic, 0.5 * residuals * residuals, k * (size - 0.5 * k))))
+    return cost, np.where(quadratic, 1.0, k / np.maximum(size, 1e-12))
+
+
+def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple], initial_pose_xyt: np.ndarray,
+                        max_iterations: int) -> tuple[np.ndarray, int, tuple]:
+    """Minimise a robust cost over a planar pose by Levenberg-Marquardt (shared by the matchers).
+
+    ``evaluate(pose)`` returns ``(cost, residuals, jacobian (N, 3), weights, mask)``; the normal
+    equations use the IRLS ``weights``. Returns the pose, the iterations run and the last
+    ``(residuals, jacobian, weights, mask)`` at that pose.
+    """
+    pose = np.asarray(initial_pose_xyt, dtype=np.float64).copy()
+    cost, *state = evaluate(pose)
+    lam = 1e-3
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):
+        r, jac, weight, _ = state
+        jw = jac * weight[:, None]
+        hessian = jw.T @ jac
+        damped = hessian + lam * np.diag(np.maximum(np.diag(hessian), 1e-9))
+        try:
+            delta = -np.linalg.solve(damped, jw.T @ r)
+        except np.linalg.LinAlgError:
+            break
+        trial = pose + delta
+        trial[2] = wrap_angle(trial[2])
+        trial_cost, *trial_state = evaluate(trial)
+        if trial_cost < cost:
+            pose, cost, state = trial, trial_cost, trial_state
+            lam = max(lam / 10.0, 1e-9)
+            if abs(delta[0]) < 1e-4 and abs(delta[1]) < 1e-4 and abs(delta[2]) < 1e-4:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e6:
+                break
+    return pose, iterations, tuple(state)
+
+
+def match_covariance(jacobian: np.ndarray, residuals: np.ndarray, weights: np.ndarray, min_std_xy_m: float,
+                     min_std_theta_rad: float, max_variance: float = 100.0) -> np.ndarray:
+    """Pose covariance ``s^2 (J^T W J)^-1`` of a converged match, from its inlier residuals.
+
+    ``s^2`` is the weighted residual variance. Directions the points do not constrain (a
+    corridor's axis) get ``max_variance`` rather than infinity, and a floor of ``min_std_xy_m``
+    / ``min_std_theta_rad`` standard deviation covers the map's discretisation.
+    """
+    count = len(residuals)
+    jw = jacobian * weights[:, None]
+    hessian = jw.T @ jacobian
+    variance = max(float(np.sum(weights * residuals ** 2) / max(count - 3, 1)), 1e-10)
+    eigenvalues, vectors = np.linalg.eigh(hessian)
+    information = np.maximum(eigenvalues, variance / max_variance) / variance
+    covariance = (vectors / information) @ vectors.T + np.diag([min_std_xy_m ** 2, min_std_xy_m ** 2,
+                                                                min_std_theta_rad ** 2])
+    return 0.5 * (covariance + covariance.T)
+
+
 def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.ndarray, *,
                 max_distance_m: float = 0.5, huber_m: float | None = None, inlier_m: float | None = None,
-                max_iterations: int = 30, sigma_m: float | None = None, min_std_xy_m: float = 0.01,
+                max_iterations: int = 20, sigma_m: float | None = None, min_std_xy_m: float = 0.01,
                 min_std_theta_rad: float = math.radians(0.25), search_score: float = float("nan")) -> MatchResult:
     """Levenberg-Marquardt refinement of ``initial_pose_xyt`` against ``grid``'s distance field.
 
@@ -234,55 +298,19 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
         dqx = -s * points[:, 0] - c * points[:, 1]
         dqy = c * points[:, 0] - s * points[:, 1]
         jac = np.stack([gx, gy, gx * dqx + gy * dqy], axis=1)
-        absd = np.abs(d)
-        weight = np.where(absd <= huber, 1.0, huber / np.maximum(absd, 1e-12))
-        cost = float(np.sum(np.where(absd <= huber, 0.5 * d * d, huber * (absd - 0.5 * huber))))
+        cost, weight = huber_loss(d, huber)
         return cost, d, jac, weight, active
 
-    pose = np.asarray(initial_pose_xyt, dtype=np.float64).copy()
-    cost, d, jac, weight, active = evaluate(pose)
-    lam = 1e-3
-    iterations = 0
-    for iterations in range(1, max_iterations + 1):
-        jw = jac * weight[:, None]
-        hessian = jw.T @ jac
-        gradient = jw.T @ d
-        damped = hessian + lam * np.diag(np.maximum(np.diag(hessian), 1e-9))
-        try:
-            delta = -np.linalg.solve(damped, gradient)
-        except np.linalg.LinAlgError:
-            break
-        trial = pose + delta
-        trial[2] = wrap_angle(trial[2])
-        t_cost, t_d, t_jac, t_weight, t_active = evaluate(trial)
-        if t_cost < cost:
-            pose, cost, d, jac, weight, active = trial, t_cost, t_d, t_jac, t_weight, t_active
-            lam = max(lam / 10.0, 1e-9)
-            if abs(delta[0]) < 1e-5 and abs(delta[1]) < 1e-5 and abs(delta[2]) < 1e-6:
-                break
-        else:
-            lam *= 10.0
-            if lam > 1e6:
-                break
-
+    pose, iterations, (d, jac, weight, active) = levenberg_marquardt(evaluate, initial_pose_xyt, max_iterations)
     inliers = active & (np.abs(d) <= inlier)
     n_in = int(inliers.sum())
-    jw = jac[inliers] * weight[inliers, None]
-    hessian = jw.T @ jac[inliers]
-    variance = max(float(np.sum(weight[inliers] * d[inliers] ** 2) / max(n_in - 3, 1)), 1e-10)
-    # Directions the points do not constrain (a corridor's axis) get the variance cap, not inf.
-    eigenvalues, vectors = np.linalg.eigh(hessian)
-    max_variance = 100.0
-    information = np.maximum(eigenvalues, variance / max_variance) / variance
-    floor = np.diag([min_std_xy_m ** 2, min_std_xy_m ** 2, min_std_theta_rad ** 2])
-    covariance = (vectors / information) @ vectors.T + floor
+    covariance = match_covariance(jac[inliers], d[inliers], weight[inliers], min_std_xy_m, min_std_theta_rad)
     rot = rotation(pose[2])
     q = points @ rot.T + pose[:2]
     lik, _, _, inside = _bilinear(likelihood, (q[:, 0] - origin[0]) / res - 0.5, (q[:, 1] - origin[1]) / res - 0.5)
     score = float(np.mean(np.where(inside, lik, 0.0))) if len(points) else 0.0
     residual = float(np.mean(np.abs(d[inliers]))) if n_in else float("nan")
-    return MatchResult(pose, 0.5 * (covariance + covariance.T), score, residual,
-                       n_in / max(len(points), 1), search_score, iterations)
+    return MatchResult(pose, covariance, score, residual, n_in / max(len(points), 1), search_score, iterations)
 
 
 def match_scan(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.ndarray, *,
@@ -304,5 +332,5 @@ def match_scan(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.nd
         return None
     pose, search_score = found
     return refine_pose(grid, points_xy, pose, max_distance_m=max_distance_m, huber_m=huber_m,
-                       max_iterations=30 if refine else 0, sigma_m=sigma_m, min_std_xy_m=min_std_xy_m,
+                       max_iterations=20 if refine else 0, sigma_m=sigma_m, min_std_xy_m=min_std_xy_m,
                        min_std_theta_rad=min_std_theta_rad, search_score=search_score)

@@ -13,7 +13,8 @@ Per scan (``process`` takes messages, so the same object runs on a live driver o
    with an edge to the previous keyframe, and is inserted into the active submaps.
 4. **Loop closure**: each new keyframe is searched for, by branch-and-bound correlative search
    with a window that grows with the distance travelled since, in finished submaps near its
-   current estimate; matches that score well become edges to the submap's anchor node. The graph
+   current estimate; matches that score well and that point-to-line ICP against the submap's
+   occupied cells confirms become edges to the submap's anchor node. The graph
    is optimised with a robust kernel, edges that still disagree afterwards are removed, and the
    map frame follows the optimised poses.
 
@@ -32,7 +33,8 @@ import numpy as np
 
 from fusion.ekf import PoseEKF
 from fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance,
-                             scan_to_points, voxel_filter, wrap_angle)
+                             scan_to_points, voxel_filter)
+from fusion.icp import LineReference, icp
 from fusion.occupancy_grid import LogOddsGrid
 from fusion.odometry import DiffDriveOdometry
 from fusion.pose_graph import PoseGraph
@@ -83,12 +85,15 @@ class SlamConfig:
     loop_min_node_gap: int = 30
     loop_search_radius_m: float = 6.0
     loop_max_candidates: int = 3
+    loop_cooldown_keyframes: int = 5
     loop_window_xy_m: tuple[float, float] = (0.5, 3.0)
     loop_window_theta_rad: tuple[float, float] = (math.radians(10.0), math.radians(30.0))
     loop_window_per_m: float = 0.05
     loop_angular_step_rad: float = math.radians(1.0)
     loop_min_score: float = 0.55
     loop_min_inliers: float = 0.6
+    loop_verify_xy_m: float = 0.1
+    loop_verify_theta_rad: float = math.radians(2.0)
     loop_min_std_xy_m: float = 0.05
     loop_min_std_theta_rad: float = math.radians(1.0)
     optimize_every_keyframes: int = 10
@@ -143,6 +148,7 @@ class SlamStats:
     loop_attempts: int = 0
     loop_closures: int = 0
     loop_rejected: int = 0
+    loop_unverified: int = 0
     optimizations: int = 0
     scores: list[float] = field(default_factory=list)
     residuals: list[float] = field(default_factory=list)
@@ -186,6 +192,7 @@ class Slam:
         self._scan_rel: list[np.ndarray] = []
         self._scan_stamp: list[int] = []
         self._loop_edges: list[int] = []
+        self._last_loop_node: dict[int, int] = {}
         self._nodes_at_last_optimization = 0
         self._loops_at_last_optimization = 0
 
@@ -288,8 +295,8 @@ class Slam:
         cfg = self.config
         dt = self._dt = 0.0 if self._last_stamp is None else max(0.0, (stamp_ns - self._last_stamp) * 1e-9)
         self._last_stamp = stamp_ns
-        if self.ekf is None:
-            self.ekf = PoseEKF(np.zeros(3), np.diag([1e-6, 1e-6, 1e-8]))
+        if self.ekf is None:  # the map frame starts where odometry starts (map -> odom identity)
+            self.ekf = PoseEKF(np.zeros(3) if odom is None else odom, np.diag([1e-6, 1e-6, 1e-8]))
             self._last_scan_odom = odom
             return
         if odom is not None and self._last_scan_odom is not None:
@@ -370,6 +377,8 @@ class Slam:
         for submap in self.submaps.finished:
             if node - submap.nodes[-1] < cfg.loop_min_node_gap:
                 continue
+            if node - self._last_loop_node.get(submap.index, -(1 << 30)) < cfg.loop_cooldown_keyframes:
+                continue
             frame = submap.local_to_map(poses[submap.anchor_node])
             guess = relative(frame, here)
             distance = float(np.hypot(*(guess[:2] - submap.centre())))
@@ -386,11 +395,30 @@ class Slam:
                                 min_std_xy_m=cfg.loop_min_std_xy_m, min_std_theta_rad=cfg.loop_min_std_theta_rad)
             if result is None or result.score < cfg.loop_min_score or result.inlier_fraction < cfg.loop_min_inliers:
                 continue
+            if not self._verified(submap, points, result.pose):
+                self.stats.loop_unverified += 1
+                continue
             measurement = relative(submap.anchor_local, result.pose)
             covariance = rotate_covariance(result.covariance, -float(submap.anchor_local[2]))
             edge = self.graph.add_edge(submap.anchor_node, node, measurement, np.linalg.inv(covariance))
             self._loop_edges.append(edge)
+            self._last_loop_node[submap.index] = node
             self.stats.loop_closures += 1
+            return
+
+    def _verified(self, submap: Submap, points: np.ndarray, pose: np.ndarray) -> bool:
+        """Does point-to-line ICP against the submap's occupied cells agree with the grid match?"""
+        cfg = self.config
+        cells = submap.grid.occupied_points()
+        if len(cells) < 10:
+            return False
+        reference = submap.grid.cached(("icp_reference",), lambda: LineReference(cells))
+        check = icp(reference, points, pose, max_correspondence_m=3 * cfg.resolution, huber_m=cfg.resolution,
+                    inlier_m=2 * cfg.resolution)
+        step = relative(pose, check.pose)
+        return (float(np.hypot(step[0], step[1])) <= cfg.loop_verify_xy_m
+                and abs(float(step[2])) <= cfg.loop_verify_theta_rad
+                and check.inlier_fraction >= cfg.loop_min_inliers)
 
     def optimize(self, max_iterations: int = 50) -> None:
         """Optimise the pose graph (robust kernel), drop loop edges that still disagree, move the map frame."""

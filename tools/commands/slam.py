@@ -148,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
         "processing_s": processing_s, "cpu_s": cpu_s,
         "real_time_factor": duration / processing_s if processing_s > 0 else None,
         "loop_closures": st.loop_closures, "loop_attempts": st.loop_attempts, "loop_rejected": st.loop_rejected,
+        "loop_unverified": st.loop_unverified,
         "optimizations": st.optimizations, "matched": st.matched, "searched": st.searched,
         "gated_out": st.gated_out, "odometry_only": st.odometry_only,
         "match_score": _stats(st.scores), "scan_to_submap_residual_m": _stats(st.residuals),

@@ -108,7 +108,18 @@ def test_camera_info_and_scaling():
     np.testing.assert_array_equal(info.k, camera.matrix())
     assert (info.width, info.height) == (640, 480)
     big = camera.scaled(1280, 960)
-    assert big.fx == 1050.0 and big.cx == pytest.approx(639.5)
+    assert big.fx == big.fy == 1050.0 and big.cx == pytest.approx(639.5) and big.cy == pytest.approx(479.5)
+    wide = camera.scaled(1280, 720)  # 16:9 crop of the 4:3 sensor: square pixels, same horizontal view
+    assert wide.fx == wide.fy == 1050.0 and wide.cy == pytest.approx(359.5)
+
+
+def test_calibration_file_loads_as_the_same_camera_info(tmp_path):
+    from drivers.camera_info import load_camera_info
+    camera = PinholeCamera().scaled(1280, 720)
+    path = tmp_path / "camera.yaml"
+    path.write_text(camera.calibration_yaml())
+    info = load_camera_info(path, "camera_optical")
+    assert info == camera.camera_info(0, "camera_optical")
 
 
 def test_render_rejects_a_camera_outside_the_room_height(renderer):

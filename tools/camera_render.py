@@ -14,6 +14,7 @@ centre of the top-left pixel), so projections can be compared with ``cv2.aruco``
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -55,11 +56,24 @@ class PinholeCamera:
         return m.CameraInfo(stamp_ns, frame_id, self.height, self.width, "plumb_bob", np.zeros(5), k,
                             np.eye(3), np.hstack([k, np.zeros((3, 1))]))
 
+    def calibration_yaml(self, name: str = "trundle_sim") -> str:
+        """The ROS ``camera_calibration`` file of these intrinsics (YAML in flow style, i.e. JSON),
+        as a camera driver loads it to publish a calibrated CameraInfo."""
+        k = self.matrix()
+        return json.dumps({
+            "image_width": self.width, "image_height": self.height, "camera_name": name,
+            "camera_matrix": {"rows": 3, "cols": 3, "data": k.ravel().tolist()},
+            "distortion_model": "plumb_bob", "distortion_coefficients": {"rows": 1, "cols": 5, "data": [0.0] * 5},
+            "rectification_matrix": {"rows": 3, "cols": 3, "data": np.eye(3).ravel().tolist()},
+            "projection_matrix": {"rows": 3, "cols": 4, "data": np.hstack([k, np.zeros((3, 1))]).ravel().tolist()},
+        }, indent=1) + "\n"
+
     def scaled(self, width: int, height: int) -> PinholeCamera:
-        """The same field of view at another resolution."""
-        sx, sy = width / self.width, height / self.height
-        return PinholeCamera(width, height, self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5,
-                             (self.cy + 0.5) * sy - 0.5)
+        """The same lens on a sensor of ``width`` x ``height`` pixels: horizontal field of view and
+        pixel aspect kept, principal point offset from the centre scaled (e.g. 4:3 -> 16:9 crops)."""
+        s = width / self.width
+        return PinholeCamera(width, height, self.fx * s, self.fy * s, (width - 1) / 2 + (self.cx - (self.width - 1) / 2) * s,
+                             (height - 1) / 2 + (self.cy - (self.height - 1) / 2) * s)
 
 
 class CameraPose(NamedTuple):

@@ -161,6 +161,7 @@ class Processing:
         self.queue: collections.deque[tuple[str, m.Message] | None] = collections.deque()
         self.wake = threading.Event()
         self.dropped = 0
+        self.skipped_scans = 0
         self.errors = 0
         self.last_error = ""
         self.slam = None
@@ -211,10 +212,16 @@ class Processing:
         while True:
             self.wake.wait(0.5)
             self.wake.clear()
-            while self.queue:
-                item = self.queue.popleft()
+            batch = [self.queue.popleft() for _ in range(len(self.queue))]
+            # behind real time: of the scans waiting, SLAM takes the newest (odometry is all used)
+            scans = [i for i, item in enumerate(batch) if item is not None and isinstance(item[1], m.LaserScan)]
+            self.skipped_scans += max(len(scans) - 1, 0)
+            stale = set(scans[:-1])
+            for i, item in enumerate(batch):
                 if item is None:
                     return
+                if i in stale:
+                    continue
                 try:
                     self._handle(*item)
                 except Exception as error:  # noqa: BLE001 -- keep processing the next message
@@ -258,14 +265,14 @@ class Processing:
             self.daemon.publish(f"{base}/markers", m.ImageMarker(
                 msg.stamp_ns, msg.frame_id, "aruco", marker.id, m.POLYGON, marker.centre,
                 points=marker.corners))
-            if info is not None:
+            if info is not None and info.k[0, 0] > 0:  # calibrated
                 pose = marker_pose(marker, info, self.config.marker_size_m)
                 self.daemon.publish(f"{base}/marker_poses", m.TFMessage((m.TransformStamped(
-                    msg.stamp_ns, msg.frame_id, f"aruco_{marker.id}", pose.translation, pose.quaternion),)))
+                    msg.stamp_ns, msg.frame_id, f"aruco_{marker.id}", pose.translation, pose.quaternion()),)))
 
     def status(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"queue": len(self.queue), "dropped": self.dropped, "errors": self.errors,
-                               "last_error": self.last_error}
+        out: dict[str, Any] = {"queue": len(self.queue), "dropped": self.dropped, "skipped_scans": self.skipped_scans,
+                               "errors": self.errors, "last_error": self.last_error}
         if self.slam is not None:
             s = self.slam.stats
             out["slam"] = {"scans": s.scans, "keyframes": s.keyframes, "matched": s.matched,

@@ -119,6 +119,7 @@ class SimDevices:
     def start(self) -> SimDevices:
         """Start every emulator; simulation time 0 is now."""
         self.folder.mkdir(parents=True, exist_ok=True)
+        (self.folder / "camera.yaml").write_text(self.camera.calibration_yaml())
         self.t0_ns = time.time_ns()
         self.lrf_device = scip2_emulator.ScipDevice(self.scip_model, self._ranges_at, self._lrf_faults or FaultPlan(),
                                                     time.time_ns())
@@ -186,5 +187,6 @@ class SimDevices:
             "can": {"url": self.urls["can"], "encoders": "odrive:" + ",".join(map(str, self.odrive_ids)),
                     "wheels": names, "wheel_radius_m": model.wheel_radius_m, "track_m": model.track_m,
                     "odometry_wheels": names[:2]},
-            "camera": {"url": self.urls["camera"], "transform": [camera.x, camera.y, camera.z, 0.0, 0.0, camera.yaw]},
+            "camera": {"url": self.urls["camera"], "transform": [camera.x, camera.y, camera.z, 0.0, 0.0, camera.yaw],
+                       "calibration": str(self.folder / "camera.yaml")},
         }

@@ -1,0 +1,130 @@
+"""The daemon's online processing, fed by a scripted robot: SLAM on /scan + /odom and ArUco
+markers on the camera images, with their output checked against the simulator's ground truth."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from drivers.lifecycle import Driver
+from fusion.geometry import compose, inverse
+from logs import messages as m
+from logs.reader import LogReader
+from tools.camera_render import optical_rotation
+from tools.daemon import Daemon
+from tools.daemon_config import parse_config
+from tools.robot_sim import RobotSim
+from tools.world import load_world
+
+START_S = 14.0  # heading east towards marker 3 on the east wall
+
+
+class SimRobotDriver(Driver):
+    """Publishes, in real time from ``START_S`` of a noise-free run: scans at 20 Hz, exact odometry
+    (the odom frame is the pose at the first message) and camera frames with calibration at 5 Hz."""
+
+    def __init__(self, sim: RobotSim, sink) -> None:
+        super().__init__("robot", sink)
+        self.sim = sim
+        self.wall0 = 0
+        self.next_image = 0.0
+        self.info = sim.camera.camera_info(0, "camera_optical")
+
+    def sim_time(self, stamp_ns: int) -> float:
+        return START_S + (stamp_ns - self.wall0) / 1e9
+
+    def open(self) -> None:
+        self.wall0 = time.time_ns()
+        self.origin = self.sim.pose_at(START_S)
+        mount = self.sim.model.laser
+        self.publish("/tf_static", m.TFMessage((m.TransformStamped.planar(0, "base_link", "laser", mount.x, mount.y,
+                                                                          mount.yaw),)))
+        self.publish("/camera/camera_info", self.info)
+
+    def read_once(self) -> None:
+        time.sleep(0.05)
+        now = time.time_ns()
+        t = self.sim_time(now)
+        x, y, theta = compose(inverse(self.origin), self.sim.pose_at(t))
+        self.publish("/odom", m.Odometry(now, "odom", "base_link", float(x), float(y), float(theta)))
+        model = self.sim.model.laser_model
+        self.publish("/scan", m.LaserScan(now, "laser", model.angle_min, model.angle_max, model.angle_increment, 0.0,
+                                          model.scan_time, model.range_min, model.range_max, self.sim.ranges_at(t)))
+        if t >= self.next_image:
+            self.next_image = t + 0.2
+            ok, jpeg = cv2.imencode(".jpg", self.sim.frame_at(t), (cv2.IMWRITE_JPEG_QUALITY, 90))
+            self.publish("/camera/image_raw/compressed", m.CompressedImage(now, "camera_optical", "jpeg", jpeg.tobytes()))
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return RobotSim(load_world(), noise=False)
+
+
+def test_online_slam_and_markers_follow_the_ground_truth(tmp_path, sim):
+    config = parse_config({
+        "robot": {"name": "proc"}, "lrf": {"url": "sim://robot"},
+        "logger": {"folder": str(tmp_path / "logs")}, "status": {"socket": str(tmp_path / "s.sock")},
+        "disk": {"min_free_mb": 1.0},
+        "processing": {"slam": True, "markers": True, "map_period_s": 1.0, "markers_hz": 5.0,
+                       "marker_size_m": 0.25}}, "test")
+    drivers = []
+
+    def make(family, url, sink, options):
+        drivers.append(SimRobotDriver(sim, sink))
+        return drivers[0]
+
+    daemon = Daemon(config, make_driver=make)
+    thread = threading.Thread(target=daemon.run, kwargs={"install_signals": False})
+    thread.start()
+    try:
+        deadline = time.monotonic() + 90
+        while not (drivers and drivers[0].wall0 and drivers[0].sim_time(time.time_ns()) > START_S + 4.0
+                   and daemon.status()["processing"]["slam"]["scans"] >= 10):  # SLAM may run below scan rate
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        processing = daemon.status()["processing"]
+    finally:
+        daemon.stop()
+        thread.join(30)
+    driver = drivers[0]
+    assert processing["errors"] == 0 and processing["slam"]["scans"] >= 10, processing
+    assert processing["markers"].get("3", 0) >= 1
+
+    log, = (tmp_path / "logs").glob("*.mcap")
+    with LogReader(log) as reader:
+        poses = [x.msg for x in reader.messages(topics=["/slam/pose"])]
+        maps = [x.msg for x in reader.messages(topics=["/map"])]
+        tf = [x.msg for x in reader.messages(topics=["/tf"])]
+        markers = [x.msg for x in reader.messages(topics=["/camera/markers"])]
+        marker_poses = [x.msg for x in reader.messages(topics=["/camera/marker_poses"])]
+    # the motion SLAM estimates since its first pose is the true motion
+    assert len(poses) >= 10 and maps and all(t.transforms[0].child_frame_id == "odom" for t in tf)
+    first = np.array([poses[0].x, poses[0].y, poses[0].theta])
+    first_truth = sim.pose_at(driver.sim_time(poses[0].stamp_ns))
+    for pose in poses:
+        moved = compose(inverse(first), np.array([pose.x, pose.y, pose.theta]))
+        truth = compose(inverse(first_truth), sim.pose_at(driver.sim_time(pose.stamp_ns)))
+        assert math.hypot(moved[0] - truth[0], moved[1] - truth[1]) < 0.05
+    assert math.hypot(truth[0], truth[1]) > 2.0
+    free, occupied = (maps[-1].data >= 0) & (maps[-1].data < 20), maps[-1].data > 80
+    assert occupied.sum() > 100 and free.sum() > 10 * occupied.sum() and maps[-1].resolution == pytest.approx(0.05)
+
+    # each marker seen has its pose put it where the world file says
+    assert 3 in {marker.id for marker in markers}
+    for msg in marker_poses:
+        transform = msg.transforms[0]
+        world_marker = sim.world.marker(int(transform.child_frame_id.removeprefix("aruco_")))
+        camera = sim.camera_pose_at(driver.sim_time(transform.stamp_ns))
+        where = optical_rotation(camera.yaw) @ transform.translation + np.array([camera.x, camera.y, camera.z])
+        distance = float(np.linalg.norm(transform.translation))
+        error = np.linalg.norm(where - [world_marker.x, world_marker.y, world_marker.z])
+        assert error < 0.02 + 0.02 * distance, (transform.child_frame_id, distance, error)

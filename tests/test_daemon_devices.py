@@ -80,6 +80,7 @@ def test_daemon_logs_every_emulated_device_consistently_with_ground_truth(tmp_pa
         static = [x.msg for x in reader.messages(topics=["/tf_static"])][-1]
     assert {t.child_frame_id for t in static.transforms} >= {"laser", "camera"}
     assert topics["/odom"].count > 100 and topics["/diagnostics"].count >= 4
+    assert status["odometry"]["can"]["distance_m"] > 1.0  # the daemon's wheel odometry ran
 
     # Laser: each logged scan is, to the millimetre, a scan the emulator cast in the world at the
     # robot's true pose when that scan passed the rear; stamps are the sensor's time of it.

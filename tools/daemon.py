@@ -9,8 +9,9 @@
 - logs everything to MCAP in the configured folder (``logs.writer.Logger``: ``.active`` files,
   flush timer, splits repeating ``/tf_static`` and camera info), with a disk guard that deletes
   the oldest logs or stops recording below a free-space floor, and resumes above it;
-- runs online processing off the drivers' threads (SLAM on ``/scan`` + ``/odom``, ArUco markers
-  on camera images); wheel odometry itself is the wheels driver's (``wheel_radius_m``/``track_m``);
+- runs wheel odometry on the wheels driver's messages (``fusion.odometry.OdometrySink``, when the
+  ``[can]`` table has ``wheel_radius_m`` and ``track_m``) and online processing off the drivers'
+  threads (SLAM on ``/scan`` + ``/odom``, ArUco markers on camera images);
 - publishes ``/diagnostics`` every period, answers ``trundle status`` on a UNIX socket with one
   JSON object, and speaks systemd's notify protocol (READY=1, WATCHDOG=1, STATUS=, STOPPING=1);
 - SIGTERM/SIGINT stop it cleanly (every file closed and renamed), SIGHUP starts a new split.
@@ -37,6 +38,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from drivers.lifecycle import Driver, wall_ns
+from fusion.odometry import OdometrySink, odometry_from_config
 from logs import messages as m
 from logs.errors import UserError
 from logs.writer import Logger, LoggerError, metadata_json
@@ -353,6 +355,7 @@ class Daemon:
         self._logger_retry_at = 0.0
         self._stop_counts: dict[str, dict[str, int]] = {}
         self.processing: Processing | None = None
+        self.odometry: dict[str, OdometrySink] = {}
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> None:
@@ -365,11 +368,12 @@ class Daemon:
             self._latched["/tf_static"] = m.TFMessage(tuple(self._static_tf.values()))
         for device in cfg.devices:
             options = dict(device.options)
-            if device.family == "can" and not cfg.processing.odometry:
-                options.pop("wheel_radius_m", None)
-                options.pop("track_m", None)
+            sink: Callable[[str, m.Message, int], object] = self._sink(device.name)
             try:
-                driver = self._make_driver(device.family, device.url, self._sink(device.name), options)
+                odometry = odometry_from_config(options) if device.family == "can" and cfg.processing.odometry else None
+                if odometry is not None:  # /odom and odom -> base_link from the wheel states, on the driver's thread
+                    sink = self.odometry[device.name] = OdometrySink(sink, odometry, name=f"{cfg.robot}/odometry")
+                driver = self._make_driver(device.family, device.url, sink, options)
             except UserError as error:
                 raise UserError(f"{device.family} device {device.name!r}: {error}") from None
             self.rates[device.name] = TopicRates()
@@ -698,6 +702,10 @@ class Daemon:
         }
         if self.processing is not None:
             out["processing"] = self.processing.status()
+        if self.odometry:
+            out["odometry"] = {name: {"stale": sink.odometry.stale, "gaps": sink.odometry.gaps,
+                                      "distance_m": round(sink.odometry.distance_m, 3)}
+                               for name, sink in self.odometry.items()}
         return out
 
     # ------------------------------------------------------------------ status socket
@@ -749,6 +757,9 @@ def format_status(status: dict[str, Any]) -> str:
     elif disk:
         lines.append(f"disk: {_size(disk['free_bytes'])} free in {disk['folder']} (floor {_size(disk['min_free_bytes'])}, "
                      f"{disk['action']}; {disk['deleted_count']} logs deleted)")
+    for name, odo in status.get("odometry", {}).items():
+        lines.append(f"odometry ({name}): {'STALE, ' if odo['stale'] else ''}{odo['distance_m']:.1f} m travelled, "
+                     f"{odo['gaps']} gaps")
     if "processing" in status:
         p = status["processing"]
         extra = "".join(f", {k} {v}" for k, v in p.items() if k in ("slam", "markers"))

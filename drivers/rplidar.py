@@ -242,7 +242,24 @@ def decode_nodes(data: np.ndarray) -> Nodes:
 
 
 @dataclass
-class NodeDecoder:
+class _Resynchronising:
+    """State shared by the frame decoders: buffered bytes, whether the next byte starts a frame
+    (``_aligned``), whether bytes were lost since the last good frame (``_broken``), counters."""
+
+    resyncs: int = 0
+    skipped_bytes: int = 0
+    _buf: bytearray = field(default_factory=bytearray)
+    _aligned: bool = True
+    _broken: bool = False
+
+    def reset(self) -> None:
+        """Start of a new response: the next byte is a frame boundary."""
+        self._buf.clear()
+        self._aligned, self._broken = True, False
+
+
+@dataclass
+class NodeDecoder(_Resynchronising):
     """Stream of legacy scan nodes -> ``Nodes``, resynchronising on bad check bits.
 
     After a bad node it skips bytes until ``confirm`` nodes in a row pass their checks (the
@@ -252,16 +269,6 @@ class NodeDecoder:
 
     confirm: int = 8
     bad_nodes: int = 0
-    resyncs: int = 0
-    skipped_bytes: int = 0
-    _buf: bytearray = field(default_factory=bytearray)
-    _aligned: bool = True
-    _broken: bool = False
-
-    def reset(self) -> None:
-        """Start of a new response: the next byte is a node boundary."""
-        self._buf.clear()
-        self._aligned, self._broken = True, False
 
     def feed(self, data: bytes) -> Nodes:
         self._buf += data
@@ -357,7 +364,7 @@ def decode_capsule(data: np.ndarray, broken: bool = False) -> Capsule:
 
 
 @dataclass
-class CapsuleDecoder:
+class CapsuleDecoder(_Resynchronising):
     """Stream of express capsules -> ``Capsule`` list, resynchronising on bad sync nibbles or checksum.
 
     After a bad capsule it looks for an offset where two capsules in a row check out.
@@ -365,15 +372,6 @@ class CapsuleDecoder:
     """
 
     bad_capsules: int = 0
-    resyncs: int = 0
-    skipped_bytes: int = 0
-    _buf: bytearray = field(default_factory=bytearray)
-    _aligned: bool = True
-    _broken: bool = False
-
-    def reset(self) -> None:
-        self._buf.clear()
-        self._aligned, self._broken = True, False
 
     def feed(self, data: bytes) -> list[Capsule]:
         self._buf += data

@@ -108,6 +108,9 @@ class ScipScanStream:
     dropped reply), resyncs and garbage_bytes (bytes skipped between replies), clock_wraps,
     clock_resets, clock_resyncs. ``consecutive_errors`` resets on a good scan only.
     ``fault_status`` is set to the first abnormal status seen (the driver must reboot the sensor).
+    After a clock reset the offset can only be re-anchored on receive times; with
+    ``hold_after_reset`` the stream stops returning scans from then on (counting them as
+    ``unsynced_scans``) and sets ``unsynced`` so the driver can synchronise the clock again.
     """
 
     params: SensorParams
@@ -118,6 +121,8 @@ class ScipScanStream:
     counters: Counter = field(default_factory=Counter)
     consecutive_errors: int = 0
     fault_status: str | None = None
+    hold_after_reset: bool = False
+    unsynced: bool = False
 
     def __post_init__(self) -> None:
         p, ms = self.params, self.measure
@@ -189,6 +194,9 @@ class ScipScanStream:
             self._bad({"checksum": "checksum_errors", "format": "format_errors"}.get(error.kind, "truncated"))
             return None
         self.consecutive_errors = 0
+        if self.unsynced:
+            self.counters["unsynced_scans"] += 1
+            return None
         self.counters["scans"] += 1
         stamp = self.clock.host_ns(timing.unwrapped) + self.first_beam_ns
         intensities = scan.intensities.astype(np.float32) if scan.intensities is not None else np.zeros(0, np.float32)
@@ -209,6 +217,8 @@ class ScipScanStream:
         reading = self.clock.update(raw, host_rx_ns)
         if reading.event:
             self.counters[{"wrap": "clock_wraps", "reset": "clock_resets", "resync": "clock_resyncs"}[reading.event]] += 1
+        if reading.event == "reset" and self.hold_after_reset:
+            self.unsynced = True
         if self._last_ts is not None and reading.event != "reset":
             missing = round((reading.unwrapped - self._last_ts) / self.slot_ms) - 1 - self._unreadable
             if missing > 0:
@@ -223,7 +233,8 @@ class ScipDriver(Driver):
 
     COUNTERS = ("scans", "checksum_errors", "truncated", "format_errors", "unstable", "status_errors", "abnormal",
                 "stalls", "missed_scans", "resyncs", "garbage_bytes", "timeouts", "reboots", "drained_bytes",
-                "stale_streams", "clock_wraps", "clock_resets", "clock_resyncs", "sink_drops")
+                "stale_streams", "clock_wraps", "clock_resets", "clock_resyncs", "tm_syncs", "unsynced_scans",
+                "sink_drops")
 
     def __init__(self, config: ScipConfig, sink: Sink, *, clock: Callable[[], int] = wall_ns,
                  name: str = "lrf") -> None:
@@ -375,6 +386,7 @@ class ScipDriver(Driver):
             self._request(b"TM2\n")
         if samples:
             self.sensor_clock.synchronise(samples)
+            self.counters["tm_syncs"] += 1
 
     def _start_stream(self) -> None:
         assert self.params is not None
@@ -391,7 +403,8 @@ class ScipDriver(Driver):
         if status != "00":
             what = "intensities (ME)" if c.intensity else "MD streaming"
             raise DeviceError(f"{p.model} refused {what} {measure.encode().strip().decode()} with status {status}")
-        self.stream = ScipScanStream(p, measure, self.sensor_clock, c.frame_id, self._framer, self.counters)
+        self.stream = ScipScanStream(p, measure, self.sensor_clock, c.frame_id, self._framer, self.counters,
+                                     hold_after_reset=self.sensor_clock.synced)
 
     # --- streaming ---------------------------------------------------------------------------
 
@@ -407,6 +420,8 @@ class ScipDriver(Driver):
                 self._publish_timing(scan.stamp_ns, timing)
         if stream.fault_status is not None:
             self._reboot(stream.fault_status)
+        if stream.unsynced:
+            self._resync_clock()
         if stream.consecutive_errors >= self.config.error_limit:
             stream.consecutive_errors = 0
             raise DeviceError(f"{self.config.error_limit} bad scans in a row")
@@ -414,6 +429,15 @@ class ScipDriver(Driver):
         if self.link is not None and self.link.silent_s > timeout:
             self.counters["timeouts"] += 1
             raise DeviceError(f"no data from {self.config.port} for {timeout:.2f} s")
+
+    def _resync_clock(self) -> None:
+        """The sensor clock restarted under a running stream: stop it, TM-synchronise, restart."""
+        self._request(b"QT\n")
+        self._framer.clear()
+        assert self.link is not None
+        self.link.drain(0.05)
+        self._sync_clock()
+        self._start_stream()
 
     def _publish_timing(self, stamp_ns: int, t: Timing) -> None:
         status = m.DiagnosticStatus(m.OK, f"{self.name} timing", t.event, self.hardware_id, (

@@ -38,7 +38,10 @@ class SensorClock:
     reset_tolerance_ns : how much more time the device may claim to have passed than the host
         saw between two readings before it counts as a reset.
     resync_tolerance_ns : receive latency may leave its running median by this much (urg_node2
-        uses 0.1 s) for ``resync_after`` readings in a row before the offset is re-anchored.
+        uses 0.1 s). Latency below minus this even once means the offset is wrong (data received
+        before it was measured): re-anchored at once. Above the median by this for
+        ``resync_after_ticks`` of device time in a row too: a busy host only ever makes latency
+        larger, so that case waits longer.
     bin_ticks : drift is fitted to the smallest receive latency in each bin of this many ticks
         (the lower envelope is what transmission jitter cannot blur).
     window : bins kept for the drift fit; ``min_drift_bins`` before drift is estimated.
@@ -49,13 +52,13 @@ class SensorClock:
     REFINE = 16  # readings after a re-anchoring whose median latency corrects it
 
     def __init__(self, bits: int = 24, tick_ns: int = 1_000_000, reset_tolerance_ns: int = 500_000_000,
-                 resync_tolerance_ns: int = 100_000_000, resync_after: int = 10, bin_ticks: int = 1000,
+                 resync_tolerance_ns: int = 100_000_000, resync_after_ticks: int = 5000, bin_ticks: int = 1000,
                  window: int = 600, min_drift_bins: int = 30, max_drift_ppm: float = 1000.0) -> None:
         self.mask = (1 << bits) - 1
         self.tick_ns = tick_ns
         self.reset_tolerance_ns = reset_tolerance_ns
         self.resync_tolerance_ns = resync_tolerance_ns
-        self.resync_after = resync_after
+        self.resync_after_ticks = resync_after_ticks
         self.bin_ticks = bin_ticks
         self.window = window
         self.min_drift_bins = min_drift_bins
@@ -71,7 +74,7 @@ class SensorClock:
         self._unwrapped = 0
         self._recent = np.zeros(self.RECENT, np.float64)
         self._n_recent = 0
-        self._outside = 0
+        self._outside: int | None = None  # unwrapped tick at which latency left its band
         self._bin_t = np.zeros(window, np.float64)
         self._bin_y = np.zeros(window, np.float64)
         self._bins = 0
@@ -93,16 +96,20 @@ class SensorClock:
     def synchronise(self, samples: Sequence[tuple[int, int, int]]) -> int:
         """Set the offset from round trips ``(host_request_ns, raw_ticks, host_reply_ns)``.
 
-        Each gives ``midpoint - device_time`` (plus half a tick: the counter truncates); the
-        median is kept. Unwrapping restarts at the last sample. Returns the offset in ns.
+        Each gives ``midpoint - device_time`` (plus half a tick: the counter truncates). A slow
+        round trip is a lopsided one more often than not, so only the faster half is kept (as
+        NTP prefers its shortest round trips) and their median taken. Unwrapping restarts at
+        the last sample. Returns the offset in ns.
         """
         if not samples:
             raise ValueError("clock synchronisation needs at least one round trip")
         unwrapped = [samples[0][1] & self.mask]
         for _, raw, _ in samples[1:]:
             unwrapped.append(unwrapped[-1] + (((raw & self.mask) - unwrapped[-1]) & self.mask))
-        mids = [(req + rep) / 2.0 - u * self.tick_ns - self.tick_ns / 2.0
-                for (req, _, rep), u in zip(samples, unwrapped)]
+        mids = np.array([(req + rep) / 2.0 - u * self.tick_ns - self.tick_ns / 2.0
+                         for (req, _, rep), u in zip(samples, unwrapped)])
+        rtt = np.array([rep - req for req, _, rep in samples])
+        mids = mids[rtt <= np.median(rtt)]
         self._restart(samples[-1][1] & self.mask, samples[-1][2])
         self.offset_ns = int(np.median(mids)) + (unwrapped[-1] - self._unwrapped) * self.tick_ns
         self.drift_ppm = 0.0
@@ -118,7 +125,8 @@ class SensorClock:
         self._last_raw = raw
         self._last_host = host_ns
         self._unwrapped = self._ref = raw
-        self._n_recent = self._outside = self._bins = 0
+        self._n_recent = self._bins = 0
+        self._outside = None
         self._median_at = (0, 0, 0)
         self._bin, self._bin_min = -1, np.inf
 
@@ -161,7 +169,8 @@ class SensorClock:
             self._target, self._refine = self._median_latency(), []
         self.offset_ns = stamp_ns - self._unwrapped * self.tick_ns
         self._ref = self._unwrapped
-        self._outside = self._bins = 0
+        self._bins = 0
+        self._outside = None
         self._bin, self._bin_min = -1, np.inf
 
     def _median_latency(self) -> int:
@@ -176,10 +185,11 @@ class SensorClock:
         latency = host_rx_ns - stamp_ns
         if latency < -self.resync_tolerance_ns:
             return True
-        if self._n_recent >= self.resync_after and abs(latency - self._median_latency()) > self.resync_tolerance_ns:
-            self._outside += 1
-            return self._outside >= self.resync_after
-        self._outside = 0
+        if self._n_recent >= 8 and latency - self._median_latency() > self.resync_tolerance_ns:
+            if self._outside is None:
+                self._outside = self._unwrapped
+            return self._unwrapped - self._outside >= self.resync_after_ticks
+        self._outside = None
         if self._target is not None:
             self._refine.append(latency)
             if len(self._refine) < self.REFINE:

@@ -48,7 +48,8 @@ def wait_until(predicate: Callable[[], bool], what: str, timeout_s: float = CEIL
 
 @contextmanager
 def running(server: DeviceServer, driver: Driver) -> Iterator[tuple[DeviceServer, Driver]]:
-    """Serve the device (unless already served) and run the driver; stop both, driver first."""
+    """Serve the device (unless already served) and run the driver; stop both, driver first,
+    letting the device read the driver's last words (stop streaming, stop the motor)."""
     if server._thread is None:
         server.start()
     driver.start()
@@ -56,10 +57,24 @@ def running(server: DeviceServer, driver: Driver) -> Iterator[tuple[DeviceServer
         yield server, driver
     finally:
         driver.stop()
-        server.stop()
+        try:
+            wait_until(lambda: time.time_ns() - server.last_input_ns > 300_000_000, "the device to read the rest",
+                       timeout_s=10.0)
+        finally:
+            server.stop()
 
 
 def inject(server: DeviceServer, kind: str) -> None:
     """Make the device inject ``kind`` into its next scan, exactly once."""
     with server.lock:
         server.device.faults.force(kind)
+
+
+def replug_delay_ns(server: DeviceServer, driver: Driver, sink: Recorder) -> int:
+    """Unplug the device (its plan says for how long), wait for it to come back and for a scan
+    measured after that; returns how long after the replug that scan was measured."""
+    inject(server, "unplug")
+    wait_until(lambda: len(server.replugged_ns) == 1, "the replug")
+    wait_until(lambda: any(s.stamp_ns > server.replugged_ns[0] for s in sink.scans()), "a scan after the replug")
+    replug = server.replugged_ns[0]
+    return min(s.stamp_ns for s in sink.scans() if s.stamp_ns > replug) - replug

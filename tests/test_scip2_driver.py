@@ -14,15 +14,14 @@ import pytest
 
 from drivers import lrf
 from drivers.scip2_driver import ScipConfig, ScipDriver
-from logs import messages as m
 from logs.errors import UserError
-from tests.lrf_harness import Recorder, inject, running, wait_until
+from tests.lrf_harness import Recorder, inject, replug_delay_ns, running, wait_until
 from tools.emulators.device_server import DeviceServer
 from tools.emulators.faults import FaultPlan, parse_faults
 from tools.emulators.scene import load_scene
 from tools.emulators.scip2_emulator import FLAGS, KINDS, MODELS, ScipDevice
 
-PATIENT = {"timeout_s": 5.0, "error_limit": 50}  # so a loaded test machine causes no reconnects
+PATIENT = {"timeout_s": 5.0, "error_limit": 50, "reply_timeout_s": 3.0}  # a busy test machine: no reconnects
 
 
 def expected_ranges(model: str, distances: np.ndarray) -> np.ndarray:
@@ -45,23 +44,25 @@ def first_beam_ns(device: ScipDevice, start: int) -> int:
     return int(round((start - (p.afrt - p.ares / 2)) / p.ares * device.period_ns))
 
 
-def match(device: ScipDevice, scans: list[m.LaserScan], start: int) -> list:
-    """The sent scan behind every logged one (by time); checks ranges and stamps."""
-    sent = [s for s in device.sent]
-    rears = np.array([s.rear_ns for s in sent])
+def match(device: ScipDevice, sink: Recorder, start: int) -> list:
+    """The sent scan behind every logged one, found by the raw timestamp the driver logs with it
+    on /scan/timing: ranges must be bit-equal, nothing faulty logged, stamps the first beam's time."""
+    with sink.lock:
+        pairs = [(a[1], b[1]) for a, b in zip(sink.messages, sink.messages[1:])
+                 if a[0] == "/scan" and b[0] == "/scan/timing"]
     offset = first_beam_ns(device, start)
     matched, errors = [], []
-    for scan in scans:
-        i = int(np.argmin(np.abs(rears - (scan.stamp_ns - offset))))
-        error = scan.stamp_ns - offset - rears[i]
-        assert abs(error) < device.period_ns / 2, "a logged scan matches no sent scan in time"
-        want = sent[i]
-        assert want.fault in ("", "garbage", "reboot"), f"a scan with fault {want.fault} was logged"
+    for scan, timing in pairs:
+        raw = int(dict(timing.status[0].values)["raw_ms"])
+        found = [s for s in device.sent if s.timestamp == raw and s.fault in ("", "garbage", "reboot")]
+        assert found, "a logged scan is not an intact scan the sensor sent"
+        want = min(found, key=lambda s: abs(s.rear_ns + offset - scan.stamp_ns))  # raw ms repeat after a reset
         np.testing.assert_array_equal(scan.ranges, expected_ranges(device.model.name, want.distances))
         matched.append(want)
-        errors.append(error)
-    if errors:
-        assert np.median(np.abs(errors)) <= 5e6, "stamps are not the first beam's host time"
+        errors.append(scan.stamp_ns - offset - want.rear_ns)
+    assert len(pairs) == len(sink.scans())
+    if errors:  # TM-synchronised: the emulator shares this (busy) machine, so allow for its delays
+        assert np.median(np.abs(errors)) <= 10e6, "stamps are not the first beam's host time"
     return matched
 
 
@@ -70,8 +71,8 @@ def make(tmp_path, model="utm-30lx", faults="", ranges_at=None, **options):
     scene = load_scene()
     device = ScipDevice(MODELS[model], ranges_at or scene.range_source(MODELS[model].angles, seed=2), plan,
                         time.time_ns())
-    server = DeviceServer(device, link_path=tmp_path / "lrf")
-    sink = Recorder()
+    server = DeviceServer(device, link_path=tmp_path / "lrf", backlog=1 << 24)  # a driver starved by a busy
+    sink = Recorder()                                                           # machine must not lose data
     driver = ScipDriver(ScipConfig(port=str(tmp_path / "lrf"), **{**PATIENT, **options}), sink)
     return device, server, driver, sink
 
@@ -81,7 +82,7 @@ def test_clean_stream_equals_what_the_sensor_sent(tmp_path):
     with running(server, driver):
         wait_until(lambda: driver.counters["scans"] >= 12, "12 scans")
     scans = sink.scans()
-    match(device, scans, 44)
+    match(device, sink, 44)
     scan = scans[0]
     assert scan.frame_id == "laser" and scan.ranges.size == 682
     assert scan.angle_min == pytest.approx(np.radians(-119.53), abs=1e-4)
@@ -120,7 +121,7 @@ def test_rep117_ranges_and_window_from_a_range_callable(tmp_path):
     assert np.all(np.isneginf(scan.ranges[np.isneginf(want) | (want == 0.01)]))  # too near (code 2)
     assert np.all(np.isnan(scan.ranges[np.isnan(want)]))  # measurement error (code 3)
     assert scan.angle_min == pytest.approx(device.params.step_angle(start))
-    match(device, sink.scans(), start)
+    match(device, sink, start)
 
 
 def test_line_faults_are_counted_exactly_and_never_logged(tmp_path):
@@ -141,8 +142,8 @@ def test_line_faults_are_counted_exactly_and_never_logged(tmp_path):
     assert (c["checksum_errors"], c["truncated"], c["resyncs"], c["unstable"]) == (
         f["checksum"], f["truncate"], f["garbage"], f["unstable"])
     assert 1 <= c["stalls"] <= f["stall"] and c["missed_scans"] >= c["stalls"]
-    assert c["reconnects"] == c["errors"] == 0
-    logged = match(device, sink.scans(), device.params.angle_step(-0.8))
+    assert c["reconnects"] == c["errors"] == server.dropped_bytes == 0
+    logged = match(device, sink, device.params.angle_step(-0.8))
     assert len(logged) == c["scans"]
 
 
@@ -154,7 +155,7 @@ def test_sensor_still_streaming_at_connect_is_stopped_and_drained(tmp_path):
     with running(server, driver):
         wait_until(lambda: driver.counters["scans"] >= 5, "5 scans")
     assert driver.counters["stale_streams"] == 1 and driver.counters["drained_bytes"] > 0
-    logged = match(device, sink.scans(), 0)
+    logged = match(device, sink, 0)
     assert {s.session for s in logged} == {2}  # nothing of the old session's stream (string OLD)
     assert device.commands[0] == b"QT"
 
@@ -164,7 +165,7 @@ def test_24_bit_clock_wrap_is_unwrapped(tmp_path):
     with running(server, driver):
         wait_until(lambda: driver.counters["clock_wraps"] == 1 and driver.counters["scans"] >= 70, "a wrap")
     scans = sink.scans()
-    logged = match(device, scans, device.params.angle_step(-0.5))
+    logged = match(device, sink, device.params.angle_step(-0.5))
     raws = [s.timestamp for s in logged]
     assert any(b < a for a, b in zip(raws, raws[1:]))  # the raw clock did wrap under our eyes
     gaps = np.diff([s.stamp_ns for s in scans])
@@ -178,9 +179,12 @@ def test_clock_reset_mid_stream_keeps_stamps_continuous(tmp_path):
         wait_until(lambda: driver.counters["scans"] >= 40, "40 scans")
         inject(server, "reboot")
         wait_until(lambda: device.injected["reboot"] == 1 and driver.counters["scans"] >= 80, "scans after the reset")
-    assert driver.counters["clock_resets"] == 1
+    # the driver stops the stream, synchronises the clock again with TM and restarts; the scans
+    # in between, stamped only from receive times, are not logged
+    assert driver.counters["clock_resets"] == 1 and driver.counters["tm_syncs"] == 2
+    assert driver.counters["reconnects"] == 0
     scans = sink.scans()
-    match(device, scans, device.params.angle_step(-0.5))
+    match(device, sink, device.params.angle_step(-0.5))
     assert np.all(np.diff([s.stamp_ns for s in scans]) > 0)
 
 
@@ -196,7 +200,7 @@ def test_abnormal_status_reboots_the_sensor_and_recovers(tmp_path):
     i = next(i for i, c in enumerate(device.commands) if c == b"RB")
     assert device.commands[i:i + 2] == [b"RB", b"RB"]
     assert "abnormal" in driver.last_error
-    match(device, sink.scans(), device.params.angle_step(-0.5))
+    match(device, sink, device.params.angle_step(-0.5))
 
 
 def test_abnormal_state_at_connect_is_rebooted(tmp_path):
@@ -226,14 +230,9 @@ def test_unplug_and_replug_recovers_within_two_seconds(tmp_path):
     device, server, driver, sink = make(tmp_path, "utm-30lx", faults=plan, angle_min=-0.5, angle_max=0.5)
     with running(server, driver):
         wait_until(lambda: driver.counters["scans"] >= 10, "10 scans")
-        inject(server, "unplug")
-        wait_until(lambda: len(server.replugged_ns) == 1, "the replug")
-        wait_until(lambda: any(s.stamp_ns > server.replugged_ns[0] for s in sink.scans()), "a scan after replug")
-    replug = server.replugged_ns[0]
-    first = min(s.stamp_ns for s in sink.scans() if s.stamp_ns > replug)
-    assert first - replug < 2e9
+        assert replug_delay_ns(server, driver, sink) < 2e9
     assert driver.counters["reconnects"] == 1
-    match(device, sink.scans(), device.params.angle_step(-0.5))
+    match(device, sink, device.params.angle_step(-0.5))
 
 
 def test_long_stall_times_out_and_reconnects(tmp_path):
@@ -247,7 +246,7 @@ def test_long_stall_times_out_and_reconnects(tmp_path):
         before = driver.counters["scans"]
         wait_until(lambda: driver.counters["scans"] >= before + 10, "scans after the stall")
     assert driver.counters["timeouts"] == 1
-    match(device, sink.scans(), device.params.angle_step(-0.5))
+    match(device, sink, device.params.angle_step(-0.5))
 
 
 def test_consecutive_bad_scans_force_a_reconnect(tmp_path):
@@ -274,7 +273,7 @@ def test_ethernet_model_over_tcp_with_intensities():
     driver = lrf.driver_from_url(f"scip2+tcp://127.0.0.1:{server.port}?intensity=true&timeout_s=5", sink, {})
     with running(server, driver):
         wait_until(lambda: driver.counters["scans"] >= 5, "5 scans")
-    logged = match(device, sink.scans(), 0)
+    logged = match(device, sink, 0)
     for scan, want in zip(sink.scans(), logged):
         np.testing.assert_array_equal(scan.intensities, want.intensities.astype(np.float32))
 

@@ -134,7 +134,8 @@ class DeviceServer:
     """Runs ``device`` on a pty (``link_path``) or a TCP port (``tcp_port``, 0 = any free port).
 
     ``unplugs`` counts cable pulls, ``replugged_ns`` holds when the cable came back,
-    ``dropped_bytes`` what overflowed the ``backlog`` while nobody read.
+    ``last_input_ns`` when the host last sent something, ``dropped_bytes`` what overflowed the
+    ``backlog`` while nobody read.
     """
 
     def __init__(self, device: Device, *, link_path: str | os.PathLike[str] | None = None,
@@ -145,6 +146,7 @@ class DeviceServer:
         self.transport: _Pty | _Tcp = _Pty(Path(link_path)) if link_path is not None else _Tcp(host, tcp_port or 0)
         self.backlog_limit = backlog
         self.unplugs = 0
+        self.last_input_ns = 0
         self.replugged_ns: list[int] = []
         self.dropped_bytes = 0
         self._out = bytearray()
@@ -203,6 +205,8 @@ class DeviceServer:
             ready = []
         data = self.transport.read(ready)
         now = time.time_ns()
+        if data:
+            self.last_input_ns = now
         with self.lock:
             out = (self.device.receive(data, now) if data else b"") + self.device.poll(now)
             request, self.device.link_request = self.device.link_request, None

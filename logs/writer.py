@@ -106,6 +106,7 @@ class Logger:
         self.fsync = fsync
         self.split_bytes = split_bytes
         self.split_duration_ns = int(split_duration_s * 1e9) if split_duration_s else None
+        self._splitting = bool(split_bytes or split_duration_s)
         self.queue_size = queue_size
         self.metadata = {"trundle_version": VERSION, "host": platform.node(), **(metadata or {})}
         self.latched_topics = frozenset(latched_topics)
@@ -194,35 +195,46 @@ class Logger:
         while running:
             self._wake.wait(max(0.0, next_flush - time.monotonic()))
             self._wake.clear()
-            while self._queue:
-                item = self._queue.popleft()
-                if item is None:
-                    running = False
-                    break
-                if self.error is None:
-                    self._guard(self._write_item, item)
-                else:
-                    self.stats[item.topic].dropped += 1
+            running = self._drain()
             if time.monotonic() >= next_flush:
                 next_flush = time.monotonic() + self.flush_period_s
                 self._guard(self._flush)
         self._guard(self._finish_file)
 
-    def _guard(self, action, *args) -> None:
-        if self.error is not None:
-            return
-        try:
-            action(*args)
-        except OSError as error:
-            where = self._file.active_path if self._file else self.base_path
-            self.error = LoggerError(f"cannot write {where}: {error.strerror or error}; "
-                                     f"the file keeps what was flushed (trundle recover {where})")
-            self._file = None
+    def _drain(self) -> bool:
+        """Write everything queued; False once the close sentinel is reached."""
+        queue = self._queue
+        while queue:
+            item = queue.popleft()
+            if item is None:
+                return False
+            if self.error is None:
+                try:
+                    self._write_item(item)
+                    continue
+                except OSError as error:
+                    self._fail(error)
+            self.stats[item.topic].dropped += 1
+        return True
+
+    def _guard(self, action) -> None:
+        """Run a flush or finish step unless failed; an OSError stops the logger."""
+        if self.error is None:
+            try:
+                action()
+            except OSError as error:
+                self._fail(error)
+
+    def _fail(self, error: OSError) -> None:
+        where = self._file.active_path if self._file else self.base_path
+        self.error = LoggerError(f"cannot write {where}: {error.strerror or error}; "
+                                 f"the file keeps what was flushed (trundle recover {where})")
+        self._file = None
 
     def _write_item(self, item: _Item) -> None:
         file = self._file
         assert file is not None
-        if self._split_requested or self._needs_split(file, item):
+        if self._split_requested or (self._splitting and self._needs_split(file, item)):
             self._split_requested = False
             self._finish_file()
             self._open_next()

@@ -81,7 +81,7 @@ class Notify:
             except (socket.timeout, OSError):
                 continue
 
-    def wait_for(self, prefix: str, timeout_s: float = 30.0) -> str:
+    def wait_for(self, prefix: str, timeout_s: float = 90.0) -> str:
         """The next message (after the last one returned) starting with ``prefix``."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:

@@ -59,7 +59,7 @@ def soak(tmp_path: Path, duration_s: float, period_s: float, away_s: float) -> N
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         windows: dict[str, list[tuple[int, int]]] = {name: [] for name in TOPICS}
         try:
-            deadline = time.monotonic() + 60
+            deadline = time.monotonic() + 120
             while not all_streaming(socket_path):
                 assert proc.poll() is None and time.monotonic() < deadline, "daemon did not come up"
                 time.sleep(0.2)

@@ -11,6 +11,7 @@ import time
 from contextlib import contextmanager
 from typing import Callable, Iterator
 
+from camera_clips import wait_for
 from drivers.lifecycle import Driver
 from logs import messages as m
 from tools.emulators.device_server import DeviceServer
@@ -39,11 +40,8 @@ class Recorder:
 
 
 def wait_until(predicate: Callable[[], bool], what: str, timeout_s: float = CEILING_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}")
-        time.sleep(0.02)
+    """Poll until ``predicate`` holds; a hang guard with a generous ceiling, not a timing check."""
+    wait_for(predicate, timeout_s, what)
 
 
 @contextmanager

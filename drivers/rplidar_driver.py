@@ -30,6 +30,7 @@ from logs.errors import UserError
 # model: (default baud, range_min m, range_max m)
 MODELS = {"a1": (115200, 0.15, 12.0), "a2": (115200, 0.15, 12.0), "a3": (256000, 0.2, 25.0), "s1": (256000, 0.1, 40.0)}
 LEGACY_SAMPLE_US = 476  # the SDK's default when GET_SAMPLERATE is not answered
+BAUDS = (115200, 256000, 460800, 1000000)  # the native rates of the A/S/C series
 WRAP_Q6 = 16 * 64  # a clean wrap goes from the last 16 deg of a turn to its first 16 deg
 
 
@@ -337,10 +338,24 @@ class RplidarDriver(Driver):
         if rest:
             self._process(rest, self.clock())
 
+    def _health(self) -> rp.Health:
+        """GET_HEALTH; with no answer, try the other RPLIDAR bauds (a wrong baud is the usual
+        cause of "Descriptor length mismatch") before giving up with one line naming them."""
+        assert self.link is not None
+        bauds = [self.link.port.baudrate] + [b for b in BAUDS if b != self.link.port.baudrate]
+        for baud in bauds if "://" not in self.config.port else bauds[:1]:
+            self.link.port.baudrate = baud
+            self._send(rp.GET_HEALTH)
+            try:
+                return rp.Health.parse(self._response(rp.HEALTH_DESCRIPTOR))
+            except DeviceError:
+                self._buf.clear()
+        raise DeviceError(f"no RPLIDAR answer on {self.config.port} at {', '.join(map(str, bauds))} baud "
+                          "(wrong port, not an RPLIDAR, or no permission?)")
+
     def _check_health(self) -> None:
         for attempt in range(2):
-            self._send(rp.GET_HEALTH)
-            self.health = rp.Health.parse(self._response(rp.HEALTH_DESCRIPTOR))
+            self.health = self._health()
             if self.health.status == rp.HEALTH_WARNING:
                 self.counters["health_warnings"] += 1
             if self.health.status != rp.HEALTH_ERROR:

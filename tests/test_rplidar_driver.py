@@ -19,6 +19,7 @@ from logs import messages as m
 from tests.lrf_harness import Recorder, inject, replug_delay_ns, running, wait_until
 from tools.emulators.device_server import DeviceServer
 from tools.emulators.faults import FaultPlan, parse_faults
+from tools.emulators.pty_link import PtyLink
 from tools.emulators.rplidar_emulator import FLAGS, KINDS, MODELS, RplidarDevice
 from tools.emulators.scene import load_scene
 
@@ -183,3 +184,12 @@ def test_rplidar_options_are_checked():
         lrf.driver_from_url("rplidar:///dev/ttyUSB0?model=z9", sink, {})
     with pytest.raises(lrf.UserError, match="mode"):
         RplidarConfig(port="/x", mode="turbo")
+
+
+def test_silent_port_names_the_bauds_it_tried(tmp_path):
+    with PtyLink(tmp_path / "quiet"):  # a serial port with nothing behind it
+        driver = lrf.driver_from_url(f"rplidar://{tmp_path / 'quiet'}", Recorder(), {"reply_timeout_s": 0.1})
+        driver.start()
+        wait_until(lambda: driver.counters["errors"] >= 1, "a failed start")
+        driver.stop()
+    assert "no RPLIDAR answer" in driver.last_error and "115200, 256000, 460800, 1000000 baud" in driver.last_error

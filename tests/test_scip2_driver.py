@@ -18,6 +18,7 @@ from logs.errors import UserError
 from tests.lrf_harness import Recorder, inject, replug_delay_ns, running, wait_until
 from tools.emulators.device_server import DeviceServer
 from tools.emulators.faults import FaultPlan, parse_faults
+from tools.emulators.pty_link import PtyLink
 from tools.emulators.scene import load_scene
 from tools.emulators.scip2_emulator import FLAGS, KINDS, MODELS, ScipDevice
 
@@ -299,3 +300,12 @@ def test_absent_sensor_keeps_retrying_without_crashing(tmp_path):
     wait_until(lambda: driver.counters["errors"] >= 3, "three failed attempts")
     driver.stop()
     assert driver.state == "stopped" and "could not open port" in driver.last_error
+
+
+def test_silent_port_names_the_bauds_it_tried(tmp_path):
+    with PtyLink(tmp_path / "quiet"):  # a serial port with nothing behind it
+        driver = lrf.driver_from_url(f"scip2://{tmp_path / 'quiet'}", Recorder(), {"reply_timeout_s": 0.1})
+        driver.start()
+        wait_until(lambda: driver.counters["errors"] >= 1, "a failed start")
+        driver.stop()
+    assert "no SCIP answer" in driver.last_error and "115200, 19200, 38400 baud" in driver.last_error

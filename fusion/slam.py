@@ -31,7 +31,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from fusion.ekf import PoseEKF
+from fusion.ekf import PoseEKF, odometry_noise
 from fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance,
                              scan_to_points, voxel_filter)
 from fusion.icp import LineReference, icp
@@ -301,10 +301,8 @@ class Slam:
             return
         if odom is not None and self._last_scan_odom is not None:
             delta = relative(self._last_scan_odom, odom)
-            distance, turn = float(np.hypot(delta[0], delta[1])), abs(float(delta[2]))
-            sxy = cfg.odom_sigma_xy_m + cfg.odom_sigma_xy_per_m * distance
-            sth = cfg.odom_sigma_theta_rad + cfg.odom_sigma_theta_per_m * distance + cfg.odom_sigma_theta_per_rad * turn
-            noise = np.diag([sxy ** 2, sxy ** 2, sth ** 2])
+            noise = odometry_noise(delta, cfg.odom_sigma_xy_m, cfg.odom_sigma_theta_rad, cfg.odom_sigma_xy_per_m,
+                                   cfg.odom_sigma_theta_per_m, cfg.odom_sigma_theta_per_rad)
         else:
             delta = self._velocity * dt
             sxy, sth = cfg.no_odom_sigma_xy_per_s * dt + 1e-3, cfg.no_odom_sigma_theta_per_s * dt + 1e-3

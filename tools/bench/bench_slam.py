@@ -1,0 +1,152 @@
+"""SLAM speed: real-time factor on exp2 and the imported Intel log, and milliseconds per scan match.
+
+Goal (issue 7): real-time factor (log duration / processing time) >= 15 on this 2-core machine,
+Cartographer's Intel figure on a 6-core desktop (Hess et al. 2016, Table V). The logs are imported
+to MCAP first and mapped from the MCAP exactly as ``trundle slam`` does (decode included). The
+Intel log gets the drifting odometry of the acceptance test (5 %, 2 deg/m, seed 1); its relation
+error against GMapping's poses is reported with the speed.
+
+Scan matches are timed on Intel scans 40..119 against a submap built from the 20 scans before
+each, from GMapping's pose perturbed by (0.1 m, -0.1 m, 3 deg): the correlative search alone
+(its branch-and-bound pyramid already built, as it is for every scan matched against a finished
+submap; the first search with the build is reported too) is the baseline; the full match (search + Levenberg-Marquardt), the refinement alone, point-to-line
+ICP and an exhaustive search over the same lattice are given as ratios to it; matches are timed
+in CPU seconds. Wall-clock figures depend on the machine's load (shared with other work), so CPU
+time and the load average are recorded too.
+Run: python tools/bench/bench_slam.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fusion.evaluation import Trajectory, relation_error, trajectory_relations
+from fusion.geometry import scan_to_points, transform_points, voxel_filter
+from fusion.icp import LineReference, icp
+from fusion.occupancy_grid import LogOddsGrid
+from fusion.odometry import DiffDriveOdometry
+from fusion.odometry_drift import drifting_odometry
+from fusion.scan_matching import angular_step, correlative_search, match_scan, refine_pose
+from fusion.slam import Slam, SlamConfig
+from logs.importers import breezyslam, carmen
+from logs.reader import LogReader
+from tools.bench import report
+
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+
+
+def map_log(path: Path, wheels: DiffDriveOdometry | None) -> tuple[Slam, float, float, float]:
+    """Run SLAM over an MCAP log as ``trundle slam`` does; returns it, duration, wall and CPU seconds."""
+    reader = LogReader(path)
+    duration = reader.info().duration_s
+    slam = Slam(SlamConfig(), wheels)
+    wall, cpu = time.perf_counter(), time.process_time()
+    for item in reader.messages():
+        slam.process(item.topic, item.msg)
+    slam.finish()
+    slam.build_map()
+    return slam, duration, time.perf_counter() - wall, time.process_time() - cpu
+
+
+def exhaustive(grid: LogOddsGrid, points: np.ndarray, pose: np.ndarray, window: float, window_theta: float,
+               step: float) -> float:
+    """Best lattice score by scoring every pose of the window (the baseline branch and bound prunes)."""
+    field = grid.likelihood_field(grid.resolution)
+    limit = int(math.ceil(window / grid.resolution))
+    offsets = np.arange(-limit, limit + 1)
+    best = 0.0
+    for theta in pose[2] + step * np.arange(-int(window_theta / step), int(window_theta / step) + 1):
+        c, s = math.cos(theta), math.sin(theta)
+        world = points @ np.array([[c, -s], [s, c]]).T + pose[:2]
+        cells = np.floor((world - grid.origin) / grid.resolution).astype(np.int64)
+        cols = np.clip(cells[:, 0][None, None] + offsets[:, None, None], 0, field.shape[1] - 1)
+        rows = np.clip(cells[:, 1][None, None] + offsets[None, :, None], 0, field.shape[0] - 1)
+        best = max(best, float(field[rows, cols].mean(axis=2).max()))
+    return best
+
+
+def time_matches(log: carmen.CarmenLog, first: int, count: int) -> dict[str, float]:
+    _, reference = carmen.scan_poses(log)
+    scans = [carmen.to_scan(laser, "laser", carmen.infer_no_return(log)) for laser in log.lasers]
+    offset = np.array([0.1, -0.1, math.radians(3.0)])
+    window, window_theta = 0.3, math.radians(10.0)
+    times: dict[str, list[float]] = {"cold": [], "search": [], "match": [], "refine": [], "icp": [], "exhaustive": []}
+    errors: list[float] = []
+    for k in range(first, first + count):
+        grid = LogOddsGrid(0.05)
+        for j in range(k - 20, k):
+            grid.insert_rays(reference[j][:2], transform_points(reference[j], scan_to_points(scans[j], range_max=30.0)))
+        points = voxel_filter(scan_to_points(scans[k], range_max=30.0), 0.05)
+        guess = reference[k] + offset
+        grid.likelihood_field(0.05), grid.distance_field(0.5)  # fields are shared by all matchers: not timed
+        step = math.radians(0.5)
+        for name, run in (("cold", lambda: correlative_search(grid, points, guess, window_xy_m=window,
+                                                              window_theta_rad=window_theta, angular_step_rad=step)),
+                          ("search", lambda: correlative_search(grid, points, guess, window_xy_m=window,
+                                                                window_theta_rad=window_theta, angular_step_rad=step)),
+                          ("match", lambda: match_scan(grid, points, guess, window_xy_m=window,
+                                                       window_theta_rad=window_theta, angular_step_rad=step)),
+                          ("refine", lambda: refine_pose(grid, points, reference[k] + offset / 5)),
+                          ("icp", lambda: icp(LineReference(grid.occupied_points()), points, reference[k] + offset / 5)),
+                          ("exhaustive", lambda: exhaustive(grid, points, guess, window, window_theta, step))):
+            start = time.process_time()
+            result = run()
+            times[name].append(time.process_time() - start)
+            if name == "match" and result is not None:
+                errors.append(float(np.hypot(*(result.pose[:2] - reference[k][:2]))))
+    median = {name: float(np.median(values)) * 1e3 for name, values in times.items()}
+    base = median["search"]
+    return {"match_scans": count, "search_with_pyramid_build_ms": median["cold"], "search_ms": base, "full_match_ms": median["match"],
+            "full_match_vs_search": median["match"] / base, "refine_only_ms": median["refine"],
+            "refine_only_vs_search": median["refine"] / base, "icp_ms": median["icp"], "icp_vs_search": median["icp"] / base,
+            "exhaustive_ms": median["exhaustive"], "exhaustive_vs_search": median["exhaustive"] / base,
+            "match_error_to_gmapping_median_m": float(np.median(errors)),
+            "search_angular_step_formula_deg": math.degrees(angular_step(0.05, 30.0))}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="exp2 and 20 matches only (no Intel run)")
+    args = parser.parse_args()
+    exp2, intel = DATA / "breezyslam" / "exp2.dat", DATA / "intel" / "intel.gfs.log"
+    for path in (exp2, intel):
+        if not path.exists():
+            raise SystemExit(f"public data not available: {path} (see ../shared/data/README.md)")
+    figures: dict[str, object] = {"load_average_1min_at_start": os.getloadavg()[0], "cpus": os.cpu_count()}
+    with tempfile.TemporaryDirectory() as folder:
+        exp2_mcap = Path(folder) / "exp2.mcap"
+        breezyslam.import_breezyslam(exp2, exp2_mcap)
+        slam, duration, wall, cpu = map_log(exp2_mcap, DiffDriveOdometry(breezyslam.WHEEL_RADIUS_M, breezyslam.TRACK_M))
+        figures.update({"exp2_duration_s": duration, "exp2_processing_s": wall, "exp2_cpu_s": cpu,
+                        "exp2_real_time_factor": duration / wall, "exp2_real_time_factor_cpu": duration / cpu,
+                        "exp2_scans": slam.stats.scans, "exp2_ms_per_scan": 1e3 * wall / slam.stats.scans,
+                        "exp2_loop_closures": slam.stats.loop_closures,
+                        "exp2_scan_to_submap_residual_m": float(np.mean(slam.stats.residuals))})
+        log = carmen.read_carmen(intel)
+        if not args.quick:
+            stamps, reference = carmen.scan_poses(log)
+            intel_mcap = Path(folder) / "intel.mcap"
+            carmen.import_carmen(intel, intel_mcap, odometry="laser", log=log,
+                                 laser_odometry=drifting_odometry(reference, seed=1))
+            slam, duration, wall, cpu = map_log(intel_mcap, None)
+            error = relation_error(Trajectory(*slam.trajectory()), trajectory_relations(Trajectory(stamps, reference)))
+            figures.update({"intel_duration_s": duration, "intel_processing_s": wall, "intel_cpu_s": cpu,
+                            "intel_real_time_factor": duration / wall, "intel_real_time_factor_cpu": duration / cpu,
+                            "intel_scans": slam.stats.scans, "intel_ms_per_scan": 1e3 * wall / slam.stats.scans,
+                            "intel_loop_closures": slam.stats.loop_closures,
+                            "intel_relation_translation_mean_m": error.translation_abs_m.mean,
+                            "intel_relation_rotation_mean_deg": error.rotation_abs_deg.mean})
+    figures.update(time_matches(log, 40, 20 if args.quick else 80))
+    figures["load_average_1min_at_end"] = os.getloadavg()[0]
+    report.write("slam", figures)
+
+
+if __name__ == "__main__":
+    main()

@@ -166,3 +166,25 @@ def test_scip2_stream_never_raises_on_noise(noise):
     cut = len(noise) // 2
     for i, part in enumerate((noise[:cut], valid, noise[cut:], valid)):
         stream.feed(part, T0 + i * MS)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(["flip", "insert", "delete"]), st.integers(0, 2**31), st.integers(0, 255)),
+                max_size=12), st.integers(1, 700))
+def test_rplidar_mutated_streams_never_raise(mutations, chunk):
+    n = 360
+    angle = np.tile(np.arange(n) * 64, 3)
+    stream = bytearray(rp.encode_nodes(angle == 0, np.full(3 * n, 47), angle, np.arange(3 * n) * 4 + 400))
+    for how, where, value in mutations:
+        i = where % len(stream)
+        if how == "flip":
+            stream[i] ^= 1 << (value % 8)
+        elif how == "insert":
+            stream.insert(i, value)
+        else:
+            del stream[i]
+    decoder, assembler = rp.NodeDecoder(), RevolutionAssembler(500_000)
+    for i in range(0, len(stream), chunk):
+        for rev in assembler.feed(decoder.feed(bytes(stream[i:i + chunk])), T0 + i):
+            scan = revolution_scan(rev, 360, 0.15, 12.0)
+            assert scan.ranges.size == 360 and np.all(rev.angle_q6 < rp.FULL_CIRCLE_Q6)

@@ -28,20 +28,20 @@ POLE_PAIRS = 7
 
 def protocol_setup(protocol: str, node_options: dict[str, Any]) -> tuple[list[EmulatedNode], dict[str, Any]]:
     """Two emulated nodes (left, right) and the driver config that reads them. Timeouts are
-    generous (1 s) so a starved test machine does not make wheels stale; fault tests that
+    generous (3 s) so a starved test machine does not make wheels stale; fault tests that
     need the protocol's own timeouts pass them in ``config``."""
     if protocol == "odrive":
         return odrive_nodes([0, 1], **node_options), {
-            "encoders": "odrive:0,1", "odrive": {"heartbeat_timeout_s": 1.0, "data_timeout_s": 1.0}}
+            "encoders": "odrive:0,1", "odrive": {"heartbeat_timeout_s": 3.0, "data_timeout_s": 3.0}}
     if protocol == "cia406":
         return cia406_nodes([5, 6], **node_options), {
-            "encoders": "cia406:5,6", "cia406": {"heartbeat_timeout_factor": 10, "data_timeout_s": 1.0}}
+            "encoders": "cia406:5,6", "cia406": {"heartbeat_timeout_factor": 30, "data_timeout_s": 3.0}}
     if protocol == "dbc":
         return vesc_nodes(VESC_DBC, [9, 10], pole_pairs=POLE_PAIRS, **node_options), {
             "encoders": f"dbc:{VESC_DBC}",
             "dbc": {"signals": ["VESC_Status5_id9.Tachometer", "VESC_Status5_id10.Tachometer"],
                     "velocity_signals": ["VESC_Status1_id9.ERPM", "VESC_Status1_id10.ERPM"],
-                    "units_per_rev": 6 * POLE_PAIRS, "velocity_scale": 1 / (60 * POLE_PAIRS), "data_timeout_s": 1.0}}
+                    "units_per_rev": 6 * POLE_PAIRS, "velocity_scale": 1 / (60 * POLE_PAIRS), "data_timeout_s": 3.0}}
     raise ValueError(protocol)
 
 
@@ -73,6 +73,9 @@ class Rig:
         """Until the emulator is past the script's end and the driver has read all it was sent."""
         end = self.runner.motion.start_s + float(self.script.starts[-1]) + settle_s
         assert self.wait_for(lambda: self.runner.t >= end, timeout_s), "emulator did not reach the end of the script"
+        # a stalled emulator can jump past the end in one tick: let every node send a few more frames
+        after = self.runner.stats["sent"] + 4 * len(self.nodes)
+        assert self.wait_for(lambda: self.runner.stats["sent"] >= after, timeout_s), "emulator stopped sending"
         sent = self.runner.stats["sent"]
         assert self.wait_for(lambda: self.driver.counters["frames"] >= sent, timeout_s), "driver did not catch up"
 

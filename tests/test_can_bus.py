@@ -163,9 +163,9 @@ def test_slcan_status_flags_and_bus_off_recovery(tmp_path, reader):
     with SlcanEmulator(str(link)) as adapter:
         bus = CanBus(f"slcan://{link}?reader={reader}", status_poll_s=0.0)
         bus.open()
-        assert bus.slcan_status() == 0
+        assert bus.slcan_status(2.0) == 0
         adapter.raise_flags(0x04 | 0x08)
-        assert bus.slcan_status() == 0x0C and bus.slcan_status() == 0  # shown once
+        assert bus.slcan_status(2.0) == 0x0C and bus.slcan_status(2.0) == 0  # shown once
         adapter.raise_flags(0x08)
         bus.maybe_poll_status()
         assert bus.counters["overruns"] == 1 and bus.state == "active"

@@ -25,10 +25,11 @@ PROTOCOLS = ["odrive", "cia406", "dbc"]
 
 
 def assert_straight(rig) -> None:
-    assert rig.odometry.gaps == 0
+    why = dict(rig.driver.diagnostics().values)
+    assert rig.odometry.gaps == 0, why
     final = rig.last_good_wheels()
     first = next(s for s in rig.topic("/wheels") if np.isfinite(s.position).all())
-    assert final.position - first.position == pytest.approx(rig.expected_angles(), abs=1e-5)
+    assert final.position - first.position == pytest.approx(rig.expected_angles(), abs=1e-5), why
     odom = rig.topic("/odom")[-1]
     # Exact kinematics are tested in test_odometry. Here each node sends on its own clock and the
     # pair is aligned on receive stamps, so at a speed step (or when the loaded test machine

@@ -32,6 +32,7 @@ def test_example_config_parses_with_every_section():
     assert config.logger.split_size_mb == 1024.0 and config.disk.action == "delete_oldest"
     assert config.status.socket == Path("/run/trundle/status.sock")
     assert config.slam == {"resolution": 0.05}
+    assert not config.live.enabled and config.live.host == "127.0.0.1" and config.live.port == 8765
 
 
 @pytest.mark.parametrize("edit, message", [
@@ -48,6 +49,8 @@ def test_example_config_parses_with_every_section():
     (lambda d: d["transforms"][0].update(xyz=[1, 2]), "transforms[0].xyz"),
     (lambda d: d["transforms"][0].update(yaw=1.0), "unknown key transforms[0].yaw"),
     (lambda d: d["robot"].update(id=3), "unknown key robot.id"),
+    (lambda d: d["live"].update(port=70000), "live.port = 70000"),
+    (lambda d: d["live"].update(adress="0.0.0.0"), "unknown key live.adress"),
     (lambda d: d.update(camera=[{"url": "file:///a", "name": "cam"}, {"url": "file:///b", "name": "cam"}]),
      "two devices are named 'cam'"),
     (lambda d: [d.pop(k) for k in ("lrf", "can", "camera")], "no device"),

@@ -12,6 +12,7 @@
 - runs wheel odometry on the wheels driver's messages (``fusion.odometry.OdometrySink``, when the
   ``[can]`` table has ``wheel_radius_m`` and ``track_m``) and online processing off the drivers'
   threads (SLAM on ``/scan`` + ``/odom``, ArUco markers on camera images);
+- streams the same topics to Foxglove over a WebSocket when ``[live] enabled`` (``tools.live_view``);
 - publishes ``/diagnostics`` every period, answers ``trundle status`` on a UNIX socket with one
   JSON object, and speaks systemd's notify protocol (READY=1, WATCHDOG=1, STATUS=, STOPPING=1);
 - SIGTERM/SIGINT stop it cleanly (every file closed and renamed), SIGHUP starts a new split.
@@ -43,6 +44,7 @@ from logs import messages as m
 from logs.errors import UserError
 from logs.writer import Logger, LoggerError, metadata_json
 from tools.daemon_config import DaemonConfig, Device
+from tools.live_view import LiveView
 
 DriverFactory = Callable[[str, str, Any, dict[str, Any]], Driver]
 NO_SPLIT_BYTES = 1 << 62  # split only on request: the logger then numbers its files
@@ -356,6 +358,8 @@ class Daemon:
         self._stop_counts: dict[str, dict[str, int]] = {}
         self.processing: Processing | None = None
         self.odometry: dict[str, OdometrySink] = {}
+        self.live: LiveView | None = None
+        self.live_errors = 0
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> None:
@@ -386,6 +390,10 @@ class Daemon:
             cfg.logger.folder.mkdir(parents=True, exist_ok=True)
         except OSError as error:
             raise UserError(f"cannot create the log folder {cfg.logger.folder}: {error.strerror or error}") from None
+        if cfg.live.enabled:
+            self.live = LiveView(cfg.live.host, cfg.live.port, name=f"trundle {cfg.robot}")
+            for topic, msg in list(self._latched.items()):
+                self.live(topic, msg, wall_ns())
         processing = Processing(self)
         if processing.active:
             self.processing = processing
@@ -468,6 +476,9 @@ class Daemon:
         if self.supervised:
             self._publish_diagnostics(time.monotonic())
         self._close_logger()
+        if self.live is not None:
+            self.live.close()
+            self.live = None
         if self._server is not None:
             self._server.shutdown()
             self._server.server_close()
@@ -495,6 +506,12 @@ class Daemon:
         if logger is None or not logger.write(topic, msg, log_time_ns):
             if logger is None:
                 self.unrecorded += 1
+        live = self.live
+        if live is not None:
+            try:
+                live(topic, msg, log_time_ns)
+            except Exception:  # noqa: BLE001 -- the live view must never stop the logging
+                self.live_errors += 1
         processing = self.processing
         if processing is not None and not processed and processing.wants(topic, msg):
             processing.put(topic, msg)
@@ -661,6 +678,8 @@ class Daemon:
         for rates in self.rates.values():
             rates.update(now)
         self.publish("/diagnostics", self._diagnostics())
+        if self.live is not None:
+            self.live.repeat_latched()
         sd_notify("STATUS=" + self._summary())
 
     def _summary(self) -> str:
@@ -702,6 +721,9 @@ class Daemon:
         }
         if self.processing is not None:
             out["processing"] = self.processing.status()
+        if self.live is not None:
+            out["live"] = {"url": f"ws://{self.config.live.host}:{self.live.port}", "sent": self.live.sent,
+                           "errors": self.live_errors}
         if self.odometry:
             out["odometry"] = {name: {"stale": sink.odometry.stale, "gaps": sink.odometry.gaps,
                                       "distance_m": round(sink.odometry.distance_m, 3)}
@@ -760,6 +782,8 @@ def format_status(status: dict[str, Any]) -> str:
     for name, odo in status.get("odometry", {}).items():
         lines.append(f"odometry ({name}): {'STALE, ' if odo['stale'] else ''}{odo['distance_m']:.1f} m travelled, "
                      f"{odo['gaps']} gaps")
+    if "live" in status:
+        lines.append(f"live view: {status['live']['url']} (open it in Foxglove), {status['live']['sent']} messages sent")
     if "processing" in status:
         p = status["processing"]
         extra = "".join(f", {k} {v}" for k, v in p.items() if k in ("slam", "markers"))

@@ -105,6 +105,13 @@ class SupervisionConfig:
 
 
 @dataclass(frozen=True)
+class LiveConfig:
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = 8765
+
+
+@dataclass(frozen=True)
 class FramesConfig:
     map: str = "map"
     odom: str = "odom"
@@ -125,6 +132,7 @@ class DaemonConfig:
     status: StatusConfig
     supervision: SupervisionConfig
     slam: dict[str, Any]
+    live: LiveConfig = LiveConfig()
     source: str = ""
 
 
@@ -246,7 +254,7 @@ def _transforms(data: dict[str, Any], source: str) -> tuple[StaticTransform, ...
 
 
 TOP_LEVEL = {"robot", "frames", "transforms", "logger", "disk", "processing", "status", "supervision", "slam",
-             *FAMILIES}
+             "live", *FAMILIES}
 
 
 def parse_config(data: dict[str, Any], source: str = "") -> DaemonConfig:
@@ -280,8 +288,11 @@ def parse_config(data: dict[str, Any], source: str = "") -> DaemonConfig:
     devices = _devices(data, source)
     if not devices:
         raise UserError(f"{_where(source, 'no device')}: add an [lrf], [can] or [camera] table with a url")
+    live = _build(LiveConfig, _table(data, "live", source), "live", source)
+    if not 0 <= live.port <= 65535:
+        raise UserError(f"{_where(source, 'live.port')} = {live.port}: expected a TCP port 0-65535")
     return DaemonConfig(robot, devices, frames, _transforms(data, source), logger, disk, processing, status,
-                        supervision, _table(data, "slam", source), source)
+                        supervision, _table(data, "slam", source), live, source)
 
 
 def load_config(path: str | os.PathLike[str]) -> DaemonConfig:

@@ -50,6 +50,7 @@ def test_example_config_parses_with_every_section():
     (lambda d: d["transforms"][0].update(yaw=1.0), "unknown key transforms[0].yaw"),
     (lambda d: d["robot"].update(id=3), "unknown key robot.id"),
     (lambda d: d["live"].update(port=70000), "live.port = 70000"),
+    (lambda d: d["slam"].update(resolutoin=0.1), "unknown [slam] option 'resolutoin'"),
     (lambda d: d["live"].update(adress="0.0.0.0"), "unknown key live.adress"),
     (lambda d: d.update(camera=[{"url": "file:///a", "name": "cam"}, {"url": "file:///b", "name": "cam"}]),
      "two devices are named 'cam'"),

@@ -35,14 +35,17 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from drivers.lifecycle import Driver, wall_ns
 from fusion.odometry import OdometrySink, odometry_from_config
+from fusion.slam import Slam, SlamConfig
 from logs import messages as m
 from logs.errors import UserError
 from logs.writer import Logger, LoggerError, metadata_json
+from perception.markers import MarkerDetector, marker_pose
 from tools.daemon_config import DaemonConfig, Device
 from tools.live_view import LiveView
 
@@ -168,19 +171,13 @@ class Processing:
         self.skipped_scans = 0
         self.errors = 0
         self.last_error = ""
-        self.slam = None
-        self.detector = None
         self.markers_seen: collections.Counter[int] = collections.Counter()
         self._next_marker_t = 0.0
         self._next_map_t = 0.0
         self._camera_info: dict[str, m.CameraInfo] = {}
-        if cfg.slam:
-            from fusion.slam import Slam, SlamConfig
-            self.slam = Slam(SlamConfig.from_mapping(daemon.config.slam))
-            self.scan_topic = self.slam.config.scan_topic
-        if cfg.markers:
-            from perception.markers import MarkerDetector
-            self.detector = MarkerDetector(cfg.aruco_dictionary)
+        self.slam: Slam | None = Slam(SlamConfig.from_mapping(daemon.config.slam)) if cfg.slam else None
+        self.scan_topic = self.slam.config.scan_topic if self.slam is not None else ""
+        self.detector = MarkerDetector(cfg.aruco_dictionary) if cfg.markers else None
         self.thread = threading.Thread(target=self._run, name="processing", daemon=True)
 
     @property
@@ -252,9 +249,6 @@ class Processing:
             self.daemon.publish("/map", self.slam.build_map().to_message(now, frames.map))
 
     def _detect_markers(self, topic: str, msg: m.CompressedImage | m.Image) -> None:
-        import cv2
-
-        from perception.markers import marker_pose
         if isinstance(msg, m.CompressedImage):
             image = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE)
         else:
@@ -503,9 +497,10 @@ class Daemon:
             self._remember_latched(topic, msg)
             msg = self._latched.get(topic, msg)
         logger = self.logger
-        if logger is None or not logger.write(topic, msg, log_time_ns):
-            if logger is None:
-                self.unrecorded += 1
+        if logger is not None:
+            logger.write(topic, msg, log_time_ns)  # a full queue is counted by the logger as a drop
+        else:
+            self.unrecorded += 1
         live = self.live
         if live is not None:
             try:
@@ -633,7 +628,7 @@ class Daemon:
     # ------------------------------------------------------------------ supervision and health
     def _supervise(self, now: float) -> None:
         for sup in self.supervised:
-            if sup.crashed and sup.restart_at is not None and now >= sup.restart_at and not self._stop_requested:
+            if sup.restart_at is not None and now >= sup.restart_at and not self._stop_requested:
                 print(f"trundle daemon: restarting driver {sup.device.name}", file=sys.stderr, flush=True)
                 sup.start()
 

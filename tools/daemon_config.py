@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from fusion.slam import SlamConfig
 from logs.errors import UserError
 
 FAMILIES = ("lrf", "can", "camera")
@@ -288,11 +289,16 @@ def parse_config(data: dict[str, Any], source: str = "") -> DaemonConfig:
     devices = _devices(data, source)
     if not devices:
         raise UserError(f"{_where(source, 'no device')}: add an [lrf], [can] or [camera] table with a url")
+    slam = _table(data, "slam", source)
+    try:
+        SlamConfig.from_mapping(slam)  # checked even while SLAM is off, so a typo shows at once
+    except UserError as error:
+        raise UserError(f"{_where(source, str(error))}") from None
     live = _build(LiveConfig, _table(data, "live", source), "live", source)
     if not 0 <= live.port <= 65535:
         raise UserError(f"{_where(source, 'live.port')} = {live.port}: expected a TCP port 0-65535")
     return DaemonConfig(robot, devices, frames, _transforms(data, source), logger, disk, processing, status,
-                        supervision, _table(data, "slam", source), live, source)
+                        supervision, slam, live, source)
 
 
 def load_config(path: str | os.PathLike[str]) -> DaemonConfig:

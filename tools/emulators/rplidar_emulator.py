@@ -184,10 +184,14 @@ class RplidarDevice:
         return max(self.phase_ns + self._next * self.sample_ns, self._silent_until if self._held else 0)
 
     def poll(self, now: int) -> bytes:
-        """The samples measured by ``now``; during a stall they are held back and sent after it."""
-        if self.mode is None or (self.mode != "force" and not self.motor_running):
+        """The samples measured by ``now``; during a stall they are held back and sent after it.
+        SCAN sends nothing while the motor stands (FORCE_SCAN does not wait for it)."""
+        if self.mode is None:
             return b""
         last = (now - self.phase_ns) // self.sample_ns  # the last sample measured by now
+        if self.mode != "force" and not self.motor_running:
+            self._next = last + 1
+            return b""
         k = self._next
         while k <= last:
             index = k // self.n

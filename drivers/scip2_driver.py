@@ -144,11 +144,13 @@ class ScipScanStream:
 
     def ranges(self, distances: np.ndarray) -> np.ndarray:
         """Millimetres and error codes -> metres with REP 117 invalid values."""
-        d = distances.astype(np.int64)
-        out = (d / 1000.0).astype(np.float32)
-        low = d < self.params.dmin
-        out[low] = self.codes[np.minimum(d[low], self.codes.size - 1)]
-        out[d > self.params.dmax] = np.inf
+        out = (distances / 1000.0).astype(np.float32)  # the float32 nearest each millimetre value
+        low = distances < self.params.dmin
+        if low.any():
+            out[low] = self.codes[np.minimum(distances[low], self.codes.size - 1)]
+        high = distances > self.params.dmax
+        if high.any():
+            out[high] = np.inf
         return out
 
     def feed(self, data: bytes, host_rx_ns: int) -> list[tuple[m.LaserScan, Timing]]:

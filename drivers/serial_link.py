@@ -9,6 +9,7 @@ client); ``close`` sends last words (stop streaming, stop the motor) and never r
 from __future__ import annotations
 
 import errno
+import select
 import time
 from typing import Callable
 
@@ -22,12 +23,18 @@ class SerialLink:
 
     def __init__(self, url: str, baudrate: int, read_timeout_s: float = 0.05) -> None:
         self.url = url
-        self.port = serial.serial_for_url(url, baudrate=baudrate, timeout=read_timeout_s, write_timeout=1.0)
+        self.read_timeout_s = read_timeout_s
+        # non-blocking reads after a select: pyserial's socket:// reports at most 1 byte waiting,
+        # so reading ``in_waiting`` bytes would take a TCP stream one byte per call
+        self.port = serial.serial_for_url(url, baudrate=baudrate, timeout=0, write_timeout=1.0)
         self.last_rx = time.monotonic()
 
     def read(self) -> bytes:
         """What has arrived, or (after up to ``read_timeout_s``) nothing."""
-        data = self.port.read(max(self.port.in_waiting, 1))
+        ready, _, _ = select.select([self.port.fileno()], [], [], self.read_timeout_s)
+        if not ready:
+            return b""
+        data = self.port.read(1 << 16)
         if data:
             self.last_rx = time.monotonic()
         return data

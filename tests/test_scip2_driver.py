@@ -309,3 +309,17 @@ def test_silent_port_names_the_bauds_it_tried(tmp_path):
         wait_until(lambda: driver.counters["errors"] >= 1, "a failed start")
         driver.stop()
     assert "no SCIP answer" in driver.last_error and "115200, 19200, 38400 baud" in driver.last_error
+
+
+def test_ethernet_link_drop_reconnects_to_the_same_port():
+    model = MODELS["ust-10lx"]
+    device = ScipDevice(model, load_scene().range_source(model.angles, seed=5), FaultPlan(unplug_s=0.4),
+                        time.time_ns())
+    server = DeviceServer(device, tcp_port=0)
+    sink = Recorder()
+    driver = lrf.driver_from_url(f"scip2+tcp://127.0.0.1:{server.port}", sink, {**PATIENT, "angle_max": 0.5})
+    with running(server, driver):
+        wait_until(lambda: driver.counters["scans"] >= 5, "5 scans")
+        assert replug_delay_ns(server, driver, sink) < 2e9
+    assert driver.counters["reconnects"] == 1 and server.unplugs == 1
+    match(device, sink, 0)

@@ -63,12 +63,15 @@ def rotate_covariance(covariance: np.ndarray, theta: float) -> np.ndarray:
 
 
 def scan_to_points(scan: LaserScan, sensor_pose: np.ndarray | None = None, range_min: float | None = None,
-                   range_max: float | None = None) -> np.ndarray:
+                   range_max: float | None = None, velocity: np.ndarray | None = None) -> np.ndarray:
     """Valid returns of ``scan`` as points (N, 2) in metres, in the frame of ``sensor_pose``.
 
     A beam is kept when its range is finite and inside ``[range_min, range_max]`` (defaults: the
     scan's own limits), so REP 117's +inf / -inf / NaN readings drop out. ``sensor_pose`` is the
     laser's pose in the robot frame (default: identity, points stay in the laser frame).
+    ``velocity`` (vx m/s, vy m/s, wz rad/s, robot frame) undoes the motion during the sweep: beam
+    i, measured ``i * time_increment`` after the stamp, is moved into the robot frame at the stamp
+    (constant velocity over the sweep).
     """
     ranges = scan.ranges.astype(np.float64)
     low = scan.range_min if range_min is None else range_min
@@ -77,7 +80,16 @@ def scan_to_points(scan: LaserScan, sensor_pose: np.ndarray | None = None, range
     angles = scan.angles()[keep]
     r = ranges[keep]
     points = np.stack([r * np.cos(angles), r * np.sin(angles)], axis=1)
-    return points if sensor_pose is None else transform_points(sensor_pose, points)
+    if sensor_pose is not None:
+        points = transform_points(sensor_pose, points)
+    if velocity is not None and scan.time_increment > 0:
+        dt = np.flatnonzero(keep) * float(scan.time_increment)
+        vx, vy, wz = (float(v) for v in velocity)
+        turn = wz * dt
+        c, s = np.cos(turn), np.sin(turn)
+        points = np.stack([c * points[:, 0] - s * points[:, 1] + vx * dt,
+                           s * points[:, 0] + c * points[:, 1] + vy * dt], axis=1)
+    return points
 
 
 def no_return_directions(scan: LaserScan, sensor_pose: np.ndarray | None = None) -> np.ndarray:

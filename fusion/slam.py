@@ -56,6 +56,8 @@ class SlamConfig:
     min_range_m: float = 0.0
     max_range_m: float = 30.0
     voxel_m: float = 0.05
+    deskew: bool = True
+    deskew_max_gap_s: float = 0.5
     no_return_clear_m: float = 0.0
     # motion filter: a keyframe every so far / so much turn / so long
     keyframe_distance_m: float = 0.2
@@ -246,13 +248,15 @@ class Slam:
         cfg = self.config
         mount = self.laser_pose if self.laser_pose is not None else self._static.get(scan.frame_id, np.zeros(3))
         self._mount = mount
-        points = scan_to_points(scan, mount, max(cfg.min_range_m, scan.range_min), min(cfg.max_range_m, scan.range_max))
+        odom = self.odometry_at(scan.stamp_ns)
+        velocity = self._sweep_velocity(scan.stamp_ns, odom) if cfg.deskew else None
+        points = scan_to_points(scan, mount, max(cfg.min_range_m, scan.range_min), min(cfg.max_range_m, scan.range_max),
+                                velocity)
         free_ends = None
         if cfg.no_return_clear_m > 0:
             free_ends = mount[:2] + cfg.no_return_clear_m * no_return_directions(scan, mount)
         match_points = voxel_filter(points, cfg.voxel_m)
         self.stats.scans += 1
-        odom = self.odometry_at(scan.stamp_ns)
         self._predict(scan.stamp_ns, odom)
         assert self.ekf is not None
 
@@ -290,6 +294,17 @@ class Slam:
         if odom is not None:
             self.map_to_odom = compose(pose_map, inverse(odom))
         return ScanResult(scan.stamp_ns, pose_map, result, matched, searched, node)
+
+    def _sweep_velocity(self, stamp_ns: int, odom: np.ndarray | None) -> np.ndarray | None:
+        """Robot velocity (robot frame) over the last scan interval: odometry's, else the tracked one."""
+        if self._last_stamp is None:
+            return None
+        dt = (stamp_ns - self._last_stamp) * 1e-9
+        if not 0.0 < dt <= self.config.deskew_max_gap_s:
+            return None
+        if odom is not None and self._last_scan_odom is not None:
+            return relative(self._last_scan_odom, odom) / dt
+        return self._velocity
 
     def _predict(self, stamp_ns: int, odom: np.ndarray | None) -> None:
         cfg = self.config

@@ -1,0 +1,80 @@
+"""SE(2) algebra, scan-to-points (REP 117, mount, de-skew) and the voxel filter."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance, scan_to_points,
+                             transform_points, voxel_filter, wrap_angle)
+from logs.messages import LaserScan
+from tests.planar_world import ROOM, cast
+
+poses = st.tuples(st.floats(-50, 50), st.floats(-50, 50), st.floats(-10, 10)).map(np.array)
+
+
+@settings(max_examples=100, deadline=None)
+@given(poses, poses)
+def test_relative_undoes_compose_and_inverse_is_an_inverse(a: np.ndarray, b: np.ndarray) -> None:
+    np.testing.assert_allclose(relative(a, compose(a, b))[:2], b[:2], atol=1e-9)
+    assert abs(wrap_angle(relative(a, compose(a, b))[2] - b[2])) < 1e-9
+    np.testing.assert_allclose(compose(a, inverse(a)), [0.0, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(relative(a, b), compose(inverse(a), b), atol=1e-9)
+    np.testing.assert_allclose(transform_points(compose(a, b), np.array([[1.0, 2.0]])),
+                               transform_points(a, transform_points(b, np.array([[1.0, 2.0]]))), atol=1e-9)
+
+
+def test_hand_computed_compose_and_wrap() -> None:
+    np.testing.assert_allclose(compose(np.array([1.0, 2.0, math.pi / 2]), np.array([1.0, 0.0, math.pi])),
+                               [1.0, 3.0, -math.pi / 2], atol=1e-12)
+    assert wrap_angle(3 * math.pi) == pytest.approx(-math.pi)
+    np.testing.assert_allclose(wrap_angle(np.array([0.5, -7.0])), [0.5, -7.0 + 2 * math.pi])
+    cov = np.diag([4.0, 1.0, 0.1])
+    np.testing.assert_allclose(rotate_covariance(cov, math.pi / 2), np.diag([1.0, 4.0, 0.1]), atol=1e-12)
+
+
+def test_scan_to_points_drops_rep117_readings_and_applies_the_mount() -> None:
+    ranges = [1.0, math.inf, -math.inf, math.nan, 0.01, 2.0]
+    scan = LaserScan(0, "laser", 0.0, 5 * math.pi / 2 / 5, math.pi / 2 / 5 * 1, 0.0, 0.0, 0.05, 10.0, ranges)
+    points = scan_to_points(scan)
+    assert len(points) == 2
+    np.testing.assert_allclose(points[0], [1.0, 0.0])
+    mounted = scan_to_points(scan, np.array([0.2, 0.0, math.pi]))
+    np.testing.assert_allclose(mounted[0], [-0.8, 0.0], atol=1e-12)
+    directions = no_return_directions(scan)
+    assert len(directions) == 1 and np.hypot(*directions[0]) == pytest.approx(1.0)
+
+
+def test_deskew_puts_a_turning_sweep_back_on_the_walls() -> None:
+    """A scan taken while turning at 2 rad/s: each beam cast from where the robot was at its time."""
+    beams, step = 361, 1e-4
+    angles = -math.pi / 2 + math.pi / 360 * np.arange(beams)
+    start, wz, vx = np.array([0.3, -0.2, 0.4]), 2.0, 0.5
+    ranges = np.empty(beams)
+    for i in range(beams):
+        t = i * step
+        pose = compose(start, np.array([vx * t, 0.0, wz * t]))  # small-step motion, as the model assumes
+        ranges[i] = cast(ROOM, pose, angles[i:i + 1])[0]
+    scan = LaserScan(0, "laser", angles[0], angles[-1], math.pi / 360, step, 0.1, 0.05, 30.0, ranges)
+
+    def wall_distance(points: np.ndarray) -> float:
+        world = transform_points(start, points)
+        a, b = ROOM[:, None, :2], ROOM[:, None, 2:]
+        ab = b - a
+        t = np.clip(np.einsum("wpk,wpk->wp", world[None] - a, ab) / np.einsum("wpk,wpk->wp", ab, ab), 0, 1)
+        nearest = a + t[..., None] * ab
+        return float(np.hypot(*(world[None] - nearest).transpose(2, 0, 1)).min(axis=0).mean())
+
+    assert wall_distance(scan_to_points(scan)) > 0.02
+    assert wall_distance(scan_to_points(scan, velocity=np.array([vx, 0.0, wz]))) < 1e-3
+
+
+def test_voxel_filter_keeps_one_mean_point_per_cell_in_order() -> None:
+    points = np.array([[0.01, 0.01], [0.03, 0.02], [1.0, 1.0], [0.02, 0.04]])
+    thinned = voxel_filter(points, 0.05)
+    np.testing.assert_allclose(thinned, [[0.02, 0.7 / 30], [1.0, 1.0]])
+    assert voxel_filter(np.zeros((0, 2)), 0.05).shape == (0, 2)

@@ -86,7 +86,7 @@ def decode_values(chars: bytes | np.ndarray, width: int) -> np.ndarray:
     if c.size % width:
         raise ScipError("truncated", f"{c.size} characters is not a multiple of {width}")
     d = c - np.uint8(CHAR_BASE)  # wraps below 0x30, so one test catches both ends of the range
-    if (d & 0xC0).any():
+    if d.size and d.max() > 0x3F:
         raise ScipError("format", "character outside the SCIP encoding range 0x30-0x6F")
     groups = d.reshape(-1, width).astype(np.uint32)
     out = groups[:, 0]
@@ -382,11 +382,13 @@ class ScipFramer:
         self.overflows = 0
         self._buf = bytearray()
         self._echoes: tuple[bytes, ...] = ()
+        self._heads: dict[bytes, list[bytes]] = {b"": [], b"\n": []}
         self._in_garbage = False
 
     def expect(self, *echoes: bytes) -> None:
         """Set the echo lines (without LF) that start the replies wanted from now on."""
         self._echoes = tuple(echoes)
+        self._heads = {b"": [e + b"\n" for e in echoes], b"\n": [b"\n" + e + b"\n" for e in echoes]}
 
     def clear(self) -> int:
         """Drop buffered bytes; returns how many."""
@@ -405,8 +407,8 @@ class ScipFramer:
 
     def _find(self, prefix: bytes, start: int) -> tuple[int, bytes]:
         best, which = -1, b""
-        for echo in self._echoes:
-            pos = self._buf.find(prefix + echo + b"\n", start)
+        for echo, head in zip(self._echoes, self._heads[prefix]):
+            pos = self._buf.find(head, start)
             if pos >= 0 and (best < 0 or pos < best):
                 best, which = pos, echo
         return best, which

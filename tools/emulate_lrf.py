@@ -32,8 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     where.add_argument("--link", type=Path, metavar="PATH", help="symlink to create for the emulated serial port")
     where.add_argument("--tcp", type=int, metavar="PORT", help="serve on this TCP port of 127.0.0.1 (0: any)")
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="TOML polygon scene (default: a room)")
-    parser.add_argument("--faults", default="", metavar="SPEC",
-                        help="e.g. checksum=0.02,truncate=0.01,garbage=0.01,stall=0.005,stall_s=0.3,streaming,seed=1")
+    parser.add_argument("--faults", default="", metavar="SPEC", help=(
+        "comma-separated per-scan probabilities, flags and durations, e.g. checksum=0.02,stall=0.005,"
+        f"stall_s=0.3,streaming,seed=1; scip2: {' '.join(scip2_emulator.KINDS)}, flag streaming, wrap=S "
+        f"(seconds to the 24-bit clock wrap); rplidar: {' '.join(rplidar_emulator.KINDS)}, flags "
+        f"{' '.join(rplidar_emulator.FLAGS)}; durations stall_s, unplug_s, reboot_s"))
     parser.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds (default: Ctrl-C)")
 
 

@@ -44,6 +44,12 @@ def all_streaming(path: Path) -> bool:
                                       for d in status["devices"])
 
 
+def summary(path: Path) -> list:
+    """Each device's state, rates, errors and last error (for failure messages)."""
+    status = status_or_none(path)
+    return status and [(d["name"], d["state"], d["rates_hz"], d["reconnects"], d["last_error"]) for d in status["devices"]]
+
+
 def soak(tmp_path: Path, duration_s: float, period_s: float, away_s: float) -> None:
     sim = RobotSim(load_world(), laps=max(1, math.ceil(duration_s / 55.0)))
     socket_path = tmp_path / "status.sock"
@@ -76,9 +82,9 @@ def soak(tmp_path: Path, duration_s: float, period_s: float, away_s: float) -> N
             while time.monotonic() < started + duration_s:
                 assert proc.poll() is None, proc.stderr.read()
                 time.sleep(0.2)
-            deadline = time.monotonic() + 30
+            deadline = time.monotonic() + 60
             while not all_streaming(socket_path):  # every device recovers
-                assert proc.poll() is None and time.monotonic() < deadline, status_or_none(socket_path)
+                assert proc.poll() is None and time.monotonic() < deadline, summary(socket_path)
                 time.sleep(0.2)
             time.sleep(1.0)
             status = query_status(socket_path)

@@ -40,7 +40,10 @@ class RplidarConfig:
 
     ``model`` picks the default baud and range limits; ``mode`` is ``standard`` (SCAN) or
     ``express`` (EXPRESS_SCAN); ``beams`` is the size of the published angular grid;
-    ``motor_pwm`` (A2/A3) and ``motor_rpm`` (S series) set the motor speed.
+    ``motor_pwm`` (A2/A3) and ``motor_rpm`` (S series) set the motor speed. ``range_min``,
+    ``range_max`` and ``baudrate`` default (0) to the model's. ``error_limit`` bad revolutions
+    in a row or ``timeout_s`` of silence force a reconnect (backing off up to ``backoff_max_s``);
+    ``reply_timeout_s`` bounds each start-up reply, ``startup_timeout_s`` the scan's first answer.
     """
 
     port: str

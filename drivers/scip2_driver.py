@@ -39,7 +39,9 @@ class ScipConfig:
     scans between two sent, ``intensity`` asks for ME. ``x, y, z, yaw`` place ``frame_id`` in
     ``parent_frame``. ``error_limit`` consecutive bad scans force a reconnect (urg_node uses 4);
     ``timeout_s`` of silence too (default 16 scan periods, at least 0.5 s, as urg_c).
-    ``timing_topic`` ("" for none) carries raw and derived times of every scan.
+    ``timing_topic`` ("" for none) carries raw and derived times of every scan. ``tm_samples``
+    TM1 round trips set the clock (0: anchor on receive times); ``reply_timeout_s`` bounds each
+    start-up reply; reconnects back off up to ``backoff_max_s``.
     """
 
     port: str

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 Data = np.ndarray | tuple[np.ndarray, ...]
+REFITS = 10
 
 
 @dataclass(frozen=True)
@@ -58,7 +59,8 @@ def ransac(data: Data, fit: Callable[..., Any], residuals: Callable[..., np.ndar
     candidate models, or None for a degenerate sample) and scores every candidate by the number
     of rows with `residuals(model, *data) < threshold`; ties go to the smaller sum of inlier
     residuals. Trials stop early once `confidence` of having drawn an all-inlier sample is
-    reached. The best model is refitted by `fit` on all its inliers and the inliers recomputed.
+    reached. The best model is then refitted by `fit` on all its inliers and the inliers
+    recomputed, repeatedly until they stop changing (at most REFITS times).
     `rng`: a Generator, a seed, or None for seed 0 (results are reproducible by default).
     """
     arrays = data if isinstance(data, tuple) else (data,)
@@ -88,12 +90,19 @@ def ransac(data: Data, fit: Callable[..., Any], residuals: Callable[..., np.ndar
                 needed = required_trials(count / n, min_samples, confidence)
     if best_model is None:
         return RansacResult(None, none, trials)
-    if best_count > min_samples:
+    for _ in range(REFITS):
+        if best_inliers.sum() <= min_samples:
+            break
         refit = _candidates(fit(*_subset(data, best_inliers)))
-        if refit:
-            inliers = residuals(refit[0], *arrays) < threshold
-            if inliers.sum() >= best_count:
-                best_model, best_inliers = refit[0], inliers
+        if not refit:
+            break
+        inliers = residuals(refit[0], *arrays) < threshold
+        if inliers.sum() < min_samples:
+            break
+        same = np.array_equal(inliers, best_inliers)
+        best_model, best_inliers = refit[0], inliers
+        if same:
+            break
     return RansacResult(best_model, best_inliers, trials)
 
 

@@ -43,9 +43,10 @@ def test_record_from_the_emulator_process(tmp_path, capsys):
     assert "fault: heartbeat-stop (wheel 1)" in stdout and emulator.returncode == 0
     with LogReader(out) as log:
         info = log.info()
-        assert {"/can/rx", "/wheels", "/diagnostics"} <= set(info.topics)
+        assert {"/can/rx", "/wheels", "/diagnostics", "/odom", "/tf"} <= set(info.topics)
         frames = [m.msg for m in log.messages(["/can/rx"])]
         wheels = [m.msg for m in log.messages(["/wheels"])]
+        live = [m.msg for m in log.messages(["/odom"])]
     odometry = odometry_from_config({"wheel_radius_m": 0.1, "track_m": 0.5})  # on the log, as on the robot
     odoms = [o for o in map(odometry.update, wheels) if o is not None]
     # re-decode the logged raw frames: each right-wheel angle is the last right estimate logged
@@ -63,6 +64,9 @@ def test_record_from_the_emulator_process(tmp_path, capsys):
     xs = np.array([o.x for o in odoms])
     assert xs[-1] > 0.3 and np.max(np.abs(np.diff(xs))) < 0.05  # moving forward, no jump over the gap
     assert odometry.gaps >= 1
+    # the odometry recorded live is the odometry the same code computes again from the log
+    assert len(live) == len(odoms)  # (yaw travels as a quaternion: equal to rounding)
+    np.testing.assert_allclose([(o.x, o.y, o.theta) for o in live], [(o.x, o.y, o.theta) for o in odoms], atol=1e-12)
 
 
 @pytest.mark.parametrize("argv", [

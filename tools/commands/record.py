@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers.lifecycle import Driver
+from fusion.odometry import OdometrySink, odometry_from_config
 from logs import messages as m
 from logs.errors import UserError
 from logs.writer import Logger
@@ -29,7 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--encoders", metavar="SPEC", help="wheel encoders on the CAN bus, e.g. odrive:0,1")
     p.add_argument("--camera", action="append", default=[], metavar="URL",
                    help="camera: v4l2:///dev/video0?width=1280&height=720&fps=30&fourcc=MJPG, file:///clip.avi")
-    p.add_argument("--config", type=Path, help="TOML with [lrf], [can], [camera] tables of driver options")
+    p.add_argument("--config", type=Path, help="TOML with [lrf], [can], [camera] tables of driver options; "
+                   "wheel_radius_m and track_m in [can] add wheel odometry (/odom, /tf)")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument("-o", "--output", required=True, type=Path, help="output .mcap")
     p.add_argument("--compression", default="zstd", choices=("zstd", "lz4", "none"))
@@ -80,9 +82,14 @@ def run(args: argparse.Namespace) -> int:
     try:
         for family, url in specs:
             options = dict(config.get(family, {}))
-            if family == "can" and args.encoders:
-                options["encoders"] = args.encoders
-            drivers.append(make_driver(family, url, logger, options))
+            sink: Any = logger
+            if family == "can":
+                if args.encoders:
+                    options["encoders"] = args.encoders
+                odometry = odometry_from_config(options)  # wheel_radius_m + track_m in [can]: /odom and /tf
+                if odometry is not None:
+                    sink = OdometrySink(logger, odometry)
+            drivers.append(make_driver(family, url, sink, options))
         stop = threading.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())

@@ -16,6 +16,7 @@ from typing import Any, Mapping, TypeVar
 from urllib.parse import parse_qsl, urlsplit
 
 from drivers.lifecycle import Driver, Sink
+from logs import messages as m
 from logs.errors import UserError
 
 SCHEMES = ("scip2", "scip2+tcp", "rplidar")
@@ -33,6 +34,12 @@ def _value(text: str) -> Any:
         except ValueError:
             pass
     return text
+
+
+def laser_transform(config: Any, stamp_ns: int) -> m.TFMessage:
+    """The static transform ``parent_frame`` -> ``frame_id`` at ``x, y, z, yaw`` of a laser config."""
+    return m.TFMessage((m.TransformStamped.planar(stamp_ns, config.parent_frame, config.frame_id, config.x, config.y,
+                                                  config.yaw, config.z),))
 
 
 def make_config(cls: type[Config], port: str, options: Mapping[str, Any], device: str) -> Config:

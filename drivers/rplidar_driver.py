@@ -23,6 +23,7 @@ import serial
 
 from drivers import rplidar as rp
 from drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
+from drivers.lrf import laser_transform
 from drivers.serial_link import SerialLink, set_modem_line
 from logs import messages as m
 from logs.errors import UserError
@@ -265,8 +266,7 @@ class RplidarDriver(Driver):
         self._decoder: rp.NodeDecoder | rp.ExpressNodeDecoder = rp.NodeDecoder()
         self._assembler = RevolutionAssembler(LEGACY_SAMPLE_US * 1000, counters=self.counters)
         self._bad_in_row = 0
-        self._static = m.TFMessage((m.TransformStamped.planar(
-            clock(), config.parent_frame, config.frame_id, config.x, config.y, config.yaw, config.z),))
+        self._static = laser_transform(config, clock())
 
     def static_messages(self) -> list[tuple[str, m.Message]]:
         return [("/tf_static", self._static)]

@@ -19,6 +19,7 @@ import numpy as np
 
 from drivers import scip2
 from drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
+from drivers.lrf import laser_transform
 from drivers.scip2 import Measure, Reply, ScipError, ScipFramer, SensorParams
 from drivers.sensor_clock import SensorClock
 from drivers.serial_link import SerialLink
@@ -253,8 +254,7 @@ class ScipDriver(Driver):
         self.link: SerialLink | None = None
         self._framer = ScipFramer()
         self._session = 0
-        self._static = m.TFMessage((m.TransformStamped.planar(
-            clock(), config.parent_frame, config.frame_id, config.x, config.y, config.yaw, config.z),))
+        self._static = laser_transform(config, clock())
 
     def static_messages(self) -> list[tuple[str, m.Message]]:
         return [("/tf_static", self._static)]

@@ -76,3 +76,20 @@ def replug_delay_ns(server: DeviceServer, driver: Driver, sink: Recorder) -> int
     wait_until(lambda: any(s.stamp_ns > server.replugged_ns[0] for s in sink.scans()), "a scan after the replug")
     replug = server.replugged_ns[0]
     return min(s.stamp_ns for s in sink.scans() if s.stamp_ns > replug) - replug
+
+
+MUTATIONS = ("flip", "insert", "delete", "replace")
+
+
+def mutate(stream: bytearray, how: str, where: int, value: int) -> None:
+    """Damage one byte of ``stream`` in place: flip bit ``value % 8``, insert or write ``value``,
+    or delete; ``where`` is taken modulo the length (for hypothesis-drawn positions)."""
+    i = where % len(stream)
+    if how == "flip":
+        stream[i] ^= 1 << (value % 8)
+    elif how == "insert":
+        stream.insert(i, value)
+    elif how == "delete":
+        del stream[i]
+    else:
+        stream[i] = value

@@ -15,6 +15,7 @@ from drivers.rplidar_driver import RevolutionAssembler, revolution_scan
 from drivers.scip2 import Measure
 from drivers.scip2_driver import ScipScanStream
 from drivers.sensor_clock import SensorClock
+from tests.lrf_harness import MUTATIONS, mutate
 from tools.emulators import rplidar_emulator, scip2_emulator
 from tools.emulators.faults import FaultPlan
 from tools.emulators.scene import load_scene
@@ -169,20 +170,14 @@ def test_scip2_stream_never_raises_on_noise(noise):
 
 
 @settings(max_examples=100, deadline=None)
-@given(st.lists(st.tuples(st.sampled_from(["flip", "insert", "delete"]), st.integers(0, 2**31), st.integers(0, 255)),
+@given(st.lists(st.tuples(st.sampled_from(MUTATIONS), st.integers(0, 2**31), st.integers(0, 255)),
                 max_size=12), st.integers(1, 700))
 def test_rplidar_mutated_streams_never_raise(mutations, chunk):
     n = 360
     angle = np.tile(np.arange(n) * 64, 3)
     stream = bytearray(rp.encode_nodes(angle == 0, np.full(3 * n, 47), angle, np.arange(3 * n) * 4 + 400))
     for how, where, value in mutations:
-        i = where % len(stream)
-        if how == "flip":
-            stream[i] ^= 1 << (value % 8)
-        elif how == "insert":
-            stream.insert(i, value)
-        else:
-            del stream[i]
+        mutate(stream, how, where, value)
     decoder, assembler = rp.NodeDecoder(), RevolutionAssembler(500_000)
     for i in range(0, len(stream), chunk):
         for rev in assembler.feed(decoder.feed(bytes(stream[i:i + chunk])), T0 + i):

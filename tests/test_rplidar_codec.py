@@ -7,6 +7,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from drivers import rplidar as rp
+from tests.lrf_harness import MUTATIONS, mutate
 
 
 def test_request_bytes_from_the_protocol_document():
@@ -154,18 +155,12 @@ def test_random_bytes_never_raise(noise, chunk):
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.integers(0, 1000), st.sampled_from(["flip", "insert", "delete"]), st.integers(0, 255), st.integers(0, 2**32))
+@given(st.integers(0, 1000), st.sampled_from(MUTATIONS), st.integers(0, 255), st.integers(0, 2**32))
 def test_one_mutation_never_yields_a_wrong_express_sample(seed, how, value, where):
     rng = np.random.default_rng(seed)
     stream = bytearray(b"".join(random_capsule(rng, (i * 2048) % rp.FULL_CIRCLE_Q6) for i in range(8)))
     original = rp.ExpressNodeDecoder().feed(bytes(stream))
-    i = where % len(stream)
-    if how == "flip":
-        stream[i] ^= 1 << (value % 8)
-    elif how == "insert":
-        stream.insert(i, value)
-    else:
-        del stream[i]
+    mutate(stream, how, where, value)
     nodes = rp.ExpressNodeDecoder().feed(bytes(stream))
     assert set(zip(nodes.angle_q6.tolist(), nodes.distance_q2.tolist())) <= set(
         zip(original.angle_q6.tolist(), original.distance_q2.tolist()))

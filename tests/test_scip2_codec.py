@@ -8,6 +8,7 @@ from hypothesis import given, settings, strategies as st
 
 from drivers import scip2
 from drivers.scip2 import Measure, Reply, ScipError, ScipFramer
+from tests.lrf_harness import MUTATIONS, mutate
 
 # Byte-exact lines published for real sensors (lrf-protocols.md section 1.5, checksums included).
 URG_PP = [b"MODL:URG-04LX(Hokuyo Automatic Co.,Ltd.);N", b"DMIN:20;4", b"DMAX:5600;_", b"ARES:1024;\\",
@@ -199,22 +200,14 @@ def test_random_bytes_never_raise_out_of_the_decoder(noise, echoes):
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.integers(0, 10_000), st.sampled_from(["flip", "insert", "delete", "replace"]), st.integers(0, 255),
+@given(st.integers(0, 10_000), st.sampled_from(MUTATIONS), st.integers(0, 255),
        st.integers(0, 2**32))
 def test_one_mutation_never_yields_a_wrong_scan(seed, how, value, where):
     measure = Measure("MD", 0, 300, string="S1")
     rng = np.random.default_rng(seed)
     sent = {t: rng.integers(0, 60000, measure.beams) for t in range(4)}
     stream = bytearray(b"".join(scip2.encode_scan(measure, t, d, remaining=0) for t, d in sent.items()))
-    i = where % len(stream)
-    if how == "flip":
-        stream[i] ^= 1 << (value % 8)
-    elif how == "insert":
-        stream.insert(i, value)
-    elif how == "delete":
-        del stream[i]
-    elif value != stream[i]:
-        stream[i] = value
+    mutate(stream, how, where, value)
     framer = ScipFramer()
     framer.expect(measure.echo())
     good = 0

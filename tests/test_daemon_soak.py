@@ -56,7 +56,9 @@ def soak(tmp_path: Path, duration_s: float, period_s: float, away_s: float) -> N
     faults = FaultPlan(rates={"checksum": 0.02}, seed=3)
     with SimDevices(sim, tmp_path / "dev", camera_fps=10.0, lrf_faults=faults) as devices:
         config = tmp_path / "robot.toml"
-        config.write_text(format_config({"robot": {"name": "soak"}, **devices.device_tables(),
+        tables = devices.device_tables()
+        tables["lrf"]["timeout_s"] = 2.0  # a silent laser is declared lost after 2 s (not 0.5): shared CI hosts stall
+        config.write_text(format_config({"robot": {"name": "soak"}, **tables,
                             "logger": {"folder": str(tmp_path / "logs"), "flush_period_s": 0.5},
                             "status": {"socket": str(socket_path), "diagnostics_period_s": 1.0},
                             "disk": {"min_free_mb": 1.0}}))

@@ -83,7 +83,7 @@ class SimDevices:
         self.can_adapter: SlcanEmulator | None = None
         self.can_nodes: CanNodeRunner | None = None
         self.camera_emulator: CameraEmulator | None = None
-        self.activity: dict[str, collections.deque[int]] = {k: collections.deque(maxlen=1 << 20) for k in ("can", "camera")}
+        self.activity: dict[str, collections.deque[int]] = {k: collections.deque(maxlen=1 << 20) for k in ("lrf", "can", "camera")}
 
     # ------------------------------------------------------------------ clock
     def sim_time(self, wall_ns: int) -> float:
@@ -95,6 +95,7 @@ class SimDevices:
 
     # ------------------------------------------------------------------ sensors on the shared clock
     def _ranges_at(self, rear_s: float) -> np.ndarray:
+        self.activity["lrf"].append(time.time_ns())  # when the emulator emits the scan (its thread ran)
         return self.sim.ranges_at(rear_s - self.t0_ns / 1e9, self.laser_model)
 
     def _motor_turns_per_s(self, _runner_t: float) -> np.ndarray:
@@ -110,9 +111,7 @@ class SimDevices:
 
     def produced(self, name: str) -> np.ndarray:
         """Wall-clock times (ns) at which emulator ``name`` (lrf, can, camera) produced data: scans
-        passing the rear, encoder ticks, rendered frames; to tell a daemon's gap from a starved emulator."""
-        if name == "lrf":
-            return np.array([q.rear_ns for q in (self.lrf_device.sent if self.lrf_device else [])], np.int64)
+        emitted, encoder ticks, rendered frames; to tell a daemon's gap from a starved emulator."""
         return np.array(self.activity[name], np.int64)
 
     # ------------------------------------------------------------------ life cycle

@@ -79,6 +79,7 @@ class SlamConfig:
     odom_sigma_xy_per_m: float = 0.2
     odom_sigma_theta_per_m: float = math.radians(5.0)
     odom_sigma_theta_per_rad: float = 0.2
+    odom_timeout_s: float = 0.25
     no_odom_sigma_xy_per_s: float = 0.5
     no_odom_sigma_theta_per_s: float = math.radians(30.0)
     # loop closure
@@ -227,15 +228,20 @@ class Slam:
             del self._odom[:128]
 
     def odometry_at(self, stamp_ns: int) -> np.ndarray | None:
-        """Odometry pose at ``stamp_ns``, interpolated between the readings around it (latest if newer)."""
+        """Odometry pose at ``stamp_ns``, interpolated between the readings around it.
+
+        Outside the readings the nearest one stands in, unless it is more than
+        ``config.odom_timeout_s`` away: then odometry counts as missing (None).
+        """
         if not self._odom:
             return None
         stamps = np.array([s for s, _ in self._odom])
         k = int(np.searchsorted(stamps, stamp_ns))
-        if k == 0:
-            return self._odom[0][1].copy()
-        if k >= len(stamps):
-            return self._odom[-1][1].copy()
+        if k == 0 or k >= len(stamps):
+            nearest = self._odom[0] if k == 0 else self._odom[-1]
+            if abs(stamp_ns - nearest[0]) * 1e-9 > self.config.odom_timeout_s:
+                return None
+            return nearest[1].copy()
         (s0, p0), (s1, p1) = self._odom[k - 1], self._odom[k]
         f = (stamp_ns - s0) / (s1 - s0) if s1 > s0 else 1.0
         step = relative(p0, p1)
@@ -323,7 +329,7 @@ class Slam:
             sxy, sth = cfg.no_odom_sigma_xy_per_s * dt + 1e-3, cfg.no_odom_sigma_theta_per_s * dt + 1e-3
             noise = np.diag([sxy ** 2, sxy ** 2, sth ** 2])
         self.ekf.predict(delta, noise)
-        self._last_scan_odom = odom if odom is not None else self._last_scan_odom
+        self._last_scan_odom = odom  # after a gap the first reading only sets the reference again
 
     def _track(self, submap: Submap, points: np.ndarray) -> tuple[MatchResult | None, bool]:
         cfg = self.config

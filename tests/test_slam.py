@@ -35,13 +35,16 @@ def loop_path(laps: int = 2, step_m: float = 0.25, turn_step_rad: float = math.r
 
 
 def run(truth: np.ndarray, odometry: np.ndarray | None, config: SlamConfig | None = None,
-        drop: range = range(0)) -> tuple[Slam, np.ndarray, list]:
-    """Feed scans (and odometry) at 2 Hz; returns the SLAM, its trajectory in the truth frame, results."""
+        drop: range = range(0), odometry_drop: range = range(0)) -> tuple[Slam, np.ndarray, list]:
+    """Feed scans (and odometry) at 2 Hz; returns the SLAM, its trajectory in the truth frame, results.
+
+    ``drop`` lists scans the laser misses, ``odometry_drop`` the steps odometry misses.
+    """
     slam = Slam(config or SlamConfig())
     results = []
     for k, pose in enumerate(truth):
         stamp = 1_000_000_000 + k * 500_000_000
-        if odometry is not None:
+        if odometry is not None and k not in odometry_drop:
             x, y, theta = odometry[k]
             slam.process("/odom", m.Odometry(stamp, "odom", "base_link", x, y, theta))
         if k in drop:
@@ -87,6 +90,15 @@ def test_recovers_after_a_laser_gap_on_odometry_alone() -> None:
     assert error.max() < 0.08
     after = results[gap.start]  # first scan after the gap: wide prediction, so a correlative search
     assert after.searched and after.matched
+
+
+def test_odometry_gap_is_bridged_by_scan_matching() -> None:
+    truth = loop_path(laps=1)
+    odometry = drifting_odometry(truth, seed=3)
+    slam, estimate, results = run(truth, odometry, odometry_drop=range(30, 45))
+    error = np.hypot(*(estimate[:, :2] - truth[:, :2]).T)
+    assert error.max() < 0.08
+    assert all(r.matched for r in results[30:50])
 
 
 def test_keyframes_trajectory_and_map_are_consistent() -> None:

@@ -26,7 +26,8 @@ def main() -> int:
     print("ready", flush=True)
     start = time.monotonic()
     tick = 0
-    while logger.error is None:
+    deadline = time.monotonic() + 120  # never outlive a crashed test run
+    while logger.error is None and time.monotonic() < deadline:
         now = time.time_ns()
         if tick % 5 == 0:  # 40 Hz of the 200 Hz loop
             logger.write("/scan", m.LaserScan(now, "laser", -2.35, 2.35, 0.00436, 2.5e-5, 0.025, 0.02, 30.0,

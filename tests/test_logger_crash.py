@@ -25,7 +25,10 @@ def start_child(out: Path, *extra: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(CHILD.parents[1]))
     proc = subprocess.Popen([sys.executable, str(CHILD), str(out), *extra], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
-    assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+    assert proc.stdout is not None
+    if proc.stdout.readline().strip() != "ready":
+        proc.kill()
+        raise AssertionError(f"recorder did not start: {proc.communicate()[1]}")
     return proc
 
 
@@ -58,12 +61,17 @@ def test_sigkill_at_20_random_moments_loses_at_most_one_second(tmp_path: Path) -
             proc = start_child(out)
             children.append((out, proc, time.time_ns(), rng.uniform(0.2, 3.0)))
         started = time.monotonic()
-        for out, proc, ready_ns, after in sorted(children, key=lambda c: c[3]):
-            time.sleep(max(0.0, started + after - time.monotonic()))
-            killed_at = time.time_ns()
-            proc.send_signal(signal.SIGKILL)
-            proc.wait()
-            losses.append(check_recovered(out.with_name(out.name + ".active"), ready_ns, killed_at, tmp_path))
+        try:
+            for out, proc, ready_ns, after in sorted(children, key=lambda c: c[3]):
+                time.sleep(max(0.0, started + after - time.monotonic()))
+                killed_at = time.time_ns()
+                proc.send_signal(signal.SIGKILL)
+                proc.wait()
+                losses.append(check_recovered(out.with_name(out.name + ".active"), ready_ns, killed_at, tmp_path))
+        finally:  # a failed check must not leave recorders running
+            for _, proc, _, _ in children:
+                proc.kill()
+                proc.wait()
     assert len(losses) == KILLS
     assert max(losses) <= 1.0, f"lost {max(losses):.3f} s (all: {np.round(losses, 3).tolist()})"
 

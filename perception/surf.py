@@ -117,6 +117,21 @@ def hessian_layer(grid: _Grid, size: int) -> np.ndarray:
     return dxx
 
 
+def _local_maxima(stack: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Indices of samples above `threshold` that exceed all 26 neighbours (inner samples only)."""
+    inner = stack[1:-1, 1:-1, 1:-1]
+    z, y, x = np.nonzero(inner > threshold)
+    z, y, x = z + 1, y + 1, x + 1
+    value = stack[z, y, x]
+    keep = np.ones(len(z), dtype=bool)
+    for dz in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if dz or dy or dx:
+                    keep &= value > stack[z + dz, y + dy, x + dx]
+    return z[keep], y[keep], x[keep]
+
+
 def _interpolate(stack: np.ndarray, z: np.ndarray, y: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Offsets (x, y, scale) of the quadratic's peak around each sample, and which are valid."""
     d = np.arange(-1, 2)
@@ -164,16 +179,9 @@ def detect_surf(image: np.ndarray, hessian_threshold: float = DEFAULT_THRESHOLD,
         if grid.ky < 3 or grid.kx < 3:
             break
         stack = np.empty((len(sizes), grid.ky, grid.kx), np.float32)
-        spread = np.empty_like(stack)
         for layer, size in enumerate(sizes):
             stack[layer] = hessian_layer(grid, size)
-            spread[layer] = cv2.dilate(stack[layer], np.ones((3, 3), np.uint8))
-        neighbourhood = np.maximum(np.maximum(spread[:-2], spread[1:-1]), spread[2:])
-        peaks = np.zeros(stack.shape, dtype=bool)
-        peaks[1:-1] = (stack[1:-1] == neighbourhood) & (stack[1:-1] > hessian_threshold)
-        peaks[:, [0, -1]] = False
-        peaks[:, :, [0, -1]] = False
-        z, y, x = np.nonzero(peaks)
+        z, y, x = _local_maxima(stack, hessian_threshold)
         offset, valid = _interpolate(stack, z, y, x)
         z, y, x, offset = z[valid], y[valid], x[valid], offset[valid]
         xy = np.column_stack([grid.pixel(x) + offset[:, 0] * step, grid.pixel(y) + offset[:, 1] * step])

@@ -31,6 +31,7 @@ import numpy as np
 from perception.feature_eval import corner_error, matching_score, repeatability
 from perception.features import METHODS, Features, available, detect_and_describe
 from perception.image_matching import match_features
+from perception.keypoints import from_cv
 from perception.matching import match
 from perception.surf import surf
 from tools.bench import report
@@ -101,6 +102,29 @@ def timing(repeat: int) -> dict[str, float]:
     return figures
 
 
+def surf_against_sift() -> dict[str, float]:
+    """Matching score of our SURF and of OpenCV SIFT on graf 1->2 and 1->3: the 2000 strongest
+    keypoints each, brute-force L2 with cross-check, correct within 3 px (as tests/test_surf.py)."""
+    images = {i: load(f"oxford/graf/img{i}.png") for i in (1, 2, 3)}
+    sift = cv2.SIFT_create(nfeatures=BUDGET)
+    feats = {"surf": {i: surf(img, hessian_threshold=300, max_keypoints=BUDGET) for i, img in images.items()},
+             "sift": {}}
+    for i, img in images.items():
+        found, desc = sift.detectAndCompute(img, None)
+        feats["sift"][i] = (from_cv(found), desc)
+    figures = {}
+    for j in (2, 3):
+        h = np.loadtxt(DATA / f"oxford/graf/H1to{j}p")
+        for name in ("surf", "sift"):
+            (k1, d1), (k2, d2) = feats[name][1], feats[name][j]
+            pairs = match(d1, d2, "l2").pairs
+            figures[f"graf_1-{j}_{name}_matching_score"] = matching_score(k1, k2, pairs, h, images[1].shape,
+                                                                          images[j].shape)[0]
+        figures[f"graf_1-{j}_surf_over_sift"] = (figures[f"graf_1-{j}_surf_matching_score"]
+                                                 / figures[f"graf_1-{j}_sift_matching_score"])
+    return figures
+
+
 def evaluate(methods: list[str]) -> list[dict]:
     """One row per (method, sequence, pair) with corner error, repeatability, matching score."""
     rows = []
@@ -161,6 +185,7 @@ def main() -> None:
     args = parser.parse_args()
     figures: dict = timing(args.repeat)
     if args.accuracy:
+        figures.update(surf_against_sift())
         methods = args.methods.split(",") if args.methods else [m for m in METHODS if available(m)]
         rows = evaluate(methods)
         figures["accuracy"] = rows

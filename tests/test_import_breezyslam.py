@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -16,6 +14,7 @@ from fusion.odometry import DiffDriveOdometry
 from logs.importers.breezyslam import ANGLE_MIN, ANGLE_STEP, import_breezyslam, parse_line, ranges_to_metres
 from logs.reader import LogReader
 from tests.conftest import shared_file
+from tools.cli import main
 
 
 @pytest.fixture(scope="module")
@@ -91,17 +90,15 @@ def test_fuzzed_lines_parse_or_raise_value_error(tokens: list[str]) -> None:
         pass
 
 
-def test_cli_imports_and_reports_user_errors(tmp_path) -> None:
+def test_cli_imports_and_reports_user_errors(tmp_path, capsys) -> None:
     path = shared_file("breezyslam/exp2.dat")
     short = tmp_path / "short.dat"
     short.write_text("\n".join(path.read_text().splitlines()[:5]) + "\nbroken line\n")
-    done = subprocess.run([sys.executable, "-m", "tools.cli", "import", "breezyslam", str(short), "-o",
-                           str(tmp_path / "short.mcap")], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    assert "/scan 5" in done.stdout
+    assert main(["import", "breezyslam", str(short), "-o", str(tmp_path / "short.mcap")]) == 0
+    assert "/scan 5" in capsys.readouterr().out
     with LogReader(tmp_path / "short.mcap") as reader:
         assert reader.info().metadata["trundle"]["malformed_lines"] == "1"
     for bad in (tmp_path / "missing.dat", tmp_path):
-        done = subprocess.run([sys.executable, "-m", "tools.cli", "import", "breezyslam", str(bad), "-o",
-                               str(tmp_path / "x.mcap")], capture_output=True, text=True)
-        assert done.returncode == 2 and "Traceback" not in done.stderr and len(done.stderr.strip().splitlines()) == 1
+        assert main(["import", "breezyslam", str(bad), "-o", str(tmp_path / "x.mcap")]) == 2
+        stderr = capsys.readouterr().err
+        assert "Traceback" not in stderr and len(stderr.strip().splitlines()) == 1

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -18,6 +16,7 @@ from logs.importers.carmen import (CarmenLaser, CarmenOdom, import_carmen, messa
                                    scan_poses)
 from logs.reader import LogReader
 from tests.conftest import shared_file
+from tools.cli import main
 
 
 def test_odom_line() -> None:
@@ -128,12 +127,11 @@ def test_drifting_odometry_is_exact_without_noise_and_seeded_with() -> None:
     assert np.array_equal(a, b) and not np.array_equal(a, drifting_odometry(straight, seed=4))
 
 
-def test_import_command_with_drift_and_reference(tmp_path) -> None:
+def test_import_command_with_drift_and_reference(tmp_path, capsys) -> None:
     path = shared_file("intel/intel.gfs.log")
     out, ref = tmp_path / "drift.mcap", tmp_path / "ref.csv"
-    done = subprocess.run([sys.executable, "-m", "tools.cli", "import", "carmen", str(path), "-o", str(out), "--drift",
-                           "--seed", "1", "--reference", str(ref)], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
+    assert main(["import", "carmen", str(path), "-o", str(out), "--drift", "--seed", "1", "--reference", str(ref)]) == 0
+    assert "/odom 910, /scan 910" in capsys.readouterr().out
     stamps, poses = scan_poses(read_carmen(path))
     table = np.loadtxt(ref, delimiter=",", skiprows=1)
     np.testing.assert_allclose(table[:, 1:], poses, atol=1e-6)
@@ -144,10 +142,10 @@ def test_import_command_with_drift_and_reference(tmp_path) -> None:
     assert np.hypot(odom[-1].x - poses[-1, 0], odom[-1].y - poses[-1, 1]) > 1.0  # it drifted
 
 
-def test_import_command_user_errors(tmp_path) -> None:
+def test_import_command_user_errors(tmp_path, capsys) -> None:
     bad = tmp_path / "empty.log"
     bad.write_text("# nothing here\nPARAM x 1\n")
     for argv in (["carmen", str(tmp_path / "missing.clf")], ["carmen", str(bad)]):
-        done = subprocess.run([sys.executable, "-m", "tools.cli", "import", *argv, "-o", str(tmp_path / "o.mcap")],
-                              capture_output=True, text=True)
-        assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
+        assert main(["import", *argv, "-o", str(tmp_path / "o.mcap")]) == 2
+        stderr = capsys.readouterr().err
+        assert len(stderr.strip().splitlines()) == 1 and "Traceback" not in stderr

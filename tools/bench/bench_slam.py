@@ -4,7 +4,9 @@ Goal (issue 7): real-time factor (log duration / processing time) >= 15 on this 
 Cartographer's Intel figure on a 6-core desktop (Hess et al. 2016, Table V). The logs are imported
 to MCAP first and mapped from the MCAP exactly as ``trundle slam`` does (decode included). The
 Intel log gets the drifting odometry of the acceptance test (5 %, 2 deg/m, seed 1); its relation
-error against GMapping's poses is reported with the speed.
+error against GMapping's poses is reported with the speed, and its ATE with and without loop
+closure; ``bench-results/slam_intel_loops.png`` draws GMapping's path (blue), ours without loop
+closure (green) and ours (red) over our map.
 
 Scan matches are timed on Intel scans 40..119 against a submap built from the 20 scans before
 each, from GMapping's pose perturbed by (0.1 m, -0.1 m, 3 deg): the correlative search alone
@@ -27,9 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.evaluation import Trajectory, relation_error, trajectory_relations
+from fusion.evaluation import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
 from fusion.geometry import scan_to_points, transform_points, voxel_filter
 from fusion.icp import LineReference, icp
+from fusion.map_io import plot_trajectory
 from fusion.occupancy_grid import LogOddsGrid
 from fusion.odometry import DiffDriveOdometry
 from fusion.odometry_drift import drifting_odometry
@@ -42,11 +45,11 @@ from tools.bench import report
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
-def map_log(path: Path, wheels: DiffDriveOdometry | None) -> tuple[Slam, float, float, float]:
+def map_log(path: Path, wheels: DiffDriveOdometry | None, loop_closure: bool = True) -> tuple[Slam, float, float, float]:
     """Run SLAM over an MCAP log as ``trundle slam`` does; returns it, duration, wall and CPU seconds."""
     reader = LogReader(path)
     duration = reader.info().duration_s
-    slam = Slam(SlamConfig(), wheels)
+    slam = Slam(SlamConfig(loop_closure=loop_closure), wheels)
     wall, cpu = time.perf_counter(), time.process_time()
     for item in reader.messages():
         slam.process(item.topic, item.msg)
@@ -137,6 +140,14 @@ def main() -> None:
                                  laser_odometry=drifting_odometry(reference, seed=1))
             slam, duration, wall, cpu = map_log(intel_mcap, None)
             error = relation_error(Trajectory(*slam.trajectory()), trajectory_relations(Trajectory(stamps, reference)))
+            open_loop, _, _, _ = map_log(intel_mcap, None, loop_closure=False)
+            ate = absolute_trajectory_error(Trajectory(*slam.trajectory()), Trajectory(stamps, reference))
+            ate_open = absolute_trajectory_error(Trajectory(*open_loop.trajectory()), Trajectory(stamps, reference))
+            report.RESULTS.mkdir(exist_ok=True)
+            plot_trajectory(slam.build_map().to_message(0), report.RESULTS / "slam_intel_loops.png",
+                            [reference, open_loop.trajectory()[1], slam.trajectory()[1]],
+                            colours=[(255, 0, 0), (0, 160, 0), (0, 0, 255)])
+            figures.update({"intel_ate_rmse_m": ate.rmse_m, "intel_ate_rmse_without_loop_closure_m": ate_open.rmse_m})
             figures.update({"intel_duration_s": duration, "intel_processing_s": wall, "intel_cpu_s": cpu,
                             "intel_real_time_factor": duration / wall, "intel_real_time_factor_cpu": duration / cpu,
                             "intel_scans": slam.stats.scans, "intel_ms_per_scan": 1e3 * wall / slam.stats.scans,

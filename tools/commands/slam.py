@@ -81,8 +81,8 @@ def make_odometry(info: LogInfo, config: dict[str, Any]) -> DiffDriveOdometry | 
     return DiffDriveOdometry(float(robot["wheel_radius_m"]), float(robot["track_m"]), **options)
 
 
-def laser_pose(info: LogInfo, config: dict[str, Any]) -> tuple[float, float, float] | None:
-    """The laser mount from ``[laser]`` or the log's robot metadata (None: from /tf_static)."""
+def laser_pose(config: dict[str, Any]) -> tuple[float, float, float] | None:
+    """The laser mount from the ``[laser]`` table (None: from the log's /tf_static, else identity)."""
     table = _table(config, "laser", LASER_KEYS)
     if table:
         return (float(table.get("x_m", 0.0)), float(table.get("y_m", 0.0)), float(table.get("yaw_rad", 0.0)))
@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     if scan_topic is None or scan_topic.ros_type != "sensor_msgs/msg/LaserScan":
         raise UserError(f"{args.log} has no LaserScan topic {slam_config.scan_topic} "
                         f"(topics: {', '.join(sorted(info.topics)) or 'none'})")
-    slam = Slam(slam_config, make_odometry(info, config), laser_pose(info, config))
+    slam = Slam(slam_config, make_odometry(info, config), laser_pose(config))
     args.output.mkdir(parents=True, exist_ok=True)
 
     progress = Progress("slam", max(info.duration_s, 1e-9))

@@ -95,3 +95,29 @@ def test_slam_command_user_errors(simulated_log, tmp_path, capsys) -> None:
     write_log([("/odom", m.Odometry(1, "odom", "base_link", 0.0, 0.0, 0.0), 1)], scans_only, metadata={})
     code, _, stderr = trundle(capsys, "slam", str(scans_only), "-o", str(tmp_path / "o"))
     assert code == 2 and "no LaserScan topic /scan" in stderr
+
+
+def test_wheel_model_sources_in_order() -> None:
+    from pathlib import Path
+
+    from logs.errors import UserError
+    from logs.reader import LogInfo, TopicInfo
+    from tools.commands.slam import make_odometry
+
+    wheels = {"/wheels": TopicInfo("sensor_msgs/msg/JointState")}
+    robot = json.dumps({"wheel_radius_m": 0.077, "track_m": 0.33, "wheels": ["left", "right"]})
+    devices = json.dumps({"can0": {"family": "can", "wheel_radius_m": 0.1, "track_m": 0.5, "wheels": ["l", "r"]}})
+    info = LogInfo(Path("x.mcap"), 0, topics=dict(wheels), metadata={"trundle": {"robot": robot, "devices": devices}})
+    assert make_odometry(info, {"odometry": {"wheel_radius_m": 0.2, "track_m": 0.4}}).track_m == 0.4
+    assert make_odometry(info, {}).track_m == 0.33
+    del info.metadata["trundle"]["robot"]
+    odometry = make_odometry(info, {})
+    assert (odometry.track_m, odometry.left, odometry.right) == (0.5, "l", "r")
+    bare = LogInfo(Path("x.mcap"), 0, topics=dict(wheels))
+    with pytest.raises(UserError, match="no wheel model"):
+        make_odometry(bare, {})
+    with pytest.raises(UserError, match="unknown"):
+        make_odometry(bare, {"odometry": {"radius": 1}})
+    bare.topics["/odom"] = TopicInfo("nav_msgs/msg/Odometry")
+    assert make_odometry(bare, {}) is None
+    assert make_odometry(LogInfo(Path("x.mcap"), 0), {}) is None

@@ -43,8 +43,7 @@ RANGE_MIN_M, RANGE_MAX_M = 0.020, 5.6
 SCAN_TIME_S = 0.1
 STEP_S = SCAN_TIME_S / 1024.0
 SWEEP_NS = round((BEAMS - 1) * STEP_S * 1e9)
-ROBOT = {"wheel_radius_m": WHEEL_RADIUS_M, "track_m": TRACK_M, "left": "left", "right": "right",
-         "laser_x_m": LASER_OFFSET_M}
+ROBOT = {"wheel_radius_m": WHEEL_RADIUS_M, "track_m": TRACK_M, "wheels": ["left", "right"], "laser_x_m": LASER_OFFSET_M}
 
 
 @dataclass(frozen=True)

@@ -3,8 +3,10 @@
 Outputs in DIR: ``map.pgm`` + ``map.yaml`` (map_server), ``map.png``, ``trajectory.png`` (the
 path and loop closures over the map), ``trajectory.csv`` (``t_ns,x,y,theta`` of every scan in
 the map frame), ``report.json`` and ``slam.mcap`` with ``/map``, ``/tf`` (map -> odom per scan)
-and ``/path``. The robot's wheel model comes from the log's ``robot`` metadata (importers
-write it) or the config's ``[odometry]`` table; ``[slam]`` holds :class:`fusion.slam.SlamConfig`.
+and ``/path``. The wheel model comes from the config's ``[odometry]`` table (``wheel_radius_m``,
+``track_m``, ``wheels = [left, right]``, ``wheel_variance_per_m``) or the log's metadata (see
+:func:`make_odometry`); ``[slam]`` holds :class:`fusion.slam.SlamConfig`; ``[laser]`` (``x_m``,
+``y_m``, ``yaw_rad``) overrides the laser mount of the log's ``/tf_static``.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from fusion.map_io import plot_trajectory, save_map, write_trajectory_csv
-from fusion.odometry import DiffDriveOdometry
+from fusion.odometry import DiffDriveOdometry, odometry_from_config
 from fusion.slam import Slam, SlamConfig
 from logs import messages as m
 from logs.errors import UserError
@@ -27,7 +29,7 @@ from logs.importers import write_log
 from logs.reader import LogInfo, LogReader
 from tools.progress import Progress
 
-ODOMETRY_KEYS = {"wheel_radius_m", "track_m", "left", "right", "wheel_variance_per_m"}
+ODOMETRY_KEYS = {"wheel_radius_m", "track_m", "wheels", "wheel_variance_per_m"}
 LASER_KEYS = {"x_m", "y_m", "yaw_rad"}
 
 
@@ -64,21 +66,26 @@ def _table(config: dict[str, Any], name: str, keys: set[str]) -> dict[str, Any]:
 
 
 def make_odometry(info: LogInfo, config: dict[str, Any]) -> DiffDriveOdometry | None:
-    """Wheel odometry from the log's robot metadata overlaid with ``[odometry]``; None if the log has no wheels."""
+    """Wheel odometry for a log with wheel joint states; None if it has none (or only ``Odometry``).
+
+    The wheel model comes from the first of: the config's ``[odometry]`` table, the log's
+    ``robot`` metadata (written by the importers), the ``[can]`` device table the recorder or
+    daemon ran with (``devices`` metadata).
+    """
     if not any(t.ros_type == "sensor_msgs/msg/JointState" for t in info.topics.values()):
         return None
-    robot: dict[str, Any] = {}
-    text = info.metadata.get("trundle", {}).get("robot")
-    if text:
-        robot.update({k: v for k, v in json.loads(text).items() if k in ODOMETRY_KEYS})
-    robot.update(_table(config, "odometry", ODOMETRY_KEYS))
-    if "wheel_radius_m" not in robot or "track_m" not in robot:
-        if any(t.ros_type == "nav_msgs/msg/Odometry" for t in info.topics.values()):
-            return None
-        raise UserError("the log has wheel joint states but no wheel model: give wheel_radius_m and track_m "
-                        "in the [odometry] table of --config")
-    options = {k: robot[k] for k in ("left", "right", "wheel_variance_per_m") if k in robot}
-    return DiffDriveOdometry(float(robot["wheel_radius_m"]), float(robot["track_m"]), **options)
+    metadata = info.metadata.get("trundle", {})
+    devices = json.loads(metadata.get("devices", "{}") or "{}")
+    sources = [_table(config, "odometry", ODOMETRY_KEYS), json.loads(metadata.get("robot", "{}") or "{}"),
+               next((d for d in devices.values() if isinstance(d, dict) and d.get("family") == "can"), {})]
+    for source in sources:
+        odometry = odometry_from_config(source) if source else None
+        if odometry is not None:
+            return odometry
+    if any(t.ros_type == "nav_msgs/msg/Odometry" for t in info.topics.values()):
+        return None
+    raise UserError("the log has wheel joint states but no wheel model: give wheel_radius_m and track_m "
+                    "in the [odometry] table of --config")
 
 
 def laser_pose(config: dict[str, Any]) -> tuple[float, float, float] | None:

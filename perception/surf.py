@@ -101,19 +101,25 @@ def hessian_layer(grid: _Grid, size: int) -> np.ndarray:
     """
     lobe = size // 3
     tall, a, b = lobe - 0.5, lobe / 2, 1.5 * lobe
-    dxx = grid.box(-tall, tall, -b, -a) + grid.box(-tall, tall, a, b)
-    dxx -= 2 * grid.box(-tall, tall, -a, a)
-    dyy = grid.box(-b, -a, -tall, tall) + grid.box(a, b, -tall, tall)
-    dyy -= 2 * grid.box(-a, a, -tall, tall)
+    dxx = np.add(grid.box(-tall, tall, -b, -a), grid.box(-tall, tall, a, b))
+    middle = grid.box(-tall, tall, -a, a)
+    dxx -= middle
+    dxx -= middle
+    dyy = np.add(grid.box(-b, -a, -tall, tall), grid.box(a, b, -tall, tall))
+    middle = grid.box(-a, a, -tall, tall)
+    dyy -= middle
+    dyy -= middle
     near, far = 0.5, lobe + 0.5
-    dxy = grid.box(-far, -near, -far, -near) + grid.box(near, far, near, far)
+    dxy = np.add(grid.box(-far, -near, -far, -near), grid.box(near, far, near, far))
     dxy -= grid.box(-far, -near, near, far)
     dxy -= grid.box(near, far, -far, -near)
+    # det = Dxx Dyy / A^2 - 0.81 Dxy^2 / B^2 with A, B the box areas, in place
+    area, quadrant = lobe * (2 * lobe - 1) * grid.step ** 2, lobe * lobe * grid.step ** 2
     dxx *= dyy
-    dxx *= np.float32(1.0 / (lobe * (2 * lobe - 1) * grid.step ** 2) ** 2)
     dxy *= dxy
-    dxy *= np.float32(0.81 / (lobe * lobe * grid.step ** 2) ** 2)
+    dxy *= np.float32(0.81 * area ** 2 / quadrant ** 2)
     dxx -= dxy
+    dxx *= np.float32(1.0 / area ** 2)
     return dxx
 
 

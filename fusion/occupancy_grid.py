@@ -121,14 +121,20 @@ class LogOddsGrid:
         start = self.world_to_cell(sensor_xy)
         hit_cells = np.floor(self.world_to_cell(hits_xy)).astype(np.int64)
         crossed = ray_cells(start, np.vstack([self.world_to_cell(hits_xy), self.world_to_cell(free_ends_xy)]))
-        # Each cell once per scan, hits winning over misses: a mark per cell beats sorting for grids
-        # up to a few dozen times the number of cells the rays touch.
-        mark = np.zeros(self.log_odds.size, np.int8)
-        mark[crossed[:, 0] * width + crossed[:, 1]] = 1
-        mark[hit_cells[:, 1] * width + hit_cells[:, 0]] = 2
-        touched = np.flatnonzero(mark)
-        kind = mark[touched]
-        free_flat, hit_flat = touched[kind == 1], touched[kind == 2]
+        # Each cell once per scan, hits winning over misses. A mark per cell beats sorting for grids
+        # up to a few dozen times the number of cells the rays touch; beyond, sort.
+        crossed_flat = crossed[:, 0] * width + crossed[:, 1]
+        hit_flat = hit_cells[:, 1] * width + hit_cells[:, 0]
+        if self.log_odds.size <= 32 * (len(crossed_flat) + len(hit_flat)):
+            mark = np.zeros(self.log_odds.size, np.int8)
+            mark[crossed_flat] = 1
+            mark[hit_flat] = 2
+            touched = np.flatnonzero(mark)
+            kind = mark[touched]
+            free_flat, hit_flat = touched[kind == 1], touched[kind == 2]
+        else:
+            hit_flat = np.unique(hit_flat)
+            free_flat = np.setdiff1d(np.unique(crossed_flat), hit_flat, assume_unique=True)
         flat = self.log_odds.reshape(-1)
         flat[free_flat] = np.maximum(flat[free_flat] + self.l_miss, self.l_min)
         flat[hit_flat] = np.minimum(flat[hit_flat] + self.l_hit, self.l_max)

@@ -108,3 +108,18 @@ def test_message_export_percent_and_unknown_round_trips_through_cdr() -> None:
     assert msg.origin_x == pytest.approx(grid.origin[0]) and msg.resolution == pytest.approx(0.05)
     decoded = ros2.decode(*ros2.encode(msg))
     assert decoded == msg
+
+
+def test_large_and_small_grids_update_identically() -> None:
+    """The per-cell mark (small grids) and the sorted path (large grids) give the same map."""
+    rng = np.random.default_rng(0)
+    ends = rng.uniform(-3, 3, (200, 2))
+    small, large = LogOddsGrid(0.05, grow_cells=4), LogOddsGrid(0.05, grow_cells=4)
+    large.ensure_contains(np.array([-60.0, -60.0]), np.array([60.0, 60.0]))  # far more cells than rays touch
+    for grid in (small, large):
+        grid.insert_rays(np.array([0.01, 0.02]), ends)
+        grid.insert_rays(np.array([0.5, -0.3]), ends[:100])
+    for grid in (small, large):
+        assert grid.observed.sum() == small.observed.sum()
+    np.testing.assert_allclose(np.sort(small.occupied_points(), axis=0), np.sort(large.occupied_points(), axis=0), atol=1e-9)
+    np.testing.assert_array_equal(np.sort(small.log_odds[small.observed]), np.sort(large.log_odds[large.observed]))

@@ -165,8 +165,10 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     dive = candidates[np.argsort(scores)[::-1][:8]]
     for level in range(top, 0, -1):
         kids = dive[:, None, :] + _shifts(level)[None]
+        outside = (kids[..., 1] > 2 * limit) | (kids[..., 2] > 2 * limit)
+        kids[..., 1:] = np.minimum(kids[..., 1:], 2 * limit)  # scored in bounds, then discarded
         kid_scores = scores_of(level - 1, kids.reshape(-1, 3)).reshape(len(dive), 4)
-        kid_scores[(kids[..., 1] > 2 * limit) | (kids[..., 2] > 2 * limit)] = -np.inf
+        kid_scores[outside] = -np.inf
         dive = kids[np.arange(len(dive)), np.argmax(kid_scores, axis=1)]
         if level == 1:
             bound = max(bound, float(kid_scores.max()))

@@ -110,3 +110,15 @@ def test_no_match_below_min_score() -> None:
     grid = build_map(ROOM, [(0.0, 0.0, 0.0)])
     points = np.random.default_rng(0).uniform(-20, 20, (200, 2)) + 100.0
     assert match_scan(grid, points, np.zeros(3), min_score=0.3) is None
+
+
+def test_search_reaching_the_window_corner_stays_in_bounds() -> None:
+    """The best pose at the window's far corner and a point far off the map: the greedy dive's
+    sub-blocks beyond the window must not index past the pyramid (they did once: IndexError)."""
+    grid = build_map(ROOM, [(0.0, 0.0, 0.0)], max_range=1.5)
+    truth = np.array([0.1, 0.0, 0.0])
+    points = np.vstack([scan_to_points(scan(ROOM, truth, beams=90, max_range=1.5)), [[100.0, 100.0]]])
+    for window in (0.3, 0.45, 1.0, 2.0):
+        found = correlative_search(grid, points, truth - np.array([window, window, 0.0]), window_xy_m=window,
+                                   window_theta_rad=0.05)
+        assert found is not None and np.hypot(*(found[0][:2] - truth[:2])) < 0.03

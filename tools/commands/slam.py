@@ -88,11 +88,16 @@ def make_odometry(info: LogInfo, config: dict[str, Any]) -> DiffDriveOdometry | 
                     "in the [odometry] table of --config")
 
 
-def laser_pose(config: dict[str, Any]) -> tuple[float, float, float] | None:
-    """The laser mount from the ``[laser]`` table (None: from the log's /tf_static, else identity)."""
+def laser_pose(info: LogInfo, config: dict[str, Any]) -> tuple[float, float, float] | None:
+    """The laser mount: the ``[laser]`` table, else the log's ``robot`` metadata (``laser_x_m``,
+    ``laser_y_m``, ``laser_yaw_rad``), else None (then the log's /tf_static, or the identity)."""
     table = _table(config, "laser", LASER_KEYS)
     if table:
         return (float(table.get("x_m", 0.0)), float(table.get("y_m", 0.0)), float(table.get("yaw_rad", 0.0)))
+    robot = json.loads(info.metadata.get("trundle", {}).get("robot", "{}") or "{}")
+    if any(k in robot for k in ("laser_x_m", "laser_y_m", "laser_yaw_rad")):
+        return (float(robot.get("laser_x_m", 0.0)), float(robot.get("laser_y_m", 0.0)),
+                float(robot.get("laser_yaw_rad", 0.0)))
     return None
 
 
@@ -116,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
     if scan_topic is None or scan_topic.ros_type != "sensor_msgs/msg/LaserScan":
         raise UserError(f"{args.log} has no LaserScan topic {slam_config.scan_topic} "
                         f"(topics: {', '.join(sorted(info.topics)) or 'none'})")
-    slam = Slam(slam_config, make_odometry(info, config), laser_pose(config))
+    slam = Slam(slam_config, make_odometry(info, config), laser_pose(info, config))
     args.output.mkdir(parents=True, exist_ok=True)
 
     progress = Progress("slam", max(info.duration_s, 1e-9))

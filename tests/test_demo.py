@@ -1,0 +1,88 @@
+"""`trundle demo`, shortened: simulator -> emulators -> real daemon process (SIGTERM) -> log ->
+SLAM and markers -> report, with every figure checked against the simulator's ground truth."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from fusion.map_io import load_map, read_trajectory_csv
+from logs.reader import LogReader
+from tools.cli import main
+from tools.demo import ATE_LIMIT_M
+from tools.world import load_world
+
+DURATION_S = 8.0
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "trundle-demo"
+    code = main(["demo", "-o", str(out), "--duration", str(DURATION_S), "--camera-fps", "5"])
+    return out, code
+
+
+def test_demo_writes_every_output_and_passes_its_checks(demo, capsys):
+    out, code = demo
+    report = json.loads((out / "report.json").read_text())
+    assert code == 0, report["checks"]
+    assert all(report["checks"].values())
+    for name in ("demo.mcap", "robot.toml", "camera.yaml", "daemon.log", "map.png", "map.pgm", "map.yaml",
+                 "trajectory.png", "trajectory.csv", "ground_truth.csv", "frames_ground_truth.csv",
+                 "camera_detections.png", "report.md"):
+        assert (out / name).is_file(), name
+    assert not list(out.glob("*.active")) and not list(out.glob(".daemon-logs-*"))
+    assert "Open local file" in (out / "report.md").read_text()
+    for name in ("map.png", "trajectory.png", "camera_detections.png"):
+        assert cv2.imread(str(out / name)) is not None, name
+
+
+def test_report_numbers_are_computed_from_the_log_and_the_ground_truth(demo):
+    out, _ = demo
+    report = json.loads((out / "report.json").read_text())
+    assert {"ate_rmse_m", "path_length_m", "markers_expected", "markers_detected", "drivers"} <= set(report)
+    stamps, truth = read_trajectory_csv(out / "ground_truth.csv")
+    with LogReader(out / "demo.mcap") as reader:
+        info = reader.info()
+        scan_stamps = np.array([m.msg.stamp_ns for m in reader.messages(topics=["/scan"])])
+    # every logged scan has its ground truth (matched by content to what the emulator cast)
+    assert report["ground_truth_unmatched"] == {"scans": 0, "frames": 0}
+    assert np.array_equal(stamps, scan_stamps)
+    assert report["path_length_m"] == pytest.approx(float(np.hypot(*np.diff(truth[:, :2], axis=0).T).sum()))
+    # the robot drove along the first corridor (x grows from the start at 6 m, y stays 5.25 m)
+    assert 4.0 < truth[-1, 0] - truth[0, 0] < DURATION_S and np.abs(truth[:, 1] - 5.25).max() < 0.2
+    assert report["ate_rmse_m"] <= ATE_LIMIT_M
+    assert report["ate_rmse_m"] == report["trajectory"]["ate"]["rmse_m"]
+    assert report["trajectory"]["ate"]["count"] == len(stamps) == report["trajectory"]["scans"]
+    assert report["map"]["occupied_within_0.1_m_of_a_wall"] > 0.9
+    # markers: every one the simulator had in view is detected with its id, none is made up
+    world_ids = {d.marker_id for d in load_world().markers}
+    detected = {row["id"] for row in report["markers_detected"]}
+    assert report["markers_expected"] and set(report["markers_expected"]) <= detected <= world_ids
+    for row in report["markers_detected"]:
+        assert row["false_detections"] == 0 and row["in_world"]
+        assert row["position_error_m"]["median"] < 0.1 * row["distance_m"]["max"]
+    # each driver's counters come from the daemon's last /diagnostics in the log
+    drivers = report["drivers"]
+    assert {"trundle-demo/lrf", "trundle-demo/can", "trundle-demo/camera"} <= set(drivers)
+    assert drivers["trundle-demo/lrf"]["values"]["scans"] == info.topics["/scan"].count
+    assert drivers["trundle-demo/camera"]["values"]["frames"] == info.topics["/camera/image_raw/compressed"].count
+    assert all(drivers[f"trundle-demo/{d}"]["values"]["crashes"] == 0 for d in ("lrf", "can", "camera"))
+
+
+def test_map_files_load_as_map_server_reads_them(demo):
+    out, _ = demo
+    grid = load_map(out / "map.yaml")
+    assert grid.resolution == pytest.approx(0.05)
+    assert (grid.data == 100).sum() > 100 and (grid.data == 0).sum() > 1000
+
+
+def test_bad_options_are_one_line_user_errors(tmp_path, capsys):
+    assert main(["demo", "-o", str(tmp_path), "--camera-size", "640by480"]) == 2
+    assert main(["demo", "-o", str(tmp_path), "--duration", "-3"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith("trundle demo: ") for line in err)
+    assert not list(tmp_path.iterdir())

@@ -1,0 +1,73 @@
+"""`trundle demo [-o DIR]`: the whole robot on emulated hardware in a simulated world -> log, map, report.
+
+No hardware and no arguments needed: the world simulator drives the laser, wheel-encoder and
+camera emulators, the real onboard daemon records them for about a minute of robot time, and
+the log is replayed through SLAM and marker detection, scored against the simulator's ground
+truth. See ``tools/demo.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from logs.errors import UserError
+from tools.demo import ATE_LIMIT_M, LOG_NAME, DemoSettings, run_demo
+from tools.world import DEFAULT_WORLD
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("demo", help="whole pipeline on emulated hardware in a simulated world -> log, map, report",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("-o", "--output", type=Path, default=Path("trundle-demo"),
+                   help="output folder (default ./trundle-demo)")
+    p.add_argument("--duration", type=float, help="robot time to record, s (default: the whole route, about a minute)")
+    p.add_argument("--camera-fps", type=float, default=DemoSettings.camera_fps,
+                   help="camera frame rate (default %(default)s)")
+    p.add_argument("--camera-size", default="x".join(map(str, DemoSettings.camera_size)),
+                   help="camera frame size WIDTHxHEIGHT (default %(default)s)")
+    p.add_argument("--camera-quality", type=int, default=DemoSettings.camera_quality,
+                   help="JPEG quality 1-100 (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="seed of wheel slip and sensor noise (default 0)")
+    p.add_argument("--world", type=Path, default=DEFAULT_WORLD, help="floor-plan JSON (default: the office)")
+    p.set_defaults(func=run)
+
+
+def camera_size(text: str) -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` as two positive integers."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UserError(f"--camera-size must be WIDTHxHEIGHT, e.g. 640x480, not {text!r}") from None
+    if not (16 <= width <= 4096 and 16 <= height <= 4096):
+        raise UserError(f"--camera-size {text}: width and height must be 16-4096 pixels")
+    return width, height
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.duration is not None and not args.duration > 0:
+        raise UserError("--duration must be a positive number of seconds")
+    if not 0 < args.camera_fps <= 60:
+        raise UserError("--camera-fps must be above 0 and at most 60")
+    if not 1 <= args.camera_quality <= 100:
+        raise UserError("--camera-quality must be 1-100")
+    settings = DemoSettings(world=args.world, duration_s=args.duration, camera_fps=args.camera_fps,
+                            camera_size=camera_size(args.camera_size), camera_quality=args.camera_quality,
+                            seed=args.seed)
+    out = args.output
+    report = run_demo(out, settings, say=lambda text: print(text, flush=True))
+    checks = report["checks"]
+    print(f"\nSLAM trajectory error {report['ate_rmse_m'] * 100:.1f} cm RMSE over {report['path_length_m']:.1f} m "
+          f"(limit {ATE_LIMIT_M * 100:.0f} cm; wheel odometry alone "
+          f"{report['trajectory']['odometry_ate']['rmse_m'] * 100:.1f} cm), "
+          f"{report['trajectory']['loop_closures']} loop closures")
+    print(f"markers in view: {report['markers_expected']}; detected: "
+          f"{[row['id'] for row in report['markers_detected'] if row['frames_detected'] > row['false_detections']]}")
+    for name, ok in checks.items():
+        print(f"  {'PASS' if ok else 'FAIL'}  {name}")
+    print(f"\nresults in {out}/: report.md, report.json, map.png (+ map.pgm, map.yaml), trajectory.png, "
+          f"camera_detections.png, {LOG_NAME}")
+    print(f"open the log in Foxglove (https://app.foxglove.dev or the desktop app): Open local file -> "
+          f"{(out / LOG_NAME).resolve()}")
+    print(f"took {report['seconds']['total']:.0f} s")
+    return 0 if all(checks.values()) else 1

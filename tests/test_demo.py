@@ -3,6 +3,7 @@ SLAM and markers -> report, with every figure checked against the simulator's gr
 
 from __future__ import annotations
 
+import contextlib
 import json
 
 import cv2
@@ -20,9 +21,10 @@ DURATION_S = 8.0
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
-    out = tmp_path_factory.mktemp("demo") / "trundle-demo"
-    code = main(["demo", "-o", str(out), "--duration", str(DURATION_S), "--camera-fps", "5"])
-    return out, code
+    base = tmp_path_factory.mktemp("demo")
+    with contextlib.chdir(base):  # a relative output folder, as `make demo` gives
+        code = main(["demo", "-o", "trundle-demo", "--duration", str(DURATION_S), "--camera-fps", "5"])
+    return base / "trundle-demo", code
 
 
 def test_demo_writes_every_output_and_passes_its_checks(demo, capsys):

@@ -182,6 +182,7 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
     Writes ``out/robot.toml`` (the daemon's config), ``out/camera.yaml`` (the camera's
     calibration), ``out/daemon.log`` (its output) and ``out/demo.mcap`` (the log).
     """
+    out = out.resolve()  # the daemon runs in ``out`` and reads the config by this path
     out.mkdir(parents=True, exist_ok=True)
     robot_time = sim.duration_s if settings.duration_s is None else min(float(settings.duration_s), sim.duration_s)
     say(f"simulated robot: {sim.world.name} world, route of {sim.path_length_m():.1f} m in {sim.duration_s:.0f} s; "
@@ -629,7 +630,7 @@ def draw_detections(log: Path, score: MarkerScore, frames: Trajectory, world: Wo
                     f"{s.angle_error_deg:.1f} deg")
             (width, _), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)
             x, y = np.round(s.corners.min(axis=0)).astype(int)
-            at = (int(np.clip(x - 40, 0, max(image.shape[1] - width, 0))), int(max(14, y - 20)))
+            at = (int(np.clip(x - 40, 2, max(image.shape[1] - width - 4, 2))), int(max(14, y - 20)))
             cv2.putText(image, text, at, cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
             cv2.putText(image, text, at, cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
     if not cv2.imwrite(str(path), image):

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -15,3 +17,10 @@ def shared_file(relative: str) -> Path:
     if not path.exists():
         pytest.skip(f"public data not available: {path} (see ../shared/data/README.md)")
     return path
+
+
+# CI runs the same examples every time (CI=true): a red CI then means a change broke something,
+# not that the search happened on a new corner case. Local runs keep exploring.
+settings.register_profile("ci", derandomize=True, print_blob=True)
+if os.environ.get("CI"):
+    settings.load_profile("ci")

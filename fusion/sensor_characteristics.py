@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
 
 @dataclass(frozen=True)
@@ -141,6 +140,8 @@ def errors(measured: np.ndarray, reference: np.ndarray, times_s: np.ndarray | No
     ``times_s`` (unit per s); noise = std of the error about its linear trend in the reference
     (so gain and offset errors are systematic, not noise); SNR = 20 log10(rms(v) / noise) dB.
     """
+    from scipy import stats  # ~1 s to import: only when figures are computed, not at CLI start
+
     m, v = _paired(measured, reference)
     e = m - v
     trend = np.polyval(np.polyfit(v, e, 1), v) if np.ptp(v) > 0 else np.full_like(e, e.mean())
@@ -176,6 +177,8 @@ def sweep_figures(measured: np.ndarray, reference: np.ndarray, hold: np.ndarray,
     error after the static curve is removed. Turning points (levels met from one side only) are
     left out of the line when other levels were met from both sides.
     """
+    from scipy import stats  # ~1 s to import: only when figures are computed, not at CLI start
+
     m, v = np.asarray(measured, np.float64), np.asarray(reference, np.float64)
     keep = _finite_pairs(m, v)
     m, v, h = m[keep], v[keep], np.asarray(hold)[keep]

@@ -41,6 +41,7 @@ _ColorRGBA = _T["std_msgs/msg/ColorRGBA"]
 
 _EMPTY_U8 = np.zeros(0, np.uint8)
 _POSE_AXES = np.array([0, 1, 5])  # x, y, yaw inside ROS's 6x6 (x, y, z, roll, pitch, yaw)
+_COV_CELLS = (_POSE_AXES[:, None] * 6 + _POSE_AXES[None, :]).reshape(-1)  # flat 6x6 cells of the 3x3
 
 
 class UnsupportedType(KeyError):
@@ -65,13 +66,13 @@ def _yaw(q: Any) -> float:
 
 
 def _cov6(cov3: np.ndarray) -> np.ndarray:
-    cov = np.zeros((6, 6))
-    cov[np.ix_(_POSE_AXES, _POSE_AXES)] = cov3
-    return cov.reshape(-1)
+    cov = np.zeros(36)
+    cov[_COV_CELLS] = cov3.reshape(-1)
+    return cov
 
 
 def _cov3(cov6: np.ndarray) -> np.ndarray:
-    return np.asarray(cov6, np.float64).reshape(6, 6)[np.ix_(_POSE_AXES, _POSE_AXES)]
+    return np.asarray(cov6, np.float64).reshape(-1)[_COV_CELLS].reshape(3, 3)
 
 
 def _pose(x: float, y: float, theta: float) -> Any:

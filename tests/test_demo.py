@@ -85,6 +85,7 @@ def test_map_files_load_as_map_server_reads_them(demo):
 def test_bad_options_are_one_line_user_errors(tmp_path, capsys):
     assert main(["demo", "-o", str(tmp_path), "--camera-size", "640by480"]) == 2
     assert main(["demo", "-o", str(tmp_path), "--duration", "-3"]) == 2
+    assert main(["demo", "-o", str(tmp_path / "out"), "--world", str(tmp_path / "no-such-world.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and all(line.startswith("trundle demo: ") for line in err)
+    assert len(err) == 3 and all(line.startswith("trundle demo: ") for line in err)
     assert not list(tmp_path.iterdir())

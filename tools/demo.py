@@ -246,9 +246,7 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
                 if code != 0:
                     raise _daemon_failed(proc, daemon_log, "did not stop cleanly")
             finally:
-                if proc.poll() is None:
-                    proc.kill()
-                    proc.wait()
+                _stop(proc)
         cpu = {"emulators": time.process_time() - cpu_before, "daemon": _children_cpu_s() - daemon_cpu_before}
     logs = sorted(folder.glob("*.mcap"))
     if len(logs) != 1 or list(folder.glob("*.active")):
@@ -260,6 +258,17 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
     frames, frame_ns, unmatched_frames = frame_ground_truth(log, sim, devices, frame_times)
     return Recording(log, scans, frames, scan_ns, frame_ns, {"scans": unmatched_scans, "frames": unmatched_frames},
                      robot_time, cpu)
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """After a failure or Ctrl-C: SIGTERM (a clean log), SIGKILL if that does not end it."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
 
 
 def _children_cpu_s() -> float:

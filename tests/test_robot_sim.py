@@ -50,11 +50,9 @@ def test_odometry_of_perfect_wheels_reproduces_ground_truth_between_control_tick
     odometry.reset(office.start)
     ticks = np.arange(0.0, perfect.duration_s, model.control_period_s)
     times = np.unique(np.concatenate([ticks, np.arange(0.0037, perfect.duration_s, 0.0113)]))
-    for t in times[:-1]:
-        left, right = perfect.wheel_angles_at(t)
-        odometry.update(m.JointState(int(t * 1e9), "base_link", ("left", "right"), [left, right]))
+    angles = np.array([perfect.wheel_angles_at(t) for t in times])
+    out = odometry.update_many((times * 1e9).astype(np.int64), angles[:, 0], angles[:, 1])
     t = times[-1]
-    out = odometry.update(m.JointState(int(t * 1e9), "base_link", ("left", "right"), list(perfect.wheel_angles_at(t))))
     truth = perfect.poses_at([t])[0]
     assert out.x == pytest.approx(truth[0], abs=1e-9) and out.y == pytest.approx(truth[1], abs=1e-9)
     assert math.remainder(out.theta - truth[2], 2 * math.pi) == pytest.approx(0.0, abs=1e-9)

@@ -65,6 +65,11 @@ def run(args: argparse.Namespace) -> int:
           f"{[row['id'] for row in report['markers_detected'] if row['frames_detected'] > row['false_detections']]}")
     for name, ok in checks.items():
         print(f"  {'PASS' if ok else 'FAIL'}  {name}")
+    if report["starved"]:
+        gaps = report["emulator_gaps_ms"]
+        print(f"warning: the machine was too busy for real time (load average {report['load_average'][1]:.1f}): "
+              + ", ".join(f"{name} emulator paused up to {gaps[name]:.0f} ms" for name in report["starved"])
+              + "; late or bunched stamps degrade odometry and SLAM")
     print(f"\nresults in {out}/: report.md, report.json, map.png (+ map.pgm, map.yaml), trajectory.png, "
           f"camera_detections.png, {LOG_NAME}")
     print(f"open the log in Foxglove (https://app.foxglove.dev or the desktop app): Open local file -> "

@@ -263,10 +263,24 @@ def describe(image: np.ndarray, keypoints: Keypoints, method: str, **params: flo
     if method == "akaze":
         raise UserError("the AKAZE descriptor needs AKAZE's own keypoints: use detect_and_describe(..., 'akaze')")
     extractor = _create(method, params)
-    # foreign keypoints: OpenCV extractors read `octave` as their own pyramid index
-    plain = make_keypoints(keypoints.xy, keypoints.size, keypoints.angle, keypoints.response, 0)
+    # OpenCV extractors read `octave` as their own pyramid index: recode it for foreign keypoints
+    octave = sift_octave(keypoints.size) if method == "sift" else 0
+    plain = make_keypoints(keypoints.xy, keypoints.size, keypoints.angle, keypoints.response, octave)
     kept, descriptors = extractor.compute(gray, to_cv(plain))
-    return from_cv(kept), _rows(descriptors, method)
+    found = from_cv(kept)
+    if method == "sift" and len(found) == len(keypoints):   # SIFT keeps every keypoint, in order
+        found = make_keypoints(found.xy, found.size, found.angle, found.response, keypoints.octave)
+    return found, _rows(descriptors, method)
+
+
+def sift_octave(size: np.ndarray, sigma: float = 1.6, layers: int = 3) -> np.ndarray:
+    """OpenCV SIFT's packed octave (octave | layer << 8) whose Gaussian image has the scale of
+    keypoints of `size` (SIFT's size is 2 sigma): the descriptor then samples a suitably
+    blurred, subsampled image, as for SIFT's own keypoints, instead of the full-size one."""
+    t = np.log2(np.maximum(np.asarray(size, dtype=np.float64), 1e-6) / (2.0 * sigma))
+    octave = np.clip(np.floor(t), -1, 30).astype(np.int64)
+    layer = np.clip(np.round(layers * (t - octave)), 0, layers).astype(np.int64)
+    return (octave & 255) | (layer << 8)
 
 
 def _rows(descriptors: np.ndarray | None, method: str) -> np.ndarray:

@@ -11,7 +11,7 @@ import pytest
 from feature_scenes import scene
 from logs.errors import UserError
 from perception.features import (DESCRIPTORS, METHODS, available, describe, detect, detect_and_describe, edge_map,
-                                 intensity_centroid_angle)
+                                 intensity_centroid_angle, sift_octave)
 from perception.keypoints import from_cv, make_keypoints, to_cv
 
 
@@ -114,3 +114,14 @@ def test_keypoints_round_trip_through_opencv() -> None:
     assert back.xy.tolist() == kp.xy.tolist() and back.size.tolist() == kp.size.tolist()
     assert back.angle[0] == pytest.approx(0.5, abs=1e-6) and math.isnan(back.angle[1])
     assert back.octave.tolist() == [0, 2] and len(from_cv([])) == 0
+
+
+def test_sift_octave_codes_foreign_keypoints_like_sift_its_own() -> None:
+    # SIFT's size is 2 sigma with sigma = 1.6 * 2^(octave + layer / 3); packed octave | layer << 8
+    sizes = 3.2 * 2.0 ** np.array([0.0, 1 / 3, 1.0, 2 + 2 / 3, -1.0])
+    assert sift_octave(sizes).tolist() == [0, 1 << 8, 1, 2 | (2 << 8), 255]
+    image = scene(3)
+    kp = detect(image, "mser")
+    described, desc = describe(image, kp, "sift")
+    assert len(described) == len(kp) and desc.shape == (len(kp), 128)
+    assert described.octave.tolist() == kp.octave.tolist()

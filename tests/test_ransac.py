@@ -188,7 +188,9 @@ def test_ransac_fundamental_exact_recovery(motion: tuple, n_in: int, outlier_sha
     x1, x2 = _two_views(seed, n_in, rotation, t)
     truth = np.linalg.inv(K).T @ _skew(t) @ rotation @ np.linalg.inv(K)
     o1, o2 = _far_from_epipolar(truth, x1, np.random.default_rng(seed + 1), n_out)
-    found = find_fundamental(np.vstack([x1, o1]), np.vstack([x2, o2]), threshold=0.5, rng=seed)
+    # noise-free data: a tight band, since near-degenerate motions (straight ahead) let a wrong
+    # model pass within a pixel of every true pair
+    found = find_fundamental(np.vstack([x1, o1]), np.vstack([x2, o2]), threshold=0.05, rng=seed)
     assert found.inliers.tolist() == [True] * n_in + [False] * len(o1)
     assert _same_up_to_scale(found.model, truth) < 1e-6
     assert np.linalg.matrix_rank(found.model, tol=1e-9) == 2
@@ -210,7 +212,7 @@ def test_ransac_essential_exact_recovery(motion: tuple, n_in: int, n_out: int, s
     x1, x2 = _two_views(seed, n_in, rotation, t)
     truth_f = np.linalg.inv(K).T @ _skew(t) @ rotation @ np.linalg.inv(K)
     o1, o2 = _far_from_epipolar(truth_f, x1, np.random.default_rng(seed + 1), n_out)
-    found = find_essential(np.vstack([x1, o1]), np.vstack([x2, o2]), K, threshold=0.5, rng=seed)
+    found = find_essential(np.vstack([x1, o1]), np.vstack([x2, o2]), K, threshold=0.05, rng=seed)
     assert found.inliers.tolist() == [True] * n_in + [False] * len(o1)
     assert _same_up_to_scale(found.model.essential, _skew(t) @ rotation) < 1e-6
     assert found.model.rotation == pytest.approx(rotation, abs=1e-6)

@@ -98,8 +98,8 @@ class Recording:
     cast that scan, and ``scan_true_ns`` that true time (host clock); ``frames`` and
     ``frame_true_ns`` the same for each logged camera frame. ``unmatched`` counts logged messages
     no emulator record explained (0 expected). ``cpu_s``: CPU time of the emulators (this
-    process) and of the daemon process while recording; ``emulator_gaps_ms`` the longest pause
-    of each emulator while the robot drove (a busy machine starves them: then timing suffers).
+    process) and of the daemon process while recording; ``emulator_late_ms`` how late each
+    emulator was at most while the robot drove (a busy machine starves them: timing suffers).
     """
 
     log: Path
@@ -110,7 +110,7 @@ class Recording:
     unmatched: dict[str, int]
     robot_time_s: float
     cpu_s: dict[str, float]
-    emulator_gaps_ms: dict[str, float | None]
+    emulator_late_ms: dict[str, float | None]
 
 
 # ---------------------------------------------------------------------------------- recording
@@ -250,7 +250,11 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
             finally:
                 _stop(proc)
         cpu = {"emulators": time.process_time() - cpu_before, "daemon": _children_cpu_s() - daemon_cpu_before}
-        gaps = {name: _longest_gap_ms(devices.produced(name), devices.t0_ns) for name in ("lrf", "can", "camera")}
+        assert devices.can_nodes is not None
+        periods = {"lrf": devices.laser_model.scan_time, "can": devices.can_nodes.tick_s,
+                   "camera": 1.0 / settings.camera_fps}
+        late = {name: _longest_pause_ms(devices.produced(name), devices.t0_ns, period)
+                for name, period in periods.items()}
     logs = sorted(folder.glob("*.mcap"))
     if len(logs) != 1 or list(folder.glob("*.active")):
         raise UserError(f"expected one closed log in {folder}, found {[p.name for p in folder.iterdir()]}")
@@ -260,12 +264,13 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
     scans, scan_ns, unmatched_scans = scan_ground_truth(log, sim, devices)
     frames, frame_ns, unmatched_frames = frame_ground_truth(log, sim, devices, frame_times)
     return Recording(log, scans, frames, scan_ns, frame_ns, {"scans": unmatched_scans, "frames": unmatched_frames},
-                     robot_time, cpu, gaps)
+                     robot_time, cpu, late)
 
 
-def _longest_gap_ms(times_ns: np.ndarray, since_ns: int) -> float | None:
+def _longest_pause_ms(times_ns: np.ndarray, since_ns: int, period_s: float) -> float | None:
+    """The longest gap between an emulator's outputs after ``since_ns`` beyond its period (ms)."""
     times = np.sort(times_ns[times_ns >= since_ns])
-    return float(np.diff(times).max() / 1e6) if times.size > 1 else None
+    return max(0.0, float(np.diff(times).max() / 1e6 - period_s * 1e3)) if times.size > 1 else None
 
 
 def _stop(proc: subprocess.Popen) -> None:
@@ -662,12 +667,12 @@ def _stats(values: np.ndarray) -> dict[str, float]:
     return {"median": float(np.median(values)), "p95": float(np.percentile(values, 95)), "max": float(values.max())}
 
 
-STARVED_MS = 100.0   # an emulator pausing longer than this could not keep real time
+STARVED_MS = 100.0   # an emulator later than this could not keep real time
 
 
 def starved(recording: Recording) -> list[str]:
-    """The emulators that paused longer than ``STARVED_MS`` while the robot drove."""
-    return [name for name, gap in recording.emulator_gaps_ms.items() if gap is not None and gap > STARVED_MS]
+    """The emulators that were more than ``STARVED_MS`` late while the robot drove."""
+    return [name for name, late in recording.emulator_late_ms.items() if late is not None and late > STARVED_MS]
 
 
 def build_report(settings: DemoSettings, recording: Recording, run: SlamRun, score: MarkerScore, world: World,
@@ -722,7 +727,7 @@ def build_report(settings: DemoSettings, recording: Recording, run: SlamRun, sco
         "ground_truth_unmatched": recording.unmatched,
         "robot_time_s": recording.robot_time_s,
         "cpu_s": recording.cpu_s,
-        "emulator_gaps_ms": recording.emulator_gaps_ms,
+        "emulator_late_ms": recording.emulator_late_ms,
         "starved": starved(recording),
         "load_average": list(os.getloadavg()),
         "seconds": seconds,
@@ -737,13 +742,16 @@ def report_markdown(report: dict[str, Any]) -> str:
     scan_ms, frame_ms = report["timing"]["scan_stamp_error_ms"], report["timing"]["frame_stamp_latency_ms"]
     ate, odo = tr["ate"], tr["odometry_ate"]
     checks = "\n".join(f"- {'PASS' if ok else 'FAIL'}: {name}" for name, ok in report["checks"].items())
+    warning = []
+    if report["starved"]:
+        late = max(report["emulator_late_ms"][name] for name in report["starved"])
+        warning = [f"**Warning**: the machine was too busy for real time (load average "
+                   f"{report['load_average'][1]:.1f}): the {', '.join(report['starved'])} emulator(s) fell up to {late:.0f} ms behind, which the drivers "
+                   "see as late or bunched stamps; odometry and SLAM suffer from it.", ""]
     lines = [
         "# trundle demo",
         "",
-        *([f"**Warning**: the machine was too busy for real time (load average "
-           f"{report['load_average'][1]:.1f}): the {', '.join(report['starved'])} emulator(s) paused for up to "
-           f"{max(v for v in report['emulator_gaps_ms'].values() if v is not None):.0f} ms, which the drivers see as "
-           "late or bunched stamps; odometry and SLAM suffer from it.", ""] if report["starved"] else []),
+        *warning,
         f"The simulated robot drove {report['path_length_m']:.1f} m of the office route in "
         f"{report['robot_time_s']:.0f} s of robot time. The onboard daemon (`trundle daemon --config robot.toml`) "
         f"recorded its laser, wheel encoders and camera from the device emulators into `{report['log']['file']}` "

@@ -66,9 +66,9 @@ def run(args: argparse.Namespace) -> int:
     for name, ok in checks.items():
         print(f"  {'PASS' if ok else 'FAIL'}  {name}")
     if report["starved"]:
-        gaps = report["emulator_gaps_ms"]
+        late = report["emulator_late_ms"]
         print(f"warning: the machine was too busy for real time (load average {report['load_average'][1]:.1f}): "
-              + ", ".join(f"{name} emulator paused up to {gaps[name]:.0f} ms" for name in report["starved"])
+              + ", ".join(f"{name} emulator up to {late[name]:.0f} ms late" for name in report["starved"])
               + "; late or bunched stamps degrade odometry and SLAM")
     print(f"\nresults in {out}/: report.md, report.json, map.png (+ map.pgm, map.yaml), trajectory.png, "
           f"camera_detections.png, {LOG_NAME}")

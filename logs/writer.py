@@ -284,7 +284,7 @@ class Logger:
             os.fsync(file.stream.fileno())
 
     def _open_next(self) -> None:
-        if self.split_bytes or self.split_duration_ns:
+        if self._splitting or self._split_index > 0:  # numbered parts; a first unsplit file keeps NAME
             path = self.base_path.with_name(f"{self.base_path.stem}_{self._split_index}.mcap")
         else:
             path = self.base_path

@@ -126,7 +126,8 @@ def test_split_by_size_and_on_request(tmp_path: Path) -> None:
         logger.split()
         time.sleep(0.05)
         logger.write("/scan", scan(2), 2)
-    assert len(logger.files) == 2
+    assert logger.files == [manual / "m.mcap", manual / "m_1.mcap"]
+    assert [x.log_time_ns for p in logger.files for x in LogReader(p).messages()] == [1, 2]
 
 
 def test_full_queue_drops_are_counted_per_topic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -746,8 +746,9 @@ def report_markdown(report: dict[str, Any]) -> str:
     if report["starved"]:
         late = max(report["emulator_late_ms"][name] for name in report["starved"])
         warning = [f"**Warning**: the machine was too busy for real time (load average "
-                   f"{report['load_average'][1]:.1f}): the {', '.join(report['starved'])} emulator(s) fell up to {late:.0f} ms behind, which the drivers "
-                   "see as late or bunched stamps; odometry and SLAM suffer from it.", ""]
+                   f"{report['load_average'][1]:.1f}): the {', '.join(report['starved'])} emulator(s) fell up to "
+                   f"{late:.0f} ms behind, which the drivers see as late or bunched stamps; odometry and SLAM "
+                   "suffer from it.", ""]
     lines = [
         "# trundle demo",
         "",

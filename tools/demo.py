@@ -127,7 +127,7 @@ class FrameTimes:
         emulator = devices.camera_emulator
         assert emulator is not None, "start the devices first"
         self.activity, self.quality = devices.activity["camera"], emulator.quality
-        self.times: dict[bytes, int] = {}
+        self.times: dict[bytes, list[int]] = collections.defaultdict(list)
         self._render = emulator.frame_at
         emulator.frame_at = self._frame_at
 
@@ -135,7 +135,7 @@ class FrameTimes:
         image = self._render(t_s)
         ok, jpeg = cv2.imencode(".jpg", image, (cv2.IMWRITE_JPEG_QUALITY, self.quality))
         if ok:
-            self.times[hashlib.sha1(jpeg.tobytes()).digest()] = self.activity[-1]
+            self.times[hashlib.sha1(jpeg.tobytes()).digest()].append(self.activity[-1])
         return image
 
 
@@ -295,12 +295,14 @@ def scan_ground_truth(log: Path, sim: RobotSim, devices: SimDevices) -> tuple[Tr
     scan, and how many logged scans matched none."""
     assert devices.lrf_device is not None
     dmin = devices.scip_model.params.dmin
-    cast = {np.where(s.distances >= dmin, s.distances, -1).astype(np.int64).tobytes(): s.rear_ns
-            for s in devices.lrf_device.sent}
+    cast: dict[bytes, list[int]] = collections.defaultdict(list)
+    for sent in devices.lrf_device.sent:
+        cast[np.where(sent.distances >= dmin, sent.distances, -1).astype(np.int64).tobytes()].append(sent.rear_ns)
 
     def true_ns(msg: m.LaserScan) -> int | None:
         ranges = msg.ranges.astype(np.float64)
-        return cast.get(np.where(np.isfinite(ranges), np.round(ranges * 1000.0), -1).astype(np.int64).tobytes())
+        key = np.where(np.isfinite(ranges), np.round(ranges * 1000.0), -1).astype(np.int64).tobytes()
+        return _nearest(cast.get(key), msg.stamp_ns)
 
     return _ground_truth(log, SCAN_TOPIC, true_ns, sim, devices)
 
@@ -310,8 +312,15 @@ def frame_ground_truth(log: Path, sim: RobotSim, devices: SimDevices, frame_time
     """The robot's true pose for every logged camera frame, found by its JPEG bytes among the
     frames the camera emulator rendered: the trajectory (at the logged stamps), the true host
     time (ns) of each frame, and how many logged frames matched none."""
-    return _ground_truth(log, IMAGE_TOPIC, lambda msg: frame_times.times.get(hashlib.sha1(bytes(msg.data)).digest()),
-                         sim, devices)
+    def true_ns(msg: m.CompressedImage) -> int | None:
+        return _nearest(frame_times.times.get(hashlib.sha1(bytes(msg.data)).digest()), msg.stamp_ns)
+
+    return _ground_truth(log, IMAGE_TOPIC, true_ns, sim, devices)
+
+
+def _nearest(times: list[int] | None, stamp_ns: int) -> int | None:
+    """Of the times an identical output was made (a robot standing still makes many), the one nearest the stamp."""
+    return min(times, key=lambda t: abs(t - stamp_ns)) if times else None
 
 
 def _ground_truth(log: Path, topic: str, true_ns: Callable[[Any], int | None], sim: RobotSim, devices: SimDevices

@@ -46,7 +46,7 @@ from fusion.odometry import DiffDriveOdometry, odometry_from_config
 from fusion.slam import Slam, SlamConfig
 from logs import messages as m
 from logs.errors import UserError
-from logs.reader import LogReader
+from logs.reader import LogInfo, LogReader
 from logs.replay import replay
 from perception.images import decode_image, to_gray
 from perception.markers import MarkerDetector, marker_pose
@@ -90,7 +90,7 @@ class DemoSettings:
     seed: int = 0
 
 
-@dataclass
+@dataclass(eq=False)
 class Recording:
     """A recorded run: the log and its ground truth (base_link poses in the world frame).
 
@@ -342,7 +342,7 @@ def _ground_truth(log: Path, topic: str, true_ns: Callable[[Any], int | None], s
 
 # ---------------------------------------------------------------------------------- SLAM
 
-@dataclass
+@dataclass(eq=False)
 class SlamRun:
     """SLAM over a log: the optimised trajectory (one pose per scan, map frame), the wheel
     odometry at the same stamps (odom frame), the map and the SLAM object (stats, keyframes)."""
@@ -354,7 +354,7 @@ class SlamRun:
     processing_s: float
 
 
-def wheel_odometry(info: Any) -> DiffDriveOdometry:
+def wheel_odometry(info: LogInfo) -> DiffDriveOdometry:
     """Wheel odometry with the wheel model of the ``[can]`` table the daemon ran with (log metadata)."""
     devices = json.loads(info.metadata.get("trundle", {}).get("devices", "{}"))
     can = next((d for d in devices.values() if d.get("family") == "can"), None)
@@ -431,7 +431,7 @@ def map_wall_distances(grid: m.OccupancyGrid, world: World, map_to_world: np.nda
 
 # ---------------------------------------------------------------------------------- markers
 
-@dataclass
+@dataclass(eq=False)
 class MarkerSighting:
     """One detected marker in one frame, scored against the world: ``in_view`` is whether the
     simulator had it in view (``CameraRenderer.visible_decals``: facing the camera within 60 deg,
@@ -452,7 +452,7 @@ class MarkerSighting:
     tvec: np.ndarray | None = None
 
 
-@dataclass
+@dataclass(eq=False)
 class MarkerScore:
     """ArUco detection over a log's frames: ``in_view`` counts, per marker id, the frames in which
     the simulator had it in view; ``sightings`` are every detection; ``missed`` the (stamp, id)

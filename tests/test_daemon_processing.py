@@ -69,6 +69,9 @@ def sim():
     return RobotSim(load_world(), noise=False)
 
 
+# A real daemon process doing online SLAM on 2 shared cores: seen failing under heavy load
+# (SLAM fell behind its deadline) and passing on reruns; one rerun, and a report.
+@pytest.mark.flaky(reruns=1)
 def test_online_slam_and_markers_follow_the_ground_truth(tmp_path, sim):
     config = parse_config({
         "robot": {"name": "proc"}, "lrf": {"url": "sim://robot"},

@@ -127,6 +127,9 @@ def soak(tmp_path: Path, duration_s: float, period_s: float, away_s: float) -> N
                                      {t: [((a - t00) / 1e9, (b - a) / 1e9) for a, b in zip(np.sort(v)[:-1], np.sort(v)[1:]) if b - a > 0.3e9] for t, v in times.items()})
 
 
+# Real processes on emulated ptys, sharing 2 cores with the rest of the suite: seen failing
+# once in ~10 suite runs under load (a device not back within 60 s); one rerun, and a report.
+@pytest.mark.flaky(reruns=1)
 def test_short_soak_with_unplugs_checksum_errors_and_camera_stall(tmp_path):
     soak(tmp_path, duration_s=15.0, period_s=15.0, away_s=2.5)
 

@@ -66,7 +66,16 @@ STREAM_TIMEOUT_S = 90.0     # daemon start-up to every device streaming, on a lo
 STOP_TIMEOUT_S = 60.0       # SIGTERM to a closed log
 LEAD_S = 1.0                # the robot stands this long in the log before it drives
 LRF_TIMEOUT_S = 2.0         # laser silence before the driver reconnects: a loaded machine delays the emulator
-ATE_LIMIT_M = 0.05          # acceptance: SLAM trajectory error against ground truth
+# SLAM options of the demo (the [slam] table of its robot.toml), each for a property of the emulated robot:
+SLAM_OPTIONS: dict[str, Any] = {
+    # heading noise floor per scan step (rad): the wheel odometry jumps by degrees between two scans when
+    # the left and right wheel readings come from different instants (bunched when the machine is busy)
+    "odom_sigma_theta_rad": 0.05,
+    # the simulated laser casts a whole scan from one pose (it does not sweep): there is nothing to de-skew
+    "deskew": False,
+}
+ATE_LIMIT_M = 0.05          # acceptance: SLAM trajectory error against ground truth ...
+LOOP_MIN_M = 50.0           # ... over a loop (the whole route) at least this long
 
 
 Say = Callable[[str], None]
@@ -147,7 +156,7 @@ def daemon_config(devices: SimDevices, folder: Path, socket_path: Path, calibrat
     return {"robot": {"name": "trundle-demo"}, **tables,
             "logger": {"folder": str(folder), "compression": "zstd", "flush_period_s": 0.5},
             "disk": {"min_free_mb": 100.0, "action": "stop"},
-            "processing": {"odometry": True, "slam": False, "markers": False},
+            "processing": {"odometry": True, "slam": False, "markers": False}, "slam": SLAM_OPTIONS,
             "status": {"socket": str(socket_path), "diagnostics_period_s": 1.0}}
 
 
@@ -365,13 +374,14 @@ def wheel_odometry(info: LogInfo) -> DiffDriveOdometry:
 
 
 def run_slam(log: Path, config: SlamConfig | None = None, say: Say = print) -> SlamRun:
-    """Replay ``log`` (as fast as possible) through SLAM with wheel odometry from ``/wheels``."""
+    """Replay ``log`` (as fast as possible) through SLAM with wheel odometry from ``/wheels``
+    (``config`` default: ``SLAM_OPTIONS``)."""
     with LogReader(log) as reader:
         info = reader.info()
     if SCAN_TOPIC not in info.topics:
         raise UserError(f"{log}: no {SCAN_TOPIC} topic")
     odometry = wheel_odometry(info)
-    slam = Slam(config or SlamConfig(), odometry)
+    slam = Slam(config or SlamConfig.from_mapping(SLAM_OPTIONS), odometry)
     odom_stamps: list[int] = []
     odom_poses: list[np.ndarray] = []
     progress = Progress("slam", info.topics[SCAN_TOPIC].count)
@@ -711,6 +721,9 @@ def build_report(settings: DemoSettings, recording: Recording, run: SlamRun, sco
             "every marker in view detected": set(expected) <= detected,
             "no false marker ids": all(row["false_detections"] == 0 for row in detected_rows),
             "every logged scan and frame has ground truth": not any(recording.unmatched.values()),
+            **({f"a loop of at least {LOOP_MIN_M:.0f} m": path_length(truth.poses) >= LOOP_MIN_M
+                and float(np.hypot(*(truth.poses[-1, :2] - truth.poses[0, :2]))) < 1.0}
+               if settings.duration_s is None else {}),
         },
         "trajectory": {
             "scans": stats.scans, "keyframes": stats.keyframes, "matched": stats.matched,
@@ -741,6 +754,7 @@ def build_report(settings: DemoSettings, recording: Recording, run: SlamRun, sco
         "load_average": list(os.getloadavg()),
         "seconds": seconds,
         "settings": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(settings).items()},
+        "slam_options": SLAM_OPTIONS,
     }
     return report
 

@@ -65,7 +65,8 @@ LOG_NAME = "demo.mcap"
 STREAM_TIMEOUT_S = 90.0     # daemon start-up to every device streaming, on a loaded machine
 STOP_TIMEOUT_S = 60.0       # SIGTERM to a closed log
 LEAD_S = 1.0                # the robot stands this long in the log before it drives
-LRF_TIMEOUT_S = 2.0         # laser silence before the driver reconnects: a loaded machine delays the emulator
+LRF_TIMEOUT_S = 2.0         # laser silence before the driver reconnects: a busy machine delays the emulators ...
+WHEEL_TIMEOUT_S = 1.5       # ... and wheel silence before a wheel counts as stale (its motion is then lost)
 # SLAM options of the demo (the [slam] table of its robot.toml), each for a property of the emulated robot:
 SLAM_OPTIONS: dict[str, Any] = {
     # heading noise floor per scan step (rad): the wheel odometry jumps by degrees between two scans when
@@ -152,6 +153,7 @@ def daemon_config(devices: SimDevices, folder: Path, socket_path: Path, calibrat
     """The daemon's configuration tables for the emulated robot (see ``tools/daemon_example.toml``)."""
     tables = devices.device_tables()
     tables["lrf"]["timeout_s"] = LRF_TIMEOUT_S
+    tables["can"]["odrive"] = {"heartbeat_timeout_s": WHEEL_TIMEOUT_S, "data_timeout_s": WHEEL_TIMEOUT_S}
     tables["camera"] = {**tables["camera"], "calibration": str(calibration)}
     return {"robot": {"name": "trundle-demo"}, **tables,
             "logger": {"folder": str(folder), "compression": "zstd", "flush_period_s": 0.5},

@@ -132,4 +132,6 @@ def test_online_slam_and_markers_follow_the_ground_truth(tmp_path, sim):
         if distance > 6.0:  # a 0.25 m marker is under 22 px there: detected, but its pose is rough
             continue
         error = np.linalg.norm(where - [world_marker.x, world_marker.y, world_marker.z])
-        assert error < 0.02 + 0.02 * distance, (transform.child_frame_id, distance, error)
+        # MJPEG-over-HTTP frames are stamped on arrival (no capture clock): on a loaded machine the
+        # stamp lags the render by up to ~0.1 s, i.e. ~0.1 m of robot motion at the route's speed.
+        assert error < 0.02 + 0.02 * distance + 0.1, (transform.child_frame_id, distance, error)

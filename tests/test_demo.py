@@ -9,10 +9,14 @@ import json
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fusion.map_io import load_map, read_trajectory_csv
+from logs.errors import UserError
 from logs.reader import LogReader
 from tools.cli import main
+from tools.commands.demo import camera_size
 from tools.demo import ATE_LIMIT_M
 from tools.world import load_world
 
@@ -97,3 +101,15 @@ def test_bad_options_are_one_line_user_errors(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and all(line.startswith("trundle demo: ") for line in err)
     assert not list(tmp_path.iterdir())
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.text(max_size=12) | st.builds(lambda w, h: f"{w}x{h}", st.integers(-5, 5000), st.integers(-5, 5000)))
+def test_camera_size_is_two_pixel_counts_or_a_user_error(text):
+    try:
+        width, height = camera_size(text)
+    except UserError as error:
+        assert "\n" not in str(error)
+        return
+    assert 16 <= width <= 4096 and 16 <= height <= 4096
+    assert [int(v) for v in text.lower().split("x")] == [width, height]

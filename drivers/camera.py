@@ -37,17 +37,17 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from drivers.camera_config import CameraConfig, parse_camera_url
-from drivers.camera_info import load_camera_info, uncalibrated_camera_info
-from drivers.frame_grabber import FrameGrabber
-from drivers.frame_source import Frame, FrameSource, StallError
-from drivers.jpeg_check import CorruptJpeg, JpegChecker, jpeg_header
-from drivers.lifecycle import DeviceError, Driver, Sink, wall_ns
-from drivers.mjpeg_stream import MjpegStreamSource
-from drivers.v4l2_capture import V4L2Source, device_path
-from drivers.video_file import JPEG_SUFFIXES, ImageFolderSource, VideoFileSource, folder_images, probe_video
-from logs import messages as m
-from logs.errors import UserError
+from trundle.drivers.camera_config import CameraConfig, parse_camera_url
+from trundle.drivers.camera_info import load_camera_info, uncalibrated_camera_info
+from trundle.drivers.frame_grabber import FrameGrabber
+from trundle.drivers.frame_source import Frame, FrameSource, StallError
+from trundle.drivers.jpeg_check import CorruptJpeg, JpegChecker, jpeg_header
+from trundle.drivers.lifecycle import DeviceError, Driver, Sink, wall_ns
+from trundle.drivers.mjpeg_stream import MjpegStreamSource
+from trundle.drivers.v4l2_capture import V4L2Source, device_path
+from trundle.drivers.video_file import JPEG_SUFFIXES, ImageFolderSource, VideoFileSource, folder_images, probe_video
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
 
 # camera body (x forward, y left, z up) -> optical frame (x right, y down, z forward): rpy (-pi/2, 0, -pi/2)
 OPTICAL_ROTATION = (-0.5, 0.5, -0.5, 0.5)

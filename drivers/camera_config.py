@@ -17,8 +17,8 @@ import urllib.parse
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
-from drivers.v4l2_capture import CONTROLS
-from logs.errors import UserError
+from trundle.drivers.v4l2_capture import CONTROLS
+from trundle.logs.errors import UserError
 
 SCHEMES = ("v4l2", "file", "http", "https")
 RAW_OUTPUTS = ("jpeg", "bgr8", "mono8")

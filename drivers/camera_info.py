@@ -22,8 +22,8 @@ from typing import Any, Mapping
 import numpy as np
 from ruamel.yaml import YAML, YAMLError
 
-from logs import messages as m
-from logs.errors import UserError
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
 
 
 def _matrix(data: Mapping[str, Any], key: str, rows: int, cols: int | None, where: str) -> np.ndarray:

@@ -23,9 +23,9 @@ import canopen
 from canopen.objectdictionary import INTEGER8, INTEGER16, INTEGER32, INTEGER64
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-from drivers.can_bus import CanBus
-from drivers.encoder_protocol import EncoderProtocol, HeartbeatWatchdog, WheelReading
-from drivers.lifecycle import DeviceError
+from trundle.drivers.can_bus import CanBus
+from trundle.drivers.encoder_protocol import EncoderProtocol, HeartbeatWatchdog, WheelReading
+from trundle.drivers.lifecycle import DeviceError
 
 DEFAULT_EDS = Path(__file__).with_name("data") / "cia406_encoder.eds"
 

@@ -14,8 +14,8 @@ import can
 import cantools
 from cantools.database.errors import Error as CantoolsError
 
-from drivers.can_bus import CanBus
-from drivers.encoder_protocol import EncoderProtocol, HeartbeatWatchdog, WheelReading, per_wheel
+from trundle.drivers.can_bus import CanBus
+from trundle.drivers.encoder_protocol import EncoderProtocol, HeartbeatWatchdog, WheelReading, per_wheel
 
 
 class DbcWheels(EncoderProtocol):

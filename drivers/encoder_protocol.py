@@ -15,7 +15,7 @@ from typing import Hashable, NamedTuple
 
 import can
 
-from drivers.can_bus import CanBus
+from trundle.drivers.can_bus import CanBus
 
 
 class WheelReading(NamedTuple):

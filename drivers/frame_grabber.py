@@ -16,7 +16,7 @@ import time
 from dataclasses import replace
 from typing import Callable
 
-from drivers.frame_source import EndOfStream, Frame, FrameSource
+from trundle.drivers.frame_source import EndOfStream, Frame, FrameSource
 
 
 class FrameGrabber:

@@ -12,7 +12,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from drivers.lifecycle import DeviceError
+from trundle.drivers.lifecycle import DeviceError
 
 
 @dataclass(frozen=True, slots=True)

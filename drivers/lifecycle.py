@@ -14,7 +14,7 @@ from abc import ABC, abstractmethod
 from collections import Counter
 from typing import Callable, Protocol
 
-from logs import messages as m
+from trundle.logs import messages as m
 
 
 class Sink(Protocol):

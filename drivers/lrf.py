@@ -15,9 +15,9 @@ import dataclasses
 from typing import Any, Mapping, TypeVar
 from urllib.parse import parse_qsl, urlsplit
 
-from drivers.lifecycle import Driver, Sink
-from logs import messages as m
-from logs.errors import UserError
+from trundle.drivers.lifecycle import Driver, Sink
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
 
 SCHEMES = ("scip2", "scip2+tcp", "rplidar")
 Config = TypeVar("Config")
@@ -84,9 +84,9 @@ def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = Non
         if not port:
             raise UserError(f"laser URL {url!r} needs a device path, e.g. {scheme}:///dev/ttyUSB0")
     if scheme == "rplidar":
-        from drivers.rplidar_driver import RplidarConfig, RplidarDriver
+        from trundle.drivers.rplidar_driver import RplidarConfig, RplidarDriver
 
         return RplidarDriver(make_config(RplidarConfig, port, options, "an RPLIDAR"), sink)
-    from drivers.scip2_driver import ScipConfig, ScipDriver
+    from trundle.drivers.scip2_driver import ScipConfig, ScipDriver
 
     return ScipDriver(make_config(ScipConfig, port, options, "a SCIP 2.0 laser"), sink)

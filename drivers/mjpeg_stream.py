@@ -13,9 +13,9 @@ from typing import Callable
 
 import cv2
 
-from drivers.frame_source import CaptureSource, Frame
-from drivers.lifecycle import DeviceError
-from drivers.video_file import fourcc_text, open_ffmpeg, read_ffmpeg
+from trundle.drivers.frame_source import CaptureSource, Frame
+from trundle.drivers.lifecycle import DeviceError
+from trundle.drivers.video_file import fourcc_text, open_ffmpeg, read_ffmpeg
 
 
 class MjpegStreamSource(CaptureSource):

@@ -7,9 +7,9 @@ import math
 
 import can
 
-from drivers import odrive
-from drivers.can_bus import CanBus
-from drivers.encoder_protocol import EncoderProtocol, HeartbeatWatchdog, WheelReading
+from trundle.drivers import odrive
+from trundle.drivers.can_bus import CanBus
+from trundle.drivers.encoder_protocol import EncoderProtocol, HeartbeatWatchdog, WheelReading
 
 AXIS_STATES = {0: "undefined", 1: "idle", 2: "startup", 3: "full calibration", 4: "motor calibration",
                6: "index search", 7: "offset calibration", 8: "closed loop", 9: "lockin spin",

@@ -21,12 +21,12 @@ from typing import Callable
 import numpy as np
 import serial
 
-from drivers import rplidar as rp
-from drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
-from drivers.lrf import laser_transform
-from drivers.serial_link import SerialLink, set_modem_line
-from logs import messages as m
-from logs.errors import UserError
+from trundle.drivers import rplidar as rp
+from trundle.drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
+from trundle.drivers.lrf import laser_transform
+from trundle.drivers.serial_link import SerialLink, set_modem_line
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
 
 # model: (default baud, range_min m, range_max m)
 MODELS = {"a1": (115200, 0.15, 12.0), "a2": (115200, 0.15, 12.0), "a3": (256000, 0.2, 25.0), "s1": (256000, 0.1, 40.0)}

@@ -17,14 +17,14 @@ from typing import Callable
 
 import numpy as np
 
-from drivers import scip2
-from drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
-from drivers.lrf import laser_transform
-from drivers.scip2 import Measure, Reply, ScipError, ScipFramer, SensorParams
-from drivers.sensor_clock import SensorClock
-from drivers.serial_link import SerialLink
-from logs import messages as m
-from logs.errors import UserError
+from trundle.drivers import scip2
+from trundle.drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
+from trundle.drivers.lrf import laser_transform
+from trundle.drivers.scip2 import Measure, Reply, ScipError, ScipFramer, SensorParams
+from trundle.drivers.sensor_clock import SensorClock
+from trundle.drivers.serial_link import SerialLink
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
 
 ABNORMAL = {"0L"} | {f"{n:02d}" for n in range(21, 98)}  # stop, reboot with RB (notes 1.6.5)
 RESUMED = "98"

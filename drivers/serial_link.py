@@ -15,7 +15,7 @@ from typing import Callable
 
 import serial
 
-from drivers.lifecycle import DeviceError
+from trundle.drivers.lifecycle import DeviceError
 
 
 class SerialLink:

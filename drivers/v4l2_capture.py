@@ -27,9 +27,9 @@ from typing import Callable, Mapping
 import cv2
 import numpy as np
 
-from drivers.frame_source import CaptureSource, Frame, StallError
-from drivers.lifecycle import DeviceError, wall_ns
-from drivers.video_file import JPEG_FOURCCS, fourcc_text
+from trundle.drivers.frame_source import CaptureSource, Frame, StallError
+from trundle.drivers.lifecycle import DeviceError, wall_ns
+from trundle.drivers.video_file import JPEG_FOURCCS, fourcc_text
 
 os.environ.setdefault("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", "2")
 

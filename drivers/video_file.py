@@ -23,9 +23,9 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
-from drivers.frame_source import CaptureSource, EndOfStream, Frame
-from drivers.lifecycle import DeviceError
-from logs.errors import UserError
+from trundle.drivers.frame_source import CaptureSource, EndOfStream, Frame
+from trundle.drivers.lifecycle import DeviceError
+from trundle.logs.errors import UserError
 
 JPEG_FOURCCS = frozenset({"MJPG", "mjpg", "MJPA", "mjpa", "jpeg", "JPEG", "AVRn", "dmb1"})
 JPEG_SUFFIXES = frozenset({".jpg", ".jpeg"})

@@ -1,5 +1,5 @@
 """Wheel-encoder driver on a CAN bus: raw frames on ``/can/rx``, wheel angles on ``/wheels``.
-Odometry is ``fusion.odometry.OdometrySink`` wrapped around the driver's sink (live) or run over
+Odometry is ``trundle.fusion.odometry.OdometrySink`` wrapped around the driver's sink (live) or run over
 a log's ``/wheels`` (replay): the same code either way.
 
 Configuration (the ``[can]`` table of the robot TOML; ``encoders`` also from ``--encoders``)::
@@ -10,7 +10,7 @@ Configuration (the ``[can]`` table of the robot TOML; ``encoders`` also from ``-
     direction = [1, -1]              # +1 / -1 per wheel (or one number): forward = positive
     gear_ratio = 1.0                 # motor turns per wheel turn (per wheel or one number)
     counts_per_rev = 8192            # override the device's counts per motor turn (optional)
-    wheel_radius_m = 0.08            # with track_m: odometry (fusion.odometry.OdometrySink)
+    wheel_radius_m = 0.08            # with track_m: odometry (trundle.fusion.odometry.OdometrySink)
     track_m = 0.35
     [can.odrive]   firmware = "0.5", source = "estimates", poll_hz = 0, heartbeat_timeout_s = 0.35
     [can.cia406]   eds = "...", counts_per_rev = 4096, tpdo_period_ms = 10, heartbeat_ms = 100
@@ -30,15 +30,15 @@ from typing import Any
 
 import numpy as np
 
-from drivers.can_bus import CanBus, Received, parse_url
-from drivers.cia406 import Cia406Encoders
-from drivers.counter_unwrap import CounterUnwrapper
-from drivers.dbc_wheels import DbcWheels
-from drivers.encoder_protocol import EncoderProtocol, WheelReading, per_wheel
-from drivers.lifecycle import Driver, Sink
-from drivers.odrive_encoders import OdriveEncoders
-from logs import messages as m
-from logs.errors import UserError
+from trundle.drivers.can_bus import CanBus, Received, parse_url
+from trundle.drivers.cia406 import Cia406Encoders
+from trundle.drivers.counter_unwrap import CounterUnwrapper
+from trundle.drivers.dbc_wheels import DbcWheels
+from trundle.drivers.encoder_protocol import EncoderProtocol, WheelReading, per_wheel
+from trundle.drivers.lifecycle import Driver, Sink
+from trundle.drivers.odrive_encoders import OdriveEncoders
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
 
 PROTOCOLS = ("odrive", "cia406", "dbc")
 VELOCITY_WINDOW_S = 0.05  # shortest span for a velocity from two positions

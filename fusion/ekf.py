@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from fusion.geometry import compose, rotation, wrap_angle
+from trundle.fusion.geometry import compose, rotation, wrap_angle
 
 # chi-square quantile for 3 degrees of freedom at 99 %: scipy.stats.chi2.ppf(0.99, 3)
 GATE_CHI2_99 = 11.344866730144373

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.geometry import compose, relative, wrap_angle
-from fusion.map_io import read_trajectory_csv
-from logs.errors import UserError
+from trundle.fusion.geometry import compose, relative, wrap_angle
+from trundle.fusion.map_io import read_trajectory_csv
+from trundle.logs.errors import UserError
 
 DEFAULT_TOLERANCE_NS = 1_000_000  # 1 ms: scans are tens of milliseconds apart
 
@@ -144,7 +144,7 @@ def read_relations(path: str | Path) -> Relations:
 
 def read_carmen_trajectory(path: str | Path) -> Trajectory:
     """The robot poses of a CARMEN log's front-laser lines (FLASER, ROBOTLASER1), at their ipc times."""
-    from logs.importers.carmen import read_carmen, scan_poses
+    from trundle.logs.importers.carmen import read_carmen, scan_poses
 
     stamps, poses = scan_poses(read_carmen(path))
     if not len(stamps):

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from logs.messages import LaserScan
+from trundle.logs.messages import LaserScan
 
 
 def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fusion.geometry import rotation
-from fusion.scan_matching import huber_loss, levenberg_marquardt, match_covariance
+from trundle.fusion.geometry import rotation
+from trundle.fusion.scan_matching import huber_loss, levenberg_marquardt, match_covariance
 
 
 @dataclass(frozen=True)

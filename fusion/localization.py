@@ -5,7 +5,7 @@ The map (a ``LogOddsGrid``) is only read, never updated. Three pieces:
 - :func:`global_search`: an exhaustive correlative search over every free cell of a coarse copy
   of the map and every heading (Olson 2009's correlative matching; the per-heading correlation
   runs as one ``cv2.filter2D`` over the map), whose best distinct peaks are refined against the
-  full-resolution map by ``fusion.scan_matching.match_scan``.
+  full-resolution map by ``trundle.fusion.scan_matching.match_scan``.
 - :class:`Localizer` keeps those candidates as weighted hypotheses, moves them with odometry,
   re-matches each scan locally and reweights them by match score (``log w += beta (score - 1)``),
   until one holds ``converged_probability`` of the weight and has been tracked ``min_scans``.
@@ -26,12 +26,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from fusion.ekf import PoseEKF, odometry_noise
-from fusion.geometry import compose, relative, voxel_filter, wrap_angle
-from fusion.occupancy_grid import LogOddsGrid
-from fusion.scan_matching import MatchResult, match_scan
-from logs.errors import UserError
-from logs.messages import OccupancyGrid
+from trundle.fusion.ekf import PoseEKF, odometry_noise
+from trundle.fusion.geometry import compose, relative, voxel_filter, wrap_angle
+from trundle.fusion.occupancy_grid import LogOddsGrid
+from trundle.fusion.scan_matching import MatchResult, match_scan
+from trundle.logs.errors import UserError
+from trundle.logs.messages import OccupancyGrid
 
 SEARCHING, TRACKING = "searching", "tracking"
 
@@ -50,7 +50,7 @@ class CoarseMap:
 
 
 def grid_from_map(occupancy: OccupancyGrid) -> LogOddsGrid:
-    """A read-only ``LogOddsGrid`` from a saved map (e.g. ``fusion.map_io.load_map``).
+    """A read-only ``LogOddsGrid`` from a saved map (e.g. ``trundle.fusion.map_io.load_map``).
 
     Cells of at least 50 % occupancy become occupied (``l_max``), known cells below free
     (``l_min``), -1 unknown (unobserved). The arrays are made read-only so nothing can update the

@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from logs.errors import UserError
-from logs.messages import OccupancyGrid
+from trundle.logs.errors import UserError
+from trundle.logs.messages import OccupancyGrid
 
 OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.25
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205

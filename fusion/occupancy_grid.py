@@ -16,7 +16,7 @@ from typing import Callable, TypeVar
 import cv2
 import numpy as np
 
-from logs.messages import OccupancyGrid
+from trundle.logs.messages import OccupancyGrid
 
 T = TypeVar("T")
 

@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from fusion.geometry import wrap_angle
-from logs import messages as m
-from logs.errors import UserError
+from trundle.fusion.geometry import wrap_angle
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
 
 
 def _sinc(u: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from fusion.geometry import relative, wrap_angle
+from trundle.fusion.geometry import relative, wrap_angle
 
 
 def drifting_odometry(reference: np.ndarray, *, scale_error: float = 0.05,

@@ -19,8 +19,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import breadth_first_order
 
-from fusion.geometry import wrap_angle
-from logs.errors import UserError
+from trundle.fusion.geometry import wrap_angle
+from trundle.logs.errors import UserError
 
 ROBUST_KERNELS = (None, "huber", "cauchy")
 

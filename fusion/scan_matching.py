@@ -16,8 +16,8 @@ from typing import Callable
 
 import numpy as np
 
-from fusion.geometry import rotation, wrap_angle
-from fusion.occupancy_grid import LogOddsGrid
+from trundle.fusion.geometry import rotation, wrap_angle
+from trundle.fusion.occupancy_grid import LogOddsGrid
 
 _CHUNK_ELEMENTS = 1 << 21
 

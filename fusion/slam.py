@@ -3,7 +3,7 @@
 Per scan (``process`` takes messages, so the same object runs on a live driver or a log):
 
 1. **Predict**: the wheel odometry increment since the previous scan moves an EKF
-   (``fusion.ekf.PoseEKF``) in the local tracking frame; without odometry a constant-velocity
+   (``trundle.fusion.ekf.PoseEKF``) in the local tracking frame; without odometry a constant-velocity
    guess with a wide covariance stands in.
 2. **Match**: the scan is matched against the older active submap: Levenberg-Marquardt from the
    prediction when the prediction is tight, otherwise (or when that fails) a correlative search
@@ -31,17 +31,17 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from fusion.ekf import PoseEKF, odometry_noise
-from fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance,
+from trundle.fusion.ekf import PoseEKF, odometry_noise
+from trundle.fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance,
                              scan_to_points, voxel_filter)
-from fusion.icp import LineReference, icp
-from fusion.occupancy_grid import LogOddsGrid
-from fusion.odometry import DiffDriveOdometry
-from fusion.pose_graph import PoseGraph
-from fusion.scan_matching import MatchResult, match_scan, refine_pose
-from fusion.submaps import Submap, SubmapStack
-from logs import messages as m
-from logs.errors import UserError
+from trundle.fusion.icp import LineReference, icp
+from trundle.fusion.occupancy_grid import LogOddsGrid
+from trundle.fusion.odometry import DiffDriveOdometry
+from trundle.fusion.pose_graph import PoseGraph
+from trundle.fusion.scan_matching import MatchResult, match_scan, refine_pose
+from trundle.fusion.submaps import Submap, SubmapStack
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
 
 # chi-square 3 dof: 99.9 % quantile, for pruning loop edges that disagree after optimisation
 CHI2_3DOF_999 = 16.266236196238129

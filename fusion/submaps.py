@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.geometry import compose, inverse, transform_points
-from fusion.occupancy_grid import LogOddsGrid
+from trundle.fusion.geometry import compose, inverse, transform_points
+from trundle.fusion.occupancy_grid import LogOddsGrid
 
 
 @dataclass

@@ -2,7 +2,7 @@
 
 Units and frames follow REP 103/105 (metres, radians, counter-clockwise, x forward).
 Every ``stamp_ns`` is the host time of the measurement in integer nanoseconds since the
-Unix epoch. ``logs.ros2`` maps each type to its standard ROS 2 message.
+Unix epoch. ``trundle.logs.ros2`` maps each type to its standard ROS 2 message.
 """
 
 from __future__ import annotations

@@ -18,9 +18,9 @@ from mcap.records import Attachment, Channel, Chunk, Header, Message, Metadata, 
 from mcap.reader import SeekingReader
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from logs import messages as m
-from logs import ros2
-from logs.errors import UserError
+from trundle.logs import messages as m
+from trundle.logs import ros2
+from trundle.logs.errors import UserError
 
 MAGIC = b"\x89MCAP0\r\n"
 

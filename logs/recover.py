@@ -14,8 +14,8 @@ from pathlib import Path
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
-from logs.errors import UserError
-from logs.reader import LogReader
+from trundle.logs.errors import UserError
+from trundle.logs.reader import LogReader
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ import os
 import time
 from typing import Callable, Iterable
 
-from logs.reader import LogMessage, LogReader
+from trundle.logs.reader import LogMessage, LogReader
 
 
 def replay(path: str | os.PathLike[str], callback: Callable[[LogMessage], object], rate: float = 1.0,

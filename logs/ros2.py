@@ -14,7 +14,7 @@ from typing import Any, Callable
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from logs import messages as m
+from trundle.logs import messages as m
 
 CAN_FRAME_MSG = """\
 std_msgs/Header header

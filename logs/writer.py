@@ -23,11 +23,11 @@ from typing import IO, Iterable, Mapping, NamedTuple
 
 from mcap.writer import CompressionType, Writer
 
-from logs import messages as m
-from logs import ros2
-from logs.errors import UserError
+from trundle import __version__
+from trundle.logs import messages as m
+from trundle.logs import ros2
+from trundle.logs.errors import UserError
 
-VERSION = "0.1.0"
 ACTIVE_SUFFIX = ".active"
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
@@ -108,7 +108,7 @@ class Logger:
         self.split_duration_ns = int(split_duration_s * 1e9) if split_duration_s else None
         self._splitting = bool(split_bytes or split_duration_s)
         self.queue_size = queue_size
-        self.metadata = {"trundle_version": VERSION, "host": platform.node(), **(metadata or {})}
+        self.metadata = {"trundle_version": __version__, "host": platform.node(), **(metadata or {})}
         self.latched_topics = frozenset(latched_topics)
         self.stats: dict[str, TopicStats] = collections.defaultdict(TopicStats)
         self.files: list[Path] = []
@@ -293,7 +293,7 @@ class Logger:
         stream = open(active, "wb")
         fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # marks the file live for salvage_folder
         writer = Writer(stream, chunk_size=self.chunk_size, compression=COMPRESSION[self.compression])
-        writer.start(profile="ros2", library=f"trundle/{VERSION}")
+        writer.start(profile="ros2", library=f"trundle/{__version__}")
         writer.add_metadata("trundle", {k: str(v) for k, v in self.metadata.items()})
         stream.flush()  # the header is on disk from the start: even an early kill leaves MCAP
         self._file = _OpenFile(path, stream, writer)
@@ -323,7 +323,7 @@ def metadata_json(config: Mapping[str, object]) -> str:
 
 def salvage_folder(folder: Path) -> list[Path]:
     """Recover every leftover ``*.mcap.active`` in ``folder`` to ``*.mcap``; returns the new files."""
-    from logs.recover import recover
+    from trundle.logs.recover import recover
 
     recovered = []
     for active in sorted(folder.glob("*.mcap" + ACTIVE_SUFFIX)):

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from perception.regions import Region, find_regions
+from trundle.perception.regions import Region, find_regions
 
 HSV8_RANGES = (180, 256, 256)   # number of values of each OpenCV 8-bit HSV channel
 DEFAULT_WEIGHTS = (0.5, 0.3, 0.2)   # hue dominates: it changes least with illumination

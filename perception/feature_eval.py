@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from perception.keypoints import Keypoints
-from perception.ransac import project
+from trundle.perception.keypoints import Keypoints
+from trundle.perception.ransac import project
 
 
 def _inside(points: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:

@@ -3,7 +3,7 @@
 Detectors (`METHODS`): corners FAST, AGAST, Harris, Shi-Tomasi; blobs LoG, DoG, SIFT, SURF;
 regions MSER; binary-descriptor pipelines ORB, AKAZE, BRISK; edges Canny, Sobel, Roberts
 (edge pixels as keypoints, oriented along the gradient). OpenCV does the detecting where it
-has the detector; SURF is ours (`perception.surf`); LoG/DoG blobs and Roberts edges are
+has the detector; SURF is ours (`trundle.perception.surf`); LoG/DoG blobs and Roberts edges are
 numpy over OpenCV filters. Every keypoint has a position, a size and an orientation: where a
 detector gives none, the intensity centroid of a disc around it (Rosin, as ORB) supplies it
 (the gradient direction for edges, the major axis for MSER ellipses).
@@ -22,11 +22,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from logs.errors import UserError
-from perception import surf as surf_module
-from perception.images import otsu_level, to_gray
-from perception.keypoints import Keypoints, from_cv, make_keypoints, strongest, to_cv
-from perception.regions import central_moments, ellipse
+from trundle.logs.errors import UserError
+from trundle.perception import surf as surf_module
+from trundle.perception.images import otsu_level, to_gray
+from trundle.perception.keypoints import Keypoints, from_cv, make_keypoints, strongest, to_cv
+from trundle.perception.regions import central_moments, ellipse
 
 DESCRIPTORS = {"sift": "l2", "surf": "l2", "orb": "hamming", "akaze": "hamming", "brisk": "hamming"}
 EDGES = ("canny", "sobel", "roberts")

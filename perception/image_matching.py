@@ -1,8 +1,8 @@
 """Two images -> features, filtered matches and a RANSAC model (homography or fundamental).
 
 The chain behind `trundle match`, the feature benchmark and the acceptance tests: detect and
-describe both images, match descriptors (`perception.matching`), fit the model robustly
-(`perception.ransac`), keeping the count left after every stage.
+describe both images, match descriptors (`trundle.perception.matching`), fit the model robustly
+(`trundle.perception.ransac`), keeping the count left after every stage.
 """
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perception.features import Features, detect_and_describe
-from perception.matching import MatchResult, match
-from perception.ransac import RansacResult, find_fundamental, find_homography
+from trundle.perception.features import Features, detect_and_describe
+from trundle.perception.matching import MatchResult, match
+from trundle.perception.ransac import RansacResult, find_fundamental, find_homography
 
 
 @dataclass(frozen=True)

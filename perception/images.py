@@ -9,7 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from logs.messages import CompressedImage, Image
+from trundle.logs.messages import CompressedImage, Image
 
 # sensor_msgs/Image encodings (REP 104 names) -> conversion to BGR or grey (None: use as is)
 _RAW_ENCODINGS = {

@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from logs.errors import UserError
-from logs.messages import CameraInfo
+from trundle.logs.errors import UserError
+from trundle.logs.messages import CameraInfo
 
 FALLBACK_PX = 1.0   # RMS reprojection error above which IPPE is deemed to have failed
 CORNER_REFINEMENT = {"none": cv2.aruco.CORNER_REFINE_NONE, "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,

@@ -11,7 +11,7 @@ the beam indices that support it. Invalid readings (REP 117: inf, NaN, outside
   break between objects, e.g. a doorway);
 - ``min_points`` and ``min_length``: smallest segment kept.
 
-Lines are fitted by total least squares (``perception.ransac.fit_line``).
+Lines are fitted by total least squares (``trundle.perception.ransac.fit_line``).
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from logs.messages import LaserScan
-from perception.ransac import fit_line, line_residuals, ransac
+from trundle.logs.messages import LaserScan
+from trundle.perception.ransac import fit_line, line_residuals, ransac
 
 
 @dataclass(frozen=True, eq=False)

@@ -29,8 +29,8 @@ import math
 import cv2
 import numpy as np
 
-from perception.images import to_gray
-from perception.keypoints import Keypoints, concatenate, make_keypoints, strongest
+from trundle.perception.images import to_gray
+from trundle.perception.keypoints import Keypoints, concatenate, make_keypoints, strongest
 
 BASE_SIZE = 9
 SIZE_STEP = 6

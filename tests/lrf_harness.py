@@ -12,9 +12,9 @@ from contextlib import contextmanager
 from typing import Callable, Iterator
 
 from camera_clips import wait_for
-from drivers.lifecycle import Driver
-from logs import messages as m
-from tools.emulators.device_server import DeviceServer
+from trundle.drivers.lifecycle import Driver
+from trundle.logs import messages as m
+from trundle.tools.emulators.device_server import DeviceServer
 
 CEILING_S = 60.0
 

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from logs.messages import LaserScan
+from trundle.logs.messages import LaserScan
 
 # Walls sit off the 5 cm / 2 cm cell lattice (as real walls do), so no reading lies on a cell edge.
 _OFF = np.array([0.0123, 0.0271, 0.0123, 0.0271])

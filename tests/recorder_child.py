@@ -12,8 +12,8 @@ import time
 
 import numpy as np
 
-from logs import messages as m
-from logs.writer import Logger
+from trundle.logs import messages as m
+from trundle.logs.writer import Logger
 
 
 def main() -> int:

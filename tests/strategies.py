@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from logs import messages as m
+from trundle.logs import messages as m
 
 stamps = st.integers(min_value=0, max_value=(2**31 - 1) * 10**9)
 names = st.text(st.characters(min_codepoint=32, max_codepoint=0x2FFF, exclude_categories=("Cs",)), max_size=12)

@@ -9,10 +9,10 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from logs import messages as m
-from logs.reader import LogReader
-from logs.writer import Logger
-from tools.cli import main
+from trundle.logs import messages as m
+from trundle.logs.reader import LogReader
+from trundle.logs.writer import Logger
+from trundle.tools.cli import main
 
 
 def make_log(path: Path, n: int = 200, **kwargs) -> None:

@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.camera_config import parse_camera_url
-from logs.errors import UserError
+from trundle.drivers.camera_config import parse_camera_url
+from trundle.logs.errors import UserError
 
 
 def test_v4l2_url_with_table_options() -> None:

@@ -15,13 +15,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from camera_clips import avi_video_chunks, scene, wait_for, write_clip
-from drivers.camera import CameraDriver, driver_from_url
-from drivers.jpeg_check import jpeg_problem
-from logs import messages as m
-from logs.errors import UserError
-from logs.reader import LogMessage, LogReader
-from logs.writer import Logger
-from tools.cli import main
+from trundle.drivers.camera import CameraDriver, driver_from_url
+from trundle.drivers.jpeg_check import jpeg_problem
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
+from trundle.logs.reader import LogMessage, LogReader
+from trundle.logs.writer import Logger
+from trundle.tools.cli import main
 
 IMAGE_TOPIC = "/camera/image_raw/compressed"
 

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.camera_info import camera_info_from_calibration, load_camera_info, uncalibrated_camera_info
-from logs import ros2
-from logs.errors import UserError
+from trundle.drivers.camera_info import camera_info_from_calibration, load_camera_info, uncalibrated_camera_info
+from trundle.logs import ros2
+from trundle.logs.errors import UserError
 
 # A real cameracalibrator result, published in the README of a ROS camera driver
 # (1440x1440 fisheye "kodak" camera, plumb_bob model).

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.jpeg_check import CorruptJpeg, JpegChecker, decodes, jpeg_header, jpeg_problem
+from trundle.drivers.jpeg_check import CorruptJpeg, JpegChecker, decodes, jpeg_header, jpeg_problem
 
 
 def encoded(width: int = 64, height: int = 48, *params: int, seed: int = 0, gray: bool = False) -> bytes:

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tools.camera_render import CameraPose, CameraRenderer, PinholeCamera, optical_rotation, project
-from tools.world import load_world
+from trundle.tools.camera_render import CameraPose, CameraRenderer, PinholeCamera, optical_rotation, project
+from trundle.tools.world import load_world
 
 # Poses along the office corridors, each looking at one or two markers.
 VIEWS = [CameraPose(22.0, 5.25, 0.45, 0.0), CameraPose(10.0, 5.25, 0.45, 0.0),
@@ -114,7 +114,7 @@ def test_camera_info_and_scaling():
 
 
 def test_calibration_file_loads_as_the_same_camera_info(tmp_path):
-    from drivers.camera_info import load_camera_info
+    from trundle.drivers.camera_info import load_camera_info
     camera = PinholeCamera().scaled(1280, 720)
     path = tmp_path / "camera.yaml"
     path.write_text(camera.calibration_yaml())

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from camera_clips import avi_video_chunks, wait_for, write_clip
-from drivers.camera import CameraDriver, driver_from_url
-from logs import messages as m
-from tools.cli import main
-from tools.emulators.camera_emulator import BOUNDARY, CameraEmulator, synthetic_frame
+from trundle.drivers.camera import CameraDriver, driver_from_url
+from trundle.logs import messages as m
+from trundle.tools.cli import main
+from trundle.tools.emulators.camera_emulator import BOUNDARY, CameraEmulator, synthetic_frame
 
 
 def start_driver(url: str, **options: object) -> tuple[CameraDriver, list[m.CompressedImage]]:

@@ -11,10 +11,10 @@ import uuid
 import can
 import pytest
 
-from drivers.can_bus import (CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_PROT, CAN_ERR_RESTARTED, CanBus, parse_url)
-from drivers.lifecycle import DeviceError
-from logs.errors import UserError
-from tools.emulators.slcan_emulator import SlcanEmulator
+from trundle.drivers.can_bus import (CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_PROT, CAN_ERR_RESTARTED, CanBus, parse_url)
+from trundle.drivers.lifecycle import DeviceError
+from trundle.logs.errors import UserError
+from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
 
 def test_urls():

@@ -10,8 +10,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers import cia406
-from drivers.cia406 import PositionLayout, decode_emcy, decode_heartbeat
+from trundle.drivers import cia406
+from trundle.drivers.cia406 import PositionLayout, decode_emcy, decode_heartbeat
 from tests.can_rig import can_rig
 
 

@@ -12,18 +12,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers import odrive
-from drivers.wheels import MAX_CARRY_S
-from fusion.odometry import odometry_from_config
-from logs.reader import LogReader
-from tools.cli import main
+from trundle.drivers import odrive
+from trundle.drivers.wheels import MAX_CARRY_S
+from trundle.fusion.odometry import odometry_from_config
+from trundle.logs.reader import LogReader
+from trundle.tools.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_record_from_the_emulator_process(tmp_path, capsys):
     link = tmp_path / "ttyCAN0"
-    emulator = subprocess.Popen([sys.executable, "-m", "tools.cli", "emulate", "can", "--protocol", "odrive",
+    emulator = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "emulate", "can", "--protocol", "odrive",
                                  "--link", str(link), "--script", "0:0.5,0.5", "--duration", "30",
                                  "--fault", "1.0:heartbeat-stop:1", "--fault", "1.8:heartbeat-resume:1"],
                                 cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.counter_unwrap import CounterUnwrapper, unwrap, wrap_delta
+from trundle.drivers.counter_unwrap import CounterUnwrapper, unwrap, wrap_delta
 
 moduli = st.one_of(st.sampled_from([2**8, 2**12, 2**16, 2**24, 2**32, 3600, 100_000, 2**64]), st.integers(3, 10**6))
 

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.dbc_wheels import DbcWheels
+from trundle.drivers.dbc_wheels import DbcWheels
 from tests.can_rig import VESC_DBC
 
 SIGNALS = ["VESC_Status5_id9.Tachometer", "VESC_Status5_id10.Tachometer"]

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers import odrive
+from trundle.drivers import odrive
 
 # Get_Encoder_Estimates and the 0.5.x heartbeat as the CAN Simple protocol table defines them
 # (little-endian floats / u32 + u8 flags), in DBC form for cantools to decode independently.

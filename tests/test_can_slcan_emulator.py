@@ -12,7 +12,7 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tools.emulators.slcan_emulator import SlcanEmulator, format_frame, parse_frame
+from trundle.tools.emulators.slcan_emulator import SlcanEmulator, format_frame, parse_frame
 
 
 @pytest.fixture

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from can.interfaces.slcan import slcanBus
 
-from drivers.can_bus import Received
-from drivers.wheels import driver_from_url
-from logs import messages as m
-from logs.errors import UserError
+from trundle.drivers.can_bus import Received
+from trundle.drivers.wheels import driver_from_url
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
 from tests.can_rig import RADIUS, assert_no_jump, can_rig
 
 # Stand still, then both wheels at 1 turn/s for 0.5 s (half a turn = pi rad), then stop.

@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.lrf import driver_from_url
+from trundle.drivers.lrf import driver_from_url
 from lrf_harness import Recorder, running, wait_until
-from logs.writer import Logger
-from tools.cli import main
-from tools.emulators.device_server import DeviceServer
-from tools.emulators.scip2_emulator import MODELS, ScipDevice
-from tools.sensor_model import RangeImpairment
+from trundle.logs.writer import Logger
+from trundle.tools.cli import main
+from trundle.tools.emulators.device_server import DeviceServer
+from trundle.tools.emulators.scip2_emulator import MODELS, ScipDevice
+from trundle.tools.sensor_model import RangeImpairment
 
 GAIN, BIAS, QUAD, CENTRE, HYST, NOISE = 1.02, 0.05, 0.02, 2.5, 0.03, 0.01
 LEVELS = np.round(np.arange(1.0, 4.0001, 0.25), 2)  # 13 levels, symmetric about CENTRE
@@ -116,7 +116,7 @@ def test_real_hokuyo_log_gives_per_beam_noise_where_the_robot_stands_still(tmp_p
     """exp2.dat (a real URG-04LX with wheel encoders): standing-still stretches are found from
     the wheel angles; every beam that returned gets a noise figure, plotted."""
     from conftest import shared_file
-    from logs.importers.breezyslam import import_breezyslam
+    from trundle.logs.importers.breezyslam import import_breezyslam
 
     log = tmp_path / "exp2.mcap"
     import_breezyslam(shared_file("breezyslam/exp2.dat"), log)
@@ -138,7 +138,7 @@ def test_real_hokuyo_log_gives_per_beam_noise_where_the_robot_stands_still(tmp_p
 def test_encoder_counts_per_revolution_from_real_ticks(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """exp2's wheel encoders give 2000 ticks per revolution (BreezySLAM's robot model)."""
     from conftest import shared_file
-    from logs.importers.breezyslam import import_breezyslam
+    from trundle.logs.importers.breezyslam import import_breezyslam
 
     log = tmp_path / "exp2.mcap"
     import_breezyslam(shared_file("breezyslam/exp2.dat"), log)
@@ -151,7 +151,7 @@ def test_encoder_counts_per_revolution_from_real_ticks(tmp_path: Path, capsys: p
 
 
 def test_camera_rate_jitter_and_dropped_frames(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from logs import messages as m
+    from trundle.logs import messages as m
 
     period = 1_000_000_000 // 30
     frames = [k for k in range(90) if k not in (10, 40, 41)]

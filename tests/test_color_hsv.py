@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from perception.color import hsv8_bounds, rgb_to_hsv
+from trundle.perception.color import hsv8_bounds, rgb_to_hsv
 
 REDS_PER_CHUNK = 16   # 16 x 65536 colours (~1M) per chunk keeps memory to a few tens of MB
 

@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.lifecycle import Backoff, DeviceError, Driver
-from logs import messages as m
-from logs.reader import LogReader
-from tools.daemon import Daemon, format_status, query_status
-from tools.daemon_config import parse_config
+from trundle.drivers.lifecycle import Backoff, DeviceError, Driver
+from trundle.logs import messages as m
+from trundle.logs.reader import LogReader
+from trundle.tools.daemon import Daemon, format_status, query_status
+from trundle.tools.daemon_config import parse_config
 
 Usage = namedtuple("Usage", "total used free")
 
@@ -221,7 +221,7 @@ def test_disk_guard_stops_recording_and_resumes(tmp_path, monkeypatch):
 
 
 def test_second_daemon_on_the_same_socket_is_refused(tmp_path):
-    from logs.errors import UserError
+    from trundle.logs.errors import UserError
     with Running(config(tmp_path)):
         other = Daemon(config(tmp_path), make_driver=lambda f, u, s, o: ScriptedDriver(f, s))
         with pytest.raises(UserError, match="another trundle daemon"):

@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from logs.errors import UserError
-from tools.daemon_config import default_socket_path, format_config, load_config, parse_config
+from trundle.logs.errors import UserError
+from trundle.tools.daemon_config import default_socket_path, format_config, load_config, parse_config
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "tools" / "daemon_example.toml"
 

@@ -14,13 +14,13 @@ import cv2
 import numpy as np
 import pytest
 
-from logs.reader import LogReader
-from tools.camera_render import project
-from tools.daemon import query_status
-from tools.daemon_config import format_config
-from tools.robot_sim import RobotSim
-from tools.sim_devices import SimDevices
-from tools.world import load_world
+from trundle.logs.reader import LogReader
+from trundle.tools.camera_render import project
+from trundle.tools.daemon import query_status
+from trundle.tools.daemon_config import format_config
+from trundle.tools.robot_sim import RobotSim
+from trundle.tools.sim_devices import SimDevices
+from trundle.tools.world import load_world
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -46,7 +46,7 @@ def test_daemon_logs_every_emulated_device_consistently_with_ground_truth(tmp_pa
                             "logger": {"folder": str(tmp_path / "logs"), "flush_period_s": 0.2},
                             "status": {"socket": str(tmp_path / "status.sock"), "diagnostics_period_s": 0.5},
                             "disk": {"min_free_mb": 1.0}}))
-        proc = subprocess.Popen([sys.executable, "-m", "tools.cli", "daemon", "--config", str(config)],
+        proc = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "daemon", "--config", str(config)],
                                 cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(REPO)},
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:

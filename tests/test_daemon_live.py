@@ -11,8 +11,8 @@ import time
 
 import pytest
 
-from logs import messages as m
-from logs import ros2
+from trundle.logs import messages as m
+from trundle.logs import ros2
 from tests.test_daemon import Running, config, wait_for
 
 pytest.importorskip("foxglove", reason="the live view needs the optional extra trundle[live] (foxglove-sdk)")

@@ -11,15 +11,15 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.lifecycle import Driver
-from fusion.geometry import compose, inverse
-from logs import messages as m
-from logs.reader import LogReader
-from tools.camera_render import optical_rotation
-from tools.daemon import Daemon
-from tools.daemon_config import parse_config
-from tools.robot_sim import RobotSim
-from tools.world import load_world
+from trundle.drivers.lifecycle import Driver
+from trundle.fusion.geometry import compose, inverse
+from trundle.logs import messages as m
+from trundle.logs.reader import LogReader
+from trundle.tools.camera_render import optical_rotation
+from trundle.tools.daemon import Daemon
+from trundle.tools.daemon_config import parse_config
+from trundle.tools.robot_sim import RobotSim
+from trundle.tools.world import load_world
 
 START_S = 14.0  # heading east towards marker 3 on the east wall
 

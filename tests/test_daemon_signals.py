@@ -19,10 +19,10 @@ from pathlib import Path
 import cv2
 import pytest
 
-from logs.reader import LogReader
-from tools.cli import main
-from tools.camera_render import CameraPose, CameraRenderer
-from tools.world import load_world
+from trundle.logs.reader import LogReader
+from trundle.tools.cli import main
+from trundle.tools.camera_render import CameraPose, CameraRenderer
+from trundle.tools.world import load_world
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -101,7 +101,7 @@ class Notify:
 def start(tmp_path: Path, config: Path, notify: Notify) -> subprocess.Popen:
     env = {**os.environ, "NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": "200000",
            "WATCHDOG_PID": "", "PYTHONPATH": str(REPO)}
-    return subprocess.Popen([sys.executable, "-m", "tools.cli", "daemon", "--config", str(config)], cwd=tmp_path,
+    return subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "daemon", "--config", str(config)], cwd=tmp_path,
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 

@@ -18,13 +18,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from logs.reader import LogReader
-from tools.daemon import query_status
-from tools.daemon_config import format_config
-from tools.emulators.faults import FaultPlan
-from tools.robot_sim import RobotSim
-from tools.sim_devices import SimDevices
-from tools.world import load_world
+from trundle.logs.reader import LogReader
+from trundle.tools.daemon import query_status
+from trundle.tools.daemon_config import format_config
+from trundle.tools.emulators.faults import FaultPlan
+from trundle.tools.robot_sim import RobotSim
+from trundle.tools.sim_devices import SimDevices
+from trundle.tools.world import load_world
 
 REPO = Path(__file__).resolve().parents[1]
 RECOVERY_S = 6.0  # reconnect back-off + handshake allowed after a device comes back
@@ -62,7 +62,7 @@ def soak(tmp_path: Path, duration_s: float, period_s: float, away_s: float) -> N
                             "logger": {"folder": str(tmp_path / "logs"), "flush_period_s": 0.5},
                             "status": {"socket": str(socket_path), "diagnostics_period_s": 1.0},
                             "disk": {"min_free_mb": 1.0}}))
-        proc = subprocess.Popen([sys.executable, "-m", "tools.cli", "daemon", "--config", str(config)],
+        proc = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "daemon", "--config", str(config)],
                                 cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(REPO)},
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         windows: dict[str, list[tuple[int, int]]] = {name: [] for name in TOPICS}

@@ -12,13 +12,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fusion.map_io import load_map, read_trajectory_csv
-from logs.errors import UserError
-from logs.reader import LogReader
-from tools.cli import main
-from tools.commands.demo import camera_size
-from tools.demo import ATE_LIMIT_M
-from tools.world import load_world
+from trundle.fusion.map_io import load_map, read_trajectory_csv
+from trundle.logs.errors import UserError
+from trundle.logs.reader import LogReader
+from trundle.tools.cli import main
+from trundle.tools.commands.demo import camera_size
+from trundle.tools.demo import ATE_LIMIT_M
+from trundle.tools.world import load_world
 
 DURATION_S = 8.0
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fusion.ekf import GATE_CHI2_99, PoseEKF, odometry_noise
+from trundle.fusion.ekf import GATE_CHI2_99, PoseEKF, odometry_noise
 
 
 def test_gate_constant_is_the_chi2_quantile():

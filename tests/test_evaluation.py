@@ -11,12 +11,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fusion.evaluation import (Relations, Trajectory, absolute_trajectory_error, align_se2, read_reference,
+from trundle.fusion.evaluation import (Relations, Trajectory, absolute_trajectory_error, align_se2, read_reference,
                                read_relations, relation_error, relative_pose_error, seconds_to_ns,
                                trajectory_relations)
-from fusion.geometry import compose
-from fusion.map_io import write_trajectory_csv
-from logs.errors import UserError
+from trundle.fusion.geometry import compose
+from trundle.fusion.map_io import write_trajectory_csv
+from trundle.logs.errors import UserError
 
 INTEL = Path(__file__).parents[2] / "shared" / "data" / "intel" / "intel.gfs.log"
 SECOND = 1_000_000_000
@@ -159,7 +159,7 @@ def test_trajectory_csv_and_carmen_references(tmp_path):
 
 @pytest.mark.skipif(not INTEL.exists(), reason=f"{INTEL} absent (shared data)")
 def test_intel_reference_and_drifting_odometry():
-    from fusion.odometry_drift import drifting_odometry
+    from trundle.fusion.odometry_drift import drifting_odometry
 
     reference = read_reference(INTEL)
     assert isinstance(reference, Trajectory) and len(reference) == 910
@@ -178,7 +178,7 @@ def test_intel_reference_and_drifting_odometry():
 
 
 def test_slam_eval_command(tmp_path, capsys):
-    from tools.cli import main
+    from trundle.tools.cli import main
 
     result, reference = tmp_path / "trajectory.csv", tmp_path / "reference.csv"
     estimate = trajectory((0, 0, 0), (1.1, 0, 0), (2.1, 0.2, math.pi / 2 + 0.1))
@@ -203,7 +203,7 @@ def test_slam_eval_command(tmp_path, capsys):
 
 @pytest.mark.parametrize("args", [["absent.csv", "ref.csv"], ["traj.csv", "bad.relations"], ["traj.csv", "ref.csv", "--step", "0"]])
 def test_slam_eval_user_errors_are_one_line(tmp_path, capsys, monkeypatch, args):
-    from tools.cli import main
+    from trundle.tools.cli import main
 
     monkeypatch.chdir(tmp_path)
     write_trajectory_csv(tmp_path / "traj.csv", REFERENCE.stamps_ns, REFERENCE.poses)

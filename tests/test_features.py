@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from feature_scenes import scene
-from logs.errors import UserError
-from perception.features import (DESCRIPTORS, METHODS, available, describe, detect, detect_and_describe, edge_map,
+from trundle.logs.errors import UserError
+from trundle.perception.features import (DESCRIPTORS, METHODS, available, describe, detect, detect_and_describe, edge_map,
                                  intensity_centroid_angle, sift_octave)
-from perception.keypoints import from_cv, make_keypoints, to_cv
+from trundle.perception.keypoints import from_cv, make_keypoints, to_cv
 
 
 @pytest.mark.parametrize("method", list(METHODS))

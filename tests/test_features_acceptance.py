@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 from conftest import shared_file
-from perception.feature_eval import corner_error, matching_score, repeatability
-from perception.features import Features, available, detect_and_describe
-from perception.image_matching import match_features
+from trundle.perception.feature_eval import corner_error, matching_score, repeatability
+from trundle.perception.features import Features, available, detect_and_describe
+from trundle.perception.image_matching import match_features
 
 SEQUENCES = {"graf": ("oxford/graf/img{}.png", "oxford/graf/H1to{}p"),
              "v_churchill": ("hpatches/v_churchill/{}.png", "hpatches/v_churchill/H_1_{}")}

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from perception.feature_eval import corner_error, image_corners, matching_score, repeatability, shared
-from perception.keypoints import make_keypoints
+from trundle.perception.feature_eval import corner_error, image_corners, matching_score, repeatability, shared
+from trundle.perception.keypoints import make_keypoints
 
 SHAPE = (100, 200)          # rows, cols
 SHIFT = np.array([[1.0, 0.0, 10.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])   # x2 = x1 + 10

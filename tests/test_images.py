@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from logs.messages import CompressedImage, Image
-from perception.images import decode_image, histogram, otsu_level, otsu_threshold, threshold, to_gray
+from trundle.logs.messages import CompressedImage, Image
+from trundle.perception.images import decode_image, histogram, otsu_level, otsu_threshold, threshold, to_gray
 from tests.conftest import shared_file
 
 

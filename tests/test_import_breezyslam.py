@@ -10,11 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fusion.odometry import DiffDriveOdometry
-from logs.importers.breezyslam import ANGLE_MIN, ANGLE_STEP, import_breezyslam, parse_line, ranges_to_metres
-from logs.reader import LogReader
+from trundle.fusion.odometry import DiffDriveOdometry
+from trundle.logs.importers.breezyslam import ANGLE_MIN, ANGLE_STEP, import_breezyslam, parse_line, ranges_to_metres
+from trundle.logs.reader import LogReader
 from tests.conftest import shared_file
-from tools.cli import main
+from trundle.tools.cli import main
 
 
 @pytest.fixture(scope="module")

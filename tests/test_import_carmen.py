@@ -9,14 +9,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fusion.geometry import relative
-from fusion.odometry_drift import drifting_odometry
-from logs import messages as m
-from logs.importers.carmen import (CarmenLaser, CarmenOdom, import_carmen, messages, parse_line, read_carmen,
+from trundle.fusion.geometry import relative
+from trundle.fusion.odometry_drift import drifting_odometry
+from trundle.logs import messages as m
+from trundle.logs.importers.carmen import (CarmenLaser, CarmenOdom, import_carmen, messages, parse_line, read_carmen,
                                    scan_poses)
-from logs.reader import LogReader
+from trundle.logs.reader import LogReader
 from tests.conftest import shared_file
-from tools.cli import main
+from trundle.tools.cli import main
 
 
 def test_odom_line() -> None:
@@ -52,7 +52,7 @@ def test_robotlaser_both_variants_give_the_mount() -> None:
 
 
 def read_lines(lines: list[str]):
-    from logs.importers.carmen import CarmenLog
+    from trundle.logs.importers.carmen import CarmenLog
     log = CarmenLog()
     for line in lines:
         record = parse_line(line)

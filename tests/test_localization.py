@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fusion.geometry import compose, inverse, relative, scan_to_points, transform_points, voxel_filter
-from fusion.localization import (CoarseMap, Localizer, LocalizerConfig, coarse_map, correlate_headings,
+from trundle.fusion.geometry import compose, inverse, relative, scan_to_points, transform_points, voxel_filter
+from trundle.fusion.localization import (CoarseMap, Localizer, LocalizerConfig, coarse_map, correlate_headings,
                                  global_search, grid_from_map)
-from fusion.map_io import read_trajectory_csv
-from fusion.occupancy_grid import LogOddsGrid
-from fusion.odometry_drift import drifting_odometry
+from trundle.fusion.map_io import read_trajectory_csv
+from trundle.fusion.occupancy_grid import LogOddsGrid
+from trundle.fusion.odometry_drift import drifting_odometry
 
 INTEL = Path(__file__).parents[2] / "shared" / "data" / "intel" / "intel.gfs.log"
 
@@ -32,7 +32,7 @@ class Office:
     """The simulated office: route poses, scans (robot-frame points) and a map built from exact scans."""
 
     def __init__(self) -> None:
-        from tools.world import LaserModel, load_world, simulate_scan
+        from trundle.tools.world import LaserModel, load_world, simulate_scan
 
         self.world = load_world()
         self.model = LaserModel(beams=361, range_max=20.0)
@@ -146,7 +146,7 @@ class Intel:
     """Map from the even scans of intel.gfs.log at GMapping's poses; the odd scans to localise."""
 
     def __init__(self) -> None:
-        from logs.importers.carmen import infer_no_return, read_carmen, to_scan
+        from trundle.logs.importers.carmen import infer_no_return, read_carmen, to_scan
 
         log = read_carmen(INTEL)
         no_return = infer_no_return(log)
@@ -215,9 +215,9 @@ EXP2 = Path(__file__).parents[2] / "shared" / "data" / "breezyslam" / "exp2.dat"
 @pytest.mark.skipif(not EXP2.exists(), reason=f"{EXP2} absent (shared data)")
 def test_exp2_converges_and_recovers_on_its_slam_map():
     """exp2 (real URG-04LX scans, real wheel odometry): map by our SLAM, then localise from unknown starts."""
-    from fusion.odometry import DiffDriveOdometry
-    from fusion.slam import Slam
-    from logs.importers.breezyslam import ROBOT, messages, read_dat
+    from trundle.fusion.odometry import DiffDriveOdometry
+    from trundle.fusion.slam import Slam
+    from trundle.logs.importers.breezyslam import ROBOT, messages, read_dat
 
     slam = Slam(odometry=DiffDriveOdometry(ROBOT["wheel_radius_m"], ROBOT["track_m"]),
                 laser_pose=(ROBOT["laser_x_m"], 0.0, 0.0))
@@ -253,10 +253,10 @@ def test_exp2_converges_and_recovers_on_its_slam_map():
 
 def test_localize_command_on_a_spliced_intel_log(intel, tmp_path, capsys):
     """`trundle localize` on a saved map and an MCAP whose scans jump 500 scans ahead half way."""
-    from fusion.map_io import save_map
-    from logs.importers import write_log
-    from logs.importers.carmen import CarmenLog, messages, read_carmen
-    from tools.cli import main
+    from trundle.fusion.map_io import save_map
+    from trundle.logs.importers import write_log
+    from trundle.logs.importers.carmen import CarmenLog, messages, read_carmen
+    from trundle.tools.cli import main
 
     lasers = [laser for laser in read_carmen(INTEL).lasers if laser.kind == "FLASER"]
     index = np.concatenate([np.arange(101, 131, 2), np.arange(601, 641, 2)])
@@ -281,7 +281,7 @@ def test_localize_command_on_a_spliced_intel_log(intel, tmp_path, capsys):
 
 
 def test_localize_command_user_errors(tmp_path, capsys):
-    from tools.cli import main
+    from trundle.tools.cli import main
 
     assert main(["localize", str(tmp_path / "absent.mcap"), "--map", str(tmp_path)]) == 2
     err = capsys.readouterr().err
@@ -289,7 +289,7 @@ def test_localize_command_user_errors(tmp_path, capsys):
 
 
 def test_grid_from_map_is_trinary_and_read_only():
-    from logs.messages import OccupancyGrid
+    from trundle.logs.messages import OccupancyGrid
 
     data = np.array([[100, 0, -1], [70, 20, 0]], np.int8)
     grid = grid_from_map(OccupancyGrid(0, "map", 0.1, -1.0, 2.0, 0.0, data))
@@ -299,6 +299,6 @@ def test_grid_from_map_is_trinary_and_read_only():
     assert np.all(grid.log_odds[data == 0] < 0) and grid.log_odds[0, 2] == 0
     with pytest.raises(ValueError):
         grid.insert_rays([-0.95, 2.05], [[-0.75, 2.05]])  # the map cannot be written
-    from logs.errors import UserError
+    from trundle.logs.errors import UserError
     with pytest.raises(UserError, match="rotated"):
         grid_from_map(OccupancyGrid(0, "map", 0.1, 0.0, 0.0, 0.5, data))

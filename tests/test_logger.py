@@ -13,12 +13,12 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from rosbags.highlevel import AnyReader
 
-from logs import messages as m
-from logs import ros2
-from logs.reader import LogReader
-from logs.replay import replay
-from logs.writer import Logger
-from tools.cli import main
+from trundle.logs import messages as m
+from trundle.logs import ros2
+from trundle.logs.reader import LogReader
+from trundle.logs.replay import replay
+from trundle.logs.writer import Logger
+from trundle.tools.cli import main
 
 
 T0 = 1_763_784_000_000_000_000

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from logs.errors import UserError
-from logs.reader import LogReader
-from logs.recover import recover
+from trundle.logs.errors import UserError
+from trundle.logs.reader import LogReader
+from trundle.logs.recover import recover
 
 CHILD = Path(__file__).with_name("recorder_child.py")
 KILLS = 20

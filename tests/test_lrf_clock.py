@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.sensor_clock import SensorClock
+from trundle.drivers.sensor_clock import SensorClock
 
 MS = 1_000_000
 T0 = 1_700_000_000 * 10**9  # host epoch of the synthetic run

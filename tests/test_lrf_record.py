@@ -6,13 +6,13 @@ import time
 
 import numpy as np
 
-from logs import messages as m
-from logs.reader import LogReader
-from tools import cli
-from tools.emulators.device_server import DeviceServer
-from tools.emulators.rplidar_emulator import MODELS as RPLIDAR_MODELS, RplidarDevice
-from tools.emulators.scene import load_scene
-from tools.emulators.scip2_emulator import MODELS, ScipDevice
+from trundle.logs import messages as m
+from trundle.logs.reader import LogReader
+from trundle.tools import cli
+from trundle.tools.emulators.device_server import DeviceServer
+from trundle.tools.emulators.rplidar_emulator import MODELS as RPLIDAR_MODELS, RplidarDevice
+from trundle.tools.emulators.scene import load_scene
+from trundle.tools.emulators.scip2_emulator import MODELS, ScipDevice
 
 
 def test_record_scip2_to_mcap(tmp_path):

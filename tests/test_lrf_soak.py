@@ -14,7 +14,7 @@ import pytest
 from tests.lrf_harness import inject, running, wait_until
 from tests.test_rplidar_driver import make as make_rplidar, match as match_rplidar
 from tests.test_scip2_driver import make as make_scip2, match as match_scip2
-from tools.emulators.faults import FaultPlan
+from trundle.tools.emulators.faults import FaultPlan
 
 SOAK_S = 60.0
 

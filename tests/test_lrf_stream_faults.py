@@ -10,15 +10,15 @@ from __future__ import annotations
 import numpy as np
 from hypothesis import given, settings, strategies as st
 
-from drivers import rplidar as rp
-from drivers.rplidar_driver import RevolutionAssembler, revolution_scan
-from drivers.scip2 import Measure
-from drivers.scip2_driver import ScipScanStream
-from drivers.sensor_clock import SensorClock
+from trundle.drivers import rplidar as rp
+from trundle.drivers.rplidar_driver import RevolutionAssembler, revolution_scan
+from trundle.drivers.scip2 import Measure
+from trundle.drivers.scip2_driver import ScipScanStream
+from trundle.drivers.sensor_clock import SensorClock
 from tests.lrf_harness import MUTATIONS, mutate
-from tools.emulators import rplidar_emulator, scip2_emulator
-from tools.emulators.faults import FaultPlan
-from tools.emulators.scene import load_scene
+from trundle.tools.emulators import rplidar_emulator, scip2_emulator
+from trundle.tools.emulators.faults import FaultPlan
+from trundle.tools.emulators.scene import load_scene
 
 MS = 1_000_000
 T0 = 1_700_000_000 * 10**9

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import serial
 
-from tools.emulators import rplidar_emulator, scip2_emulator
-from tools.emulators.device_server import DeviceServer
-from tools.emulators.scene import load_scene
+from trundle.tools.emulators import rplidar_emulator, scip2_emulator
+from trundle.tools.emulators.device_server import DeviceServer
+from trundle.tools.emulators.scene import load_scene
 
 SCENE = load_scene()
 EXACT = type(SCENE)(SCENE.segments, SCENE.pose, 0.0)  # the same room without range noise

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from feature_scenes import scene
-from perception.feature_eval import corner_error
-from tools.cli import main
+from trundle.perception.feature_eval import corner_error
+from trundle.tools.cli import main
 
 WARP = np.array([[0.95, 0.08, 12.0], [-0.06, 0.97, 8.0], [1e-5, -2e-5, 1.0]])
 

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.distance import cdist
 
-from perception.matching import match, match_descriptors, nearest_neighbours, resolve_metric
+from trundle.perception.matching import match, match_descriptors, nearest_neighbours, resolve_metric
 
 
 def test_hand_computed_l2_l1_and_filters() -> None:

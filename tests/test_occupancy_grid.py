@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fusion.occupancy_grid import LogOddsGrid, log_odds, ray_cells
-from logs import ros2
+from trundle.fusion.occupancy_grid import LogOddsGrid, log_odds, ray_cells
+from trundle.logs import ros2
 
 
 @settings(max_examples=150, deadline=None)

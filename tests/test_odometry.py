@@ -9,11 +9,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fusion.geometry import wrap_angle
-from fusion.odometry import (DiffDriveOdometry, OdometrySink, integrate, integrate_path, odometry_from_config,
+from trundle.fusion.geometry import wrap_angle
+from trundle.fusion.odometry import (DiffDriveOdometry, OdometrySink, integrate, integrate_path, odometry_from_config,
                              odometry_transform)
-from logs import messages as m
-from logs.errors import UserError
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
 from tests.conftest import shared_file
 
 R, B = 0.1, 0.5  # wheel radius, track (m)

@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from logs import messages as m
-from logs.reader import read_messages
-from logs.writer import Logger
-from perception.markers import dictionary_by_name
-from tools.cli import main
+from trundle.logs import messages as m
+from trundle.logs.reader import read_messages
+from trundle.logs.writer import Logger
+from trundle.perception.markers import dictionary_by_name
+from trundle.tools.cli import main
 
 ORANGE = (0, 128, 255)
 CENTRES = [(80.0, 60.0), (230.0, 150.0), (150.0, 205.0)]
@@ -134,7 +134,7 @@ def test_markers_without_camera_info_count_missing_poses(log: Path, tmp_path: Pa
 
 
 def test_features_pipeline(log: Path, tmp_path: Path, capsys) -> None:
-    pytest.importorskip("perception.features", reason="perception/features.py (issue 6, features half) not present")
+    pytest.importorskip("trundle.perception.features", reason="perception/features.py (issue 6, features half) not present")
     out = tmp_path / "features.mcap"
     code, summary = _run(capsys, str(log), "--pipeline", "features", "--method", "orb", "-o", str(out))
     assert code == 0 and summary["keypoints"] > 0

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fusion.geometry import wrap_angle
-from fusion.pose_graph import PoseGraph, _errors, read_g2o, robust_weights
-from logs.errors import UserError
+from trundle.fusion.geometry import wrap_angle
+from trundle.fusion.pose_graph import PoseGraph, _errors, read_g2o, robust_weights
+from trundle.logs.errors import UserError
 
 INTEL_G2O = Path(__file__).parents[2] / "shared" / "data" / "intel-posegraph" / "input_INTEL.g2o"
 needs_intel = pytest.mark.skipif(not INTEL_G2O.exists(), reason=f"{INTEL_G2O} absent (shared data)")
@@ -199,7 +199,7 @@ def test_intel_converges_to_gtsam_final_error():
     assert result.converged and result.chi2 < 1e-4 * result.initial_chi2
     assert result.chi2 == pytest.approx(graph.chi2())
     pytest.importorskip("gtsam", reason="GTSAM not installed: pip install gtsam to compare")
-    from tools.bench.bench_pose_graph import gtsam_problem, gtsam_solve
+    from trundle.tools.bench.bench_pose_graph import gtsam_problem, gtsam_solve
 
     gtsam_chi2, gtsam_poses, _ = gtsam_solve(*gtsam_problem(INTEL_G2O, start))
     assert result.chi2 == pytest.approx(gtsam_chi2, rel=0.01)

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from perception.ransac import (RansacResult, camera_motion_from_odometry, find_essential, find_fundamental,
+from trundle.perception.ransac import (RansacResult, camera_motion_from_odometry, find_essential, find_fundamental,
                                find_homography, fit_essential, fit_homography, fit_line, homography_residuals,
                                line_residuals, motion_prior_mask, project, ransac, required_trials,
                                sampson_distance)

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from perception.regions import (central_moments, centroid, ellipse, find_regions, hu_moments, raw_moments,
+from trundle.perception.regions import (central_moments, centroid, ellipse, find_regions, hu_moments, raw_moments,
                                 region_of)
 
 TINY = np.array([[1, 0, 2],

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from fusion.odometry import DiffDriveOdometry
-from logs import messages as m
-from tools.robot_sim import Mount, RobotModel, RobotSim
-from tools.world import cast_rays, load_world, parse_world, simulate_scan
+from trundle.fusion.odometry import DiffDriveOdometry
+from trundle.logs import messages as m
+from trundle.tools.robot_sim import Mount, RobotModel, RobotSim
+from trundle.tools.world import cast_rays, load_world, parse_world, simulate_scan
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +42,7 @@ def test_office_loop_returns_near_its_start_without_touching_walls(noisy, office
 
 
 def test_odometry_of_perfect_wheels_reproduces_ground_truth_between_control_ticks(perfect, office):
-    """fusion.odometry (the CAN helper's code) fed with wheel angles at every control tick and at
+    """trundle.fusion.odometry (the CAN helper's code) fed with wheel angles at every control tick and at
     times in between gives the ground truth exactly: wheels and poses are one consistent motion,
     and poses inside a control step lie on that step's arc."""
     model = perfect.model

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 
-from logs import messages as m
-from logs import ros2
+from trundle.logs import messages as m
+from trundle.logs import ros2
 from strategies import ALL_MESSAGES
 
 # Planar yaw travels as a quaternion, so it comes back equal only to rounding.

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from drivers import rplidar as rp
+from trundle.drivers import rplidar as rp
 from tests.lrf_harness import MUTATIONS, mutate
 
 

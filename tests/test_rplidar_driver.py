@@ -12,16 +12,16 @@ import time
 import numpy as np
 import pytest
 
-from drivers import lrf
-from drivers import rplidar as rp
-from drivers.rplidar_driver import RplidarConfig, RplidarDriver, revolution_scan, Revolution
-from logs import messages as m
+from trundle.drivers import lrf
+from trundle.drivers import rplidar as rp
+from trundle.drivers.rplidar_driver import RplidarConfig, RplidarDriver, revolution_scan, Revolution
+from trundle.logs import messages as m
 from tests.lrf_harness import Recorder, inject, replug_delay_ns, running, wait_until
-from tools.emulators.device_server import DeviceServer
-from tools.emulators.faults import FaultPlan, parse_faults
-from tools.emulators.pty_link import PtyLink
-from tools.emulators.rplidar_emulator import FLAGS, KINDS, MODELS, RplidarDevice
-from tools.emulators.scene import load_scene
+from trundle.tools.emulators.device_server import DeviceServer
+from trundle.tools.emulators.faults import FaultPlan, parse_faults
+from trundle.tools.emulators.pty_link import PtyLink
+from trundle.tools.emulators.rplidar_emulator import FLAGS, KINDS, MODELS, RplidarDevice
+from trundle.tools.emulators.scene import load_scene
 
 PATIENT = {"timeout_s": 5.0, "error_limit": 50, "reply_timeout_s": 3.0}  # a busy test machine: no reconnects
 

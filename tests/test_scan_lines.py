@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from logs.messages import LaserScan
-from perception.scan_lines import EXTRACTORS, scan_points
+from trundle.logs.messages import LaserScan
+from trundle.perception.scan_lines import EXTRACTORS, scan_points
 
 METHODS = sorted(EXTRACTORS)
 

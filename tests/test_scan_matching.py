@@ -10,9 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from fusion.geometry import scan_to_points, transform_points, wrap_angle
-from fusion.occupancy_grid import LogOddsGrid
-from fusion.scan_matching import angular_step, correlative_search, match_scan, refine_pose, score_pyramid
+from trundle.fusion.geometry import scan_to_points, transform_points, wrap_angle
+from trundle.fusion.occupancy_grid import LogOddsGrid
+from trundle.fusion.scan_matching import angular_step, correlative_search, match_scan, refine_pose, score_pyramid
 from tests.planar_world import CORRIDOR, ROOM, scan
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from drivers import scip2
-from drivers.scip2 import Measure, Reply, ScipError, ScipFramer
+from trundle.drivers import scip2
+from trundle.drivers.scip2 import Measure, Reply, ScipError, ScipFramer
 from tests.lrf_harness import MUTATIONS, mutate
 
 # Byte-exact lines published for real sensors (lrf-protocols.md section 1.5, checksums included).

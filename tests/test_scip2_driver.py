@@ -12,15 +12,15 @@ import time
 import numpy as np
 import pytest
 
-from drivers import lrf
-from drivers.scip2_driver import ScipConfig, ScipDriver
-from logs.errors import UserError
+from trundle.drivers import lrf
+from trundle.drivers.scip2_driver import ScipConfig, ScipDriver
+from trundle.logs.errors import UserError
 from tests.lrf_harness import Recorder, inject, replug_delay_ns, running, wait_until
-from tools.emulators.device_server import DeviceServer
-from tools.emulators.faults import FaultPlan, parse_faults
-from tools.emulators.pty_link import PtyLink
-from tools.emulators.scene import load_scene
-from tools.emulators.scip2_emulator import FLAGS, KINDS, MODELS, ScipDevice
+from trundle.tools.emulators.device_server import DeviceServer
+from trundle.tools.emulators.faults import FaultPlan, parse_faults
+from trundle.tools.emulators.pty_link import PtyLink
+from trundle.tools.emulators.scene import load_scene
+from trundle.tools.emulators.scip2_emulator import FLAGS, KINDS, MODELS, ScipDevice
 
 PATIENT = {"timeout_s": 5.0, "error_limit": 50, "reply_timeout_s": 3.0}  # a busy test machine: no reconnects
 

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from fusion.geometry import compose, relative, wrap_angle
-from fusion.odometry_drift import drifting_odometry
-from fusion.slam import Slam, SlamConfig
-from logs import messages as m
-from logs.errors import UserError
+from trundle.fusion.geometry import compose, relative, wrap_angle
+from trundle.fusion.odometry_drift import drifting_odometry
+from trundle.fusion.slam import Slam, SlamConfig
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
 from tests.planar_world import ROOM, scan
 
 WAYPOINTS = np.array([(-4.2, -2.3), (0.0, -2.3), (0.0, 0.3), (4.4, 0.3), (4.4, 3.3), (-4.2, 3.3), (-4.2, -2.3)])

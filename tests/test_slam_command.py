@@ -10,14 +10,14 @@ import cv2
 import numpy as np
 import pytest
 
-from fusion.map_io import load_map, read_trajectory_csv
-from fusion.odometry_drift import drifting_odometry
-from logs import messages as m
-from logs.importers import write_log
-from logs.reader import LogReader
+from trundle.fusion.map_io import load_map, read_trajectory_csv
+from trundle.fusion.odometry_drift import drifting_odometry
+from trundle.logs import messages as m
+from trundle.logs.importers import write_log
+from trundle.logs.reader import LogReader
 from tests.planar_world import ROOM, scan
 from tests.test_slam import loop_path
-from tools.cli import main
+from trundle.tools.cli import main
 
 
 def trundle(capsys, *argv: str) -> tuple[int, str, str]:
@@ -100,9 +100,9 @@ def test_slam_command_user_errors(simulated_log, tmp_path, capsys) -> None:
 def test_wheel_model_sources_in_order() -> None:
     from pathlib import Path
 
-    from logs.errors import UserError
-    from logs.reader import LogInfo, TopicInfo
-    from tools.commands.slam import make_odometry
+    from trundle.logs.errors import UserError
+    from trundle.logs.reader import LogInfo, TopicInfo
+    from trundle.tools.commands.slam import make_odometry
 
     wheels = {"/wheels": TopicInfo("sensor_msgs/msg/JointState")}
     robot = json.dumps({"wheel_radius_m": 0.077, "track_m": 0.33, "wheels": ["left", "right"]})

@@ -11,13 +11,13 @@ import json
 import numpy as np
 import pytest
 
-from fusion.evaluation import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
-from fusion.odometry import DiffDriveOdometry
-from fusion.odometry_drift import drifting_odometry
-from fusion.slam import Slam, SlamConfig
-from logs.importers import breezyslam, carmen
+from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
+from trundle.fusion.odometry import DiffDriveOdometry
+from trundle.fusion.odometry_drift import drifting_odometry
+from trundle.fusion.slam import Slam, SlamConfig
+from trundle.logs.importers import breezyslam, carmen
 from tests.conftest import shared_file
-from tools.cli import main
+from trundle.tools.cli import main
 
 
 def intel_run(scans: int | None, loop_closure: bool = True) -> tuple[Slam, Trajectory]:

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance, scan_to_points,
+from trundle.fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance, scan_to_points,
                              transform_points, voxel_filter, wrap_angle)
-from logs.messages import LaserScan
+from trundle.logs.messages import LaserScan
 from tests.planar_world import ROOM, cast
 
 poses = st.tuples(st.floats(-50, 50), st.floats(-50, 50), st.floats(-10, 10)).map(np.array)

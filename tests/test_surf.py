@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from conftest import shared_file
-from perception.feature_eval import matching_score
-from perception.keypoints import from_cv, make_keypoints
-from perception.matching import match_descriptors
-from perception.surf import describe_surf, detect_surf, integral_image, surf, surf_orientation
+from trundle.perception.feature_eval import matching_score
+from trundle.perception.keypoints import from_cv, make_keypoints
+from trundle.perception.matching import match_descriptors
+from trundle.perception.surf import describe_surf, detect_surf, integral_image, surf, surf_orientation
 
 
 def _blob(sigma: float, centre: tuple[float, float], size: int = 240) -> np.ndarray:

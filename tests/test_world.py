@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from logs.errors import UserError
-from tools.world import DEFAULT_WORLD, LaserModel, cast_rays, load_world, parse_world, simulate_scan
+from trundle.logs.errors import UserError
+from trundle.tools.world import DEFAULT_WORLD, LaserModel, cast_rays, load_world, parse_world, simulate_scan
 
 # A 4 m x 4 m room centred on the origin, walls listed counter-clockwise from the bottom one.
 ROOM = np.array([[-2, -2, 2, -2], [2, -2, 2, 2], [2, 2, -2, 2], [-2, 2, -2, -2]], dtype=float)

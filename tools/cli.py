@@ -13,8 +13,8 @@ import importlib
 import pkgutil
 import sys
 
-from logs.errors import UserError
-from tools import commands
+from trundle.logs.errors import UserError
+from trundle.tools import commands
 
 EXIT_USER_ERROR = 2
 
@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda i: i.name):
-        module = importlib.import_module(f"tools.commands.{info.name}")
+        module = importlib.import_module(f"trundle.tools.commands.{info.name}")
         module.register(sub)
     return parser
 

@@ -2,17 +2,17 @@
 
 ``Daemon(config).run()`` (what ``trundle daemon --config robot.toml`` does):
 
-- builds every configured driver (``drivers.lrf``, ``drivers.wheels``, ``drivers.camera``
+- builds every configured driver (``trundle.drivers.lrf``, ``trundle.drivers.wheels``, ``trundle.drivers.camera``
   through ``driver_from_url``) and runs each on its own supervised thread: a driver thread that
   dies of an unexpected exception is reported (stderr, ``/diagnostics``, status) and restarted
   after a back-off; device faults are the drivers' own business (they reconnect themselves);
-- logs everything to MCAP in the configured folder (``logs.writer.Logger``: ``.active`` files,
+- logs everything to MCAP in the configured folder (``trundle.logs.writer.Logger``: ``.active`` files,
   flush timer, splits repeating ``/tf_static`` and camera info), with a disk guard that deletes
   the oldest logs or stops recording below a free-space floor, and resumes above it;
-- runs wheel odometry on the wheels driver's messages (``fusion.odometry.OdometrySink``, when the
+- runs wheel odometry on the wheels driver's messages (``trundle.fusion.odometry.OdometrySink``, when the
   ``[can]`` table has ``wheel_radius_m`` and ``track_m``) and online processing off the drivers'
   threads (SLAM on ``/scan`` + ``/odom``, ArUco markers on camera images);
-- streams the same topics to Foxglove over a WebSocket when ``[live] enabled`` (``tools.live_view``);
+- streams the same topics to Foxglove over a WebSocket when ``[live] enabled`` (``trundle.tools.live_view``);
 - publishes ``/diagnostics`` every period, answers ``trundle status`` on a UNIX socket with one
   JSON object, and speaks systemd's notify protocol (READY=1, WATCHDOG=1, STATUS=, STOPPING=1);
 - SIGTERM/SIGINT stop it cleanly (every file closed and renamed), SIGHUP starts a new split.
@@ -39,15 +39,15 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from drivers.lifecycle import Driver, wall_ns
-from fusion.odometry import OdometrySink, odometry_from_config
-from fusion.slam import Slam, SlamConfig
-from logs import messages as m
-from logs.errors import UserError
-from logs.writer import Logger, LoggerError, metadata_json
-from perception.markers import MarkerDetector, marker_pose
-from tools.daemon_config import DaemonConfig, Device
-from tools.live_view import LiveView
+from trundle.drivers.lifecycle import Driver, wall_ns
+from trundle.fusion.odometry import OdometrySink, odometry_from_config
+from trundle.fusion.slam import Slam, SlamConfig
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
+from trundle.logs.writer import Logger, LoggerError, metadata_json
+from trundle.perception.markers import MarkerDetector, marker_pose
+from trundle.tools.daemon_config import DaemonConfig, Device
+from trundle.tools.live_view import LiveView
 
 DriverFactory = Callable[[str, str, Any, dict[str, Any]], Driver]
 NO_SPLIT_BYTES = 1 << 62  # split only on request: the logger then numbers its files
@@ -327,7 +327,7 @@ class Daemon:
     def __init__(self, config: DaemonConfig, *, make_driver: DriverFactory | None = None) -> None:
         self.config = config
         if make_driver is None:
-            from tools.commands.record import make_driver as record_make_driver
+            from trundle.tools.commands.record import make_driver as record_make_driver
             make_driver = record_make_driver
         self._make_driver = make_driver
         self.supervised: list[Supervised] = []

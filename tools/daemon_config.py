@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fusion.slam import SlamConfig
-from logs.errors import UserError
+from trundle.fusion.slam import SlamConfig
+from trundle.logs.errors import UserError
 
 FAMILIES = ("lrf", "can", "camera")
 DEVICE_KEYS = {"url", "enabled", "name"}  # read by the daemon; every other key goes to the driver

@@ -3,15 +3,15 @@ map, a trajectory and marker detections, each scored against the simulator's gro
 
 Stages (what ``trundle demo`` runs, one function each so tests can run them alone):
 
-1. :func:`record`: ``tools.robot_sim.RobotSim`` drives the office route;
-   ``tools.sim_devices.SimDevices`` serves its laser (SCIP 2.0 on a pty), wheel encoders (ODrive
-   axes behind an SLCAN pty) and camera (MJPEG over HTTP); the real daemon (``python -m tools.cli
+1. :func:`record`: ``trundle.tools.robot_sim.RobotSim`` drives the office route;
+   ``trundle.tools.sim_devices.SimDevices`` serves its laser (SCIP 2.0 on a pty), wheel encoders (ODrive
+   axes behind an SLCAN pty) and camera (MJPEG over HTTP); the real daemon (``python -m trundle.tools.cli
    daemon``, the code of ``trundle daemon``) records them and is stopped by SIGTERM. The robot
    stands at its start until every device streams. Ground truth comes from the emulators: each
    logged scan is matched by content to the scan the laser emulator cast (hence its true time and
    the robot's true pose), each logged camera frame by its JPEG bytes to the frame the camera
    emulator rendered.
-2. :func:`run_slam`: the log replayed through ``fusion.slam.Slam`` with wheel odometry from
+2. :func:`run_slam`: the log replayed through ``trundle.fusion.slam.Slam`` with wheel odometry from
    ``/wheels`` (the wheel model of the daemon's config, stored in the log) and the laser mount
    from ``/tf_static``.
 3. :func:`score_markers`: ArUco detection and pose on every logged frame, against the markers the
@@ -39,24 +39,24 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from fusion.evaluation import Trajectory, absolute_trajectory_error, poses_at, relative_pose_error
-from fusion.geometry import compose, inverse, transform_points
-from fusion.map_io import OCCUPIED_THRESH, plot_trajectory, save_map, write_trajectory_csv
-from fusion.odometry import DiffDriveOdometry, odometry_from_config
-from fusion.slam import Slam, SlamConfig
-from logs import messages as m
-from logs.errors import UserError
-from logs.reader import LogInfo, LogReader
-from logs.replay import replay
-from perception.images import decode_image, to_gray
-from perception.markers import MarkerDetector, marker_pose
-from tools.camera_render import CameraRenderer, CameraPose, PinholeCamera, optical_rotation
-from tools.daemon import query_status
-from tools.daemon_config import format_config
-from tools.progress import Progress
-from tools.robot_sim import Mount, RobotSim
-from tools.sim_devices import SimDevices
-from tools.world import DEFAULT_WORLD, World, load_world
+from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error, poses_at, relative_pose_error
+from trundle.fusion.geometry import compose, inverse, transform_points
+from trundle.fusion.map_io import OCCUPIED_THRESH, plot_trajectory, save_map, write_trajectory_csv
+from trundle.fusion.odometry import DiffDriveOdometry, odometry_from_config
+from trundle.fusion.slam import Slam, SlamConfig
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
+from trundle.logs.reader import LogInfo, LogReader
+from trundle.logs.replay import replay
+from trundle.perception.images import decode_image, to_gray
+from trundle.perception.markers import MarkerDetector, marker_pose
+from trundle.tools.camera_render import CameraRenderer, CameraPose, PinholeCamera, optical_rotation
+from trundle.tools.daemon import query_status
+from trundle.tools.daemon_config import format_config
+from trundle.tools.progress import Progress
+from trundle.tools.robot_sim import Mount, RobotSim
+from trundle.tools.sim_devices import SimDevices
+from trundle.tools.world import DEFAULT_WORLD, World, load_world
 
 REPO = Path(__file__).resolve().parents[1]
 SCAN_TOPIC, WHEELS_TOPIC, IMAGE_TOPIC = "/scan", "/wheels", "/camera/image_raw/compressed"
@@ -218,7 +218,7 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
                 f"camera {devices.urls['camera']}")
             daemon_log = out / "daemon.log"
             with open(daemon_log, "w") as log_file:
-                proc = subprocess.Popen([sys.executable, "-m", "tools.cli", "daemon", "--config", str(config)],
+                proc = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "daemon", "--config", str(config)],
                                         stdout=log_file, stderr=subprocess.STDOUT, cwd=out,
                                         env={**os.environ, "PYTHONPATH": os.pathsep.join(
                                             filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))})
@@ -523,7 +523,7 @@ def camera_pose(base: np.ndarray, mount: Mount) -> CameraPose:
 
 def marker_truth(world: World, marker_id: int, pose: CameraPose) -> tuple[np.ndarray, np.ndarray]:
     """Rotation (3x3) and translation (m) of a world marker in the optical frame of a camera at ``pose``
-    (marker frame as ``perception.markers``: x right, y up, z out of the marker)."""
+    (marker frame as ``trundle.perception.markers``: x right, y up, z out of the marker)."""
     decal = world.marker(marker_id)
     camera_axes = optical_rotation(pose.yaw)                      # optical axes as columns, in the map
     right = np.array([-math.sin(decal.yaw), math.cos(decal.yaw), 0.0])

@@ -6,8 +6,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from logs.errors import UserError
-from tools.emulators.camera_emulator import CameraEmulator
+from trundle.logs.errors import UserError
+from trundle.tools.emulators.camera_emulator import CameraEmulator
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

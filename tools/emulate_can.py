@@ -17,11 +17,11 @@ import threading
 import time
 from pathlib import Path
 
-from drivers import cia406
-from logs.errors import UserError
-from tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes, odrive_nodes,
+from trundle.drivers import cia406
+from trundle.logs.errors import UserError
+from trundle.tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes, odrive_nodes,
                                        vesc_nodes)
-from tools.emulators.slcan_emulator import SlcanEmulator
+from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
 VESC_DBC = Path(__file__).resolve().parents[1] / "drivers" / "data" / "vesc_status.dbc"
 DEFAULT_NODES = {"odrive": "0,1", "cia406": "5,6", "dbc": "9,10"}

@@ -15,11 +15,11 @@ import sys
 import time
 from pathlib import Path
 
-from logs.errors import UserError
-from tools.emulators import rplidar_emulator, scip2_emulator
-from tools.emulators.device_server import DeviceServer
-from tools.emulators.faults import parse_faults
-from tools.emulators.scene import DEFAULT_SCENE, load_scene
+from trundle.logs.errors import UserError
+from trundle.tools.emulators import rplidar_emulator, scip2_emulator
+from trundle.tools.emulators.device_server import DeviceServer
+from trundle.tools.emulators.faults import parse_faults
+from trundle.tools.emulators.scene import DEFAULT_SCENE, load_scene
 
 DEFAULT_MODEL = {"scip2": "utm-30lx", "rplidar": "a1"}
 

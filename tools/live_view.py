@@ -11,9 +11,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from logs import messages as m
-from logs import ros2
-from logs.errors import UserError
+from trundle.logs import messages as m
+from trundle.logs import ros2
+from trundle.logs.errors import UserError
 
 
 class LiveView:

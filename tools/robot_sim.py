@@ -1,16 +1,16 @@
-"""A differential-drive robot driving a waypoint route through a ``tools.world.World``.
+"""A differential-drive robot driving a waypoint route through a ``trundle.tools.world.World``.
 
 The whole run is simulated once, at construction, with a fixed control period: a pure-pursuit
 controller (look-ahead point on the route, curvature-limited and acceleration-limited speed)
 commands wheel speeds; each wheel slips by a random, slowly varying fraction (an
 Ornstein-Uhlenbeck process), so the ground moves less (or more) than the wheel turns. The
-ground motion of every step is an exact arc (``fusion.odometry.integrate_path``), so the ground
+ground motion of every step is an exact arc (``trundle.fusion.odometry.integrate_path``), so the ground
 truth pose is exact at any time ``t``, not just at control ticks.
 
 Sensors are sampled at any ``t`` (seconds from the start) by the device emulators:
 ``wheel_angles_at`` / ``wheel_speeds_at`` (true wheel rotation, what a perfect encoder reads),
 ``encoder_angles_at`` (quantised to counts, with noise), ``ranges_at`` (the laser, via
-``tools.world.simulate_scan``) and ``frame_at`` (the camera, via ``tools.camera_render``). Noise
+``trundle.tools.world.simulate_scan``) and ``frame_at`` (the camera, via ``trundle.tools.camera_render``). Noise
 is drawn from a generator seeded by ``(seed, t)``, so the same ``t`` gives the same reading.
 """
 
@@ -22,11 +22,11 @@ from functools import cached_property
 
 import numpy as np
 
-from fusion.geometry import compose, wrap_angle
-from fusion.odometry import integrate, integrate_path
-from logs.errors import UserError
-from tools.camera_render import CameraPose, CameraRenderer, PinholeCamera
-from tools.world import LaserModel, World, simulate_scan
+from trundle.fusion.geometry import compose, wrap_angle
+from trundle.fusion.odometry import integrate, integrate_path
+from trundle.logs.errors import UserError
+from trundle.tools.camera_render import CameraPose, CameraRenderer, PinholeCamera
+from trundle.tools.world import LaserModel, World, simulate_scan
 
 
 @dataclass(frozen=True)

@@ -2,12 +2,12 @@
 
 ``SimDevices(robot_sim, folder)`` starts, on one shared clock:
 
-- a Hokuyo SCIP 2.0 laser (``tools.emulators.scip2_emulator``) on a pty at ``folder/lrf``, its
+- a Hokuyo SCIP 2.0 laser (``trundle.tools.emulators.scip2_emulator``) on a pty at ``folder/lrf``, its
   ranges cast in the world from the robot's laser pose when each scan passes the rear;
-- an SLCAN adapter (``tools.emulators.slcan_emulator``) on a pty at ``folder/can`` with ODrive
+- an SLCAN adapter (``trundle.tools.emulators.slcan_emulator``) on a pty at ``folder/can`` with ODrive
   CAN Simple axes turning as the robot's wheels do (motor = wheel, one axis per wheel; four
   wheels = a skid-steer with front and rear axes on each side);
-- an MJPEG-over-HTTP camera (``tools.emulators.camera_emulator``) serving rendered frames.
+- an MJPEG-over-HTTP camera (``trundle.tools.emulators.camera_emulator``) serving rendered frames.
 
 Simulation time is ``(host wall-clock ns - t0_ns) / 1e9`` with ``t0_ns`` taken at ``start()``,
 so a message stamped ``stamp_ns`` is compared with ``sim.pose_at(sim_time(stamp_ns))``.
@@ -25,15 +25,15 @@ from typing import Any
 
 import numpy as np
 
-from tools.camera_render import CameraRenderer
-from tools.emulators import scip2_emulator
-from tools.emulators.can_nodes import CanNodeRunner, WheelMotion, odrive_nodes
-from tools.emulators.camera_emulator import CameraEmulator
-from tools.emulators.device_server import DeviceServer
-from tools.emulators.faults import FaultPlan
-from tools.emulators.slcan_emulator import SlcanEmulator
-from tools.robot_sim import RobotSim
-from tools.world import LaserModel
+from trundle.tools.camera_render import CameraRenderer
+from trundle.tools.emulators import scip2_emulator
+from trundle.tools.emulators.can_nodes import CanNodeRunner, WheelMotion, odrive_nodes
+from trundle.tools.emulators.camera_emulator import CameraEmulator
+from trundle.tools.emulators.device_server import DeviceServer
+from trundle.tools.emulators.faults import FaultPlan
+from trundle.tools.emulators.slcan_emulator import SlcanEmulator
+from trundle.tools.robot_sim import RobotSim
+from trundle.tools.world import LaserModel
 
 
 def laser_model_for(model: scip2_emulator.ScipModel, base: LaserModel) -> LaserModel:

@@ -21,7 +21,7 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
-from logs.errors import UserError
+from trundle.logs.errors import UserError
 
 DEFAULT_WORLD = Path(__file__).with_name("worlds") / "office.json"
 ON_WALL_TOLERANCE_M = 0.01

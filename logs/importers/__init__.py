@@ -11,9 +11,9 @@ import time
 from pathlib import Path
 from typing import Iterable
 
-from logs import messages as m
-from logs.errors import UserError
-from logs.writer import Logger, metadata_json
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
+from trundle.logs.writer import Logger, metadata_json
 
 Item = tuple[str, m.Message, int]  # topic, message, log time (ns)
 

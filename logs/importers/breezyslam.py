@@ -27,9 +27,9 @@ from typing import Iterator
 
 import numpy as np
 
-from logs import messages as m
-from logs.errors import UserError
-from logs.importers import Item, open_text, write_log
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
+from trundle.logs.importers import Item, open_text, write_log
 
 TICKS_PER_REV = 2000
 WHEEL_RADIUS_M = 0.077

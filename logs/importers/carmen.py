@@ -26,9 +26,9 @@ from typing import Iterator
 
 import numpy as np
 
-from logs import messages as m
-from logs.errors import UserError
-from logs.importers import Item, open_text, write_log
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
+from trundle.logs.importers import Item, open_text, write_log
 
 GMAPPING_STEPS = {180: 180, 181: 180, 360: 360, 361: 360, 540: 540, 541: 540, 720: 720, 721: 720}
 

@@ -17,10 +17,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from logs.messages import CameraInfo
-from perception.markers import CORNER_REFINEMENT, MarkerDetector, dictionary_by_name, marker_object_points, marker_pose
-from tools.bench import report
-from tools.bench.bench_color import cpu_per_call
+from trundle.logs.messages import CameraInfo
+from trundle.perception.markers import CORNER_REFINEMENT, MarkerDetector, dictionary_by_name, marker_object_points, marker_pose
+from trundle.tools.bench import report
+from trundle.tools.bench.bench_color import cpu_per_call
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "aruco"
 PHOTOS = ("singlemarkersoriginal.jpg", "choriginal.jpg", "chocclusion_original.jpg")

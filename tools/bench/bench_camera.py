@@ -24,13 +24,13 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from drivers.camera import driver_from_url
-from drivers.jpeg_check import JpegChecker
-from logs import messages as m
-from logs import ros2
-from logs.writer import Logger
-from tools.bench import report
-from tools.emulators.camera_emulator import synthetic_frame
+from trundle.drivers.camera import driver_from_url
+from trundle.drivers.jpeg_check import JpegChecker
+from trundle.logs import messages as m
+from trundle.logs import ros2
+from trundle.logs.writer import Logger
+from trundle.tools.bench import report
+from trundle.tools.emulators.camera_emulator import synthetic_frame
 
 WIDTH, HEIGHT, QUALITY = 1280, 720, 90
 

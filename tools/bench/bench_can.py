@@ -35,15 +35,15 @@ sys.path.insert(0, str(ROOT))
 
 import can  # noqa: E402
 
-from drivers import odrive  # noqa: E402
-from drivers.can_bus import CanBus  # noqa: E402
+from trundle.drivers import odrive  # noqa: E402
+from trundle.drivers.can_bus import CanBus  # noqa: E402
 
 PAYLOAD = struct.Struct("<II")  # sequence, send time (monotonic us, low 32 bits)
 
 
 def _offer(link: str, rate: float, duration_s: float, ready, done, result) -> None:
     """Emulator process: offer ``rate`` frames/s for ``duration_s`` once the host has opened."""
-    from tools.emulators.slcan_emulator import SlcanEmulator
+    from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
     with SlcanEmulator(link) as adapter:
         ready.set()
@@ -160,8 +160,8 @@ def bare_line_reader(link: str):
 
 
 def _odrive_emulator(link: str, duration_s: float, ready, done, result) -> None:
-    from tools.emulators.can_nodes import CanNodeRunner, VelocityScript, WheelMotion, odrive_nodes
-    from tools.emulators.slcan_emulator import SlcanEmulator
+    from trundle.tools.emulators.can_nodes import CanNodeRunner, VelocityScript, WheelMotion, odrive_nodes
+    from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
     with SlcanEmulator(link) as adapter:
         nodes = odrive_nodes([0, 1, 2, 3], encoder_ms=5, heartbeat_ms=100)
@@ -178,7 +178,7 @@ def _odrive_emulator(link: str, duration_s: float, ready, done, result) -> None:
 
 def driver_end_to_end(duration_s: float) -> dict:
     """Four ODrive axes at 200 Hz + heartbeats through the slcan pty into the wheels driver."""
-    from drivers.wheels import driver_from_url
+    from trundle.drivers.wheels import driver_from_url
 
     link = os.path.join(tempfile.mkdtemp(), "ttyCAN0")
     ctx = mp.get_context("spawn")
@@ -215,9 +215,9 @@ def decode_costs(number: int) -> dict:
     """ns per frame for each protocol's codec and handle(), with struct.unpack as baseline."""
     import cantools
 
-    from drivers.cia406 import PositionLayout
-    from drivers.dbc_wheels import DbcWheels
-    from drivers.odrive_encoders import OdriveEncoders
+    from trundle.drivers.cia406 import PositionLayout
+    from trundle.drivers.dbc_wheels import DbcWheels
+    from trundle.drivers.odrive_encoders import OdriveEncoders
 
     data = odrive.encode_encoder_estimates(1.5, -0.25)
     unpack = struct.Struct("<ff").unpack

@@ -16,8 +16,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from perception.color import DEFAULT_WEIGHTS, HSV8_RANGES, hsv8_bounds, segment_color, template_histograms
-from tools.bench import report
+from trundle.perception.color import DEFAULT_WEIGHTS, HSV8_RANGES, hsv8_bounds, segment_color, template_histograms
+from trundle.tools.bench import report
 
 ORANGE = (0, 128, 255)
 LOWER, UPPER = (15.0, 0.7, 0.7), (45.0, 1.0, 1.0)

@@ -26,14 +26,14 @@ from pathlib import Path
 
 import cv2
 
-from logs.reader import LogReader
-from tools.bench import report
-from tools.camera_render import CameraRenderer
-from tools.daemon import query_status
-from tools.daemon_config import format_config
-from tools.robot_sim import RobotSim
-from tools.sim_devices import SimDevices
-from tools.world import load_world
+from trundle.logs.reader import LogReader
+from trundle.tools.bench import report
+from trundle.tools.camera_render import CameraRenderer
+from trundle.tools.daemon import query_status
+from trundle.tools.daemon_config import format_config
+from trundle.tools.robot_sim import RobotSim
+from trundle.tools.sim_devices import SimDevices
+from trundle.tools.world import load_world
 
 REPO = Path(__file__).resolve().parents[2]
 WIDTH, HEIGHT, FPS = 1280, 720, 30.0
@@ -120,7 +120,7 @@ def main() -> None:
                 if processing is None:
                     config = folder / "record.toml"
                     config.write_text(format_config({k: tables[k] for k in ("lrf", "can", "camera")}))
-                    command = [sys.executable, "-m", "tools.cli", "record", "--config", str(config),
+                    command = [sys.executable, "-m", "trundle.tools.cli", "record", "--config", str(config),
                                "--duration", str(args.duration + args.warmup + 30), "-o", str(logs / "run.mcap")]
                     result = measure(command, folder, logs, args.warmup + 5.0, args.duration, None)
                 else:
@@ -130,7 +130,7 @@ def main() -> None:
                         "robot": {"name": "bench"}, **tables,
                         "logger": {"folder": str(logs)}, "status": {"socket": str(socket_path)},
                         "disk": {"min_free_mb": 100.0}, "processing": processing}))
-                    command = [sys.executable, "-m", "tools.cli", "daemon", "--config", str(config)]
+                    command = [sys.executable, "-m", "trundle.tools.cli", "daemon", "--config", str(config)]
                     result = measure(command, folder, logs, args.warmup, args.duration, socket_path)
             for key, value in result.items():
                 figures[f"{name}_{key}"] = value

@@ -3,7 +3,7 @@ and (--accuracy) every detector + matcher on the public ground truth.
 
 Timing (process CPU seconds, minimum over interleaved rounds, graf img1 800x640 and the same
 resized to 640x480 with INTER_AREA):
-- surf_vs_sift: `perception.surf.surf` (defaults) / `cv2.SIFT_create().detectAndCompute`
+- surf_vs_sift: `trundle.perception.surf.surf` (defaults) / `cv2.SIFT_create().detectAndCompute`
   (goal <= 3);
 - orb_pair: `image_matching.match_images(..., "orb", max_keypoints=1000)` without RANSAC's
   share, i.e. 2 x detect_and_describe + `matching.match` (cross-check, ratio 0.8) /
@@ -28,13 +28,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from perception.feature_eval import corner_error, matching_score, repeatability
-from perception.features import METHODS, Features, available, detect_and_describe
-from perception.image_matching import match_features
-from perception.keypoints import from_cv
-from perception.matching import match
-from perception.surf import surf
-from tools.bench import report
+from trundle.perception.feature_eval import corner_error, matching_score, repeatability
+from trundle.perception.features import METHODS, Features, available, detect_and_describe
+from trundle.perception.image_matching import match_features
+from trundle.perception.keypoints import from_cv
+from trundle.perception.matching import match
+from trundle.perception.surf import surf
+from trundle.tools.bench import report
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 SEQUENCES = {"graf": ("oxford/graf/img{}.png", "oxford/graf/H1to{}p"),

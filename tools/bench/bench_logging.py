@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from logs import messages as m
-from logs import ros2
-from logs.writer import COMPRESSION, Logger
-from tools.bench import report
+from trundle.logs import messages as m
+from trundle.logs import ros2
+from trundle.logs.writer import COMPRESSION, Logger
+from trundle.tools.bench import report
 
 
 def scan(seed: int = 1) -> m.LaserScan:

@@ -3,7 +3,7 @@
 1. Decode of one 1081-beam UTM-30LX scan (MD, and ME with intensities) from the received
    bytes, ours (framer + vectorised decode) against hokuyolx 0.9's decoder on the same bytes
    (its split, checksums and per-value conversion). Goal: >= 20x faster.
-2. CPU share of the record path (read + decode + log through logs.writer.Logger, with the
+2. CPU share of the record path (read + decode + log through trundle.logs.writer.Logger, with the
    /scan/timing companion topic) for an emulated UTM-30LX at 40 Hz streaming 1081 beams,
    against a bare read loop on the same link in the same run. The emulator runs in another
    process; if it falls short of 40 Hz on a busy machine the share is also given per scan
@@ -24,13 +24,13 @@ from pathlib import Path
 import numpy as np
 import serial
 
-from drivers import scip2
-from drivers.scip2 import Measure, ScipFramer
-from drivers.scip2_driver import ScipConfig, ScipDriver
-from logs.writer import Logger
-from tools.bench import report
-from tools.emulators.scene import load_scene
-from tools.emulators.scip2_emulator import MODELS, intensity_of, to_millimetres
+from trundle.drivers import scip2
+from trundle.drivers.scip2 import Measure, ScipFramer
+from trundle.drivers.scip2_driver import ScipConfig, ScipDriver
+from trundle.logs.writer import Logger
+from trundle.tools.bench import report
+from trundle.tools.emulators.scene import load_scene
+from trundle.tools.emulators.scip2_emulator import MODELS, intensity_of, to_millimetres
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -79,7 +79,7 @@ def decode_figures() -> dict[str, float]:
 
 
 def emulator(link: Path, seconds: float) -> subprocess.Popen:
-    process = subprocess.Popen([sys.executable, "-m", "tools.cli", "emulate", "lrf", "--model", "utm-30lx",
+    process = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "emulate", "lrf", "--model", "utm-30lx",
                                 "--link", str(link), "--duration", str(seconds)], cwd=REPO,
                                stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 30

@@ -29,18 +29,18 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.evaluation import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
-from fusion.geometry import scan_to_points, transform_points, voxel_filter
-from fusion.icp import LineReference, icp
-from fusion.map_io import plot_trajectory
-from fusion.occupancy_grid import LogOddsGrid
-from fusion.odometry import DiffDriveOdometry
-from fusion.odometry_drift import drifting_odometry
-from fusion.scan_matching import angular_step, correlative_search, match_scan, refine_pose
-from fusion.slam import Slam, SlamConfig
-from logs.importers import breezyslam, carmen
-from logs.reader import LogReader
-from tools.bench import report
+from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
+from trundle.fusion.geometry import scan_to_points, transform_points, voxel_filter
+from trundle.fusion.icp import LineReference, icp
+from trundle.fusion.map_io import plot_trajectory
+from trundle.fusion.occupancy_grid import LogOddsGrid
+from trundle.fusion.odometry import DiffDriveOdometry
+from trundle.fusion.odometry_drift import drifting_odometry
+from trundle.fusion.scan_matching import angular_step, correlative_search, match_scan, refine_pose
+from trundle.fusion.slam import Slam, SlamConfig
+from trundle.logs.importers import breezyslam, carmen
+from trundle.logs.reader import LogReader
+from trundle.tools.bench import report
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 

@@ -14,9 +14,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from tools.bench import report
-from tools.camera_render import CameraPose, CameraRenderer, PinholeCamera
-from tools.world import LaserModel, cast_rays, load_world, simulate_scan
+from trundle.tools.bench import report
+from trundle.tools.camera_render import CameraPose, CameraRenderer, PinholeCamera
+from trundle.tools.world import LaserModel, cast_rays, load_world, simulate_scan
 
 
 def main() -> None:

@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from fusion import sensor_characteristics as sc
-from logs import messages as m
-from logs.errors import UserError
-from logs.reader import LogReader
+from trundle.fusion import sensor_characteristics as sc
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
+from trundle.logs.reader import LogReader
 
 STILL_SPEED = 1e-3  # m/s or rad/s below which the robot counts as standing still
 

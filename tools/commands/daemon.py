@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from tools.daemon import Daemon
-from tools.daemon_config import load_config
+from trundle.tools.daemon import Daemon
+from trundle.tools.daemon_config import load_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:

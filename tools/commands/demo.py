@@ -11,9 +11,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from logs.errors import UserError
-from tools.demo import ATE_LIMIT_M, LOG_NAME, DemoSettings, run_demo
-from tools.world import DEFAULT_WORLD
+from trundle.logs.errors import UserError
+from trundle.tools.demo import ATE_LIMIT_M, LOG_NAME, DemoSettings, run_demo
+from trundle.tools.world import DEFAULT_WORLD
 
 
 def register(sub: argparse._SubParsersAction) -> None:

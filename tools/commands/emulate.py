@@ -7,9 +7,9 @@ import importlib
 
 # family -> module defining add_arguments(parser) and run(args) -> int
 EMULATORS = {
-    "lrf": ("tools.emulate_lrf", "laser range finder (SCIP 2.0 or RPLIDAR) on a pty or TCP port"),
-    "can": ("tools.emulate_can", "SLCAN adapter on a pty with emulated wheel-encoder nodes"),
-    "camera": ("tools.emulate_camera", "camera stream from a synthetic scene or a video file"),
+    "lrf": ("trundle.tools.emulate_lrf", "laser range finder (SCIP 2.0 or RPLIDAR) on a pty or TCP port"),
+    "can": ("trundle.tools.emulate_can", "SLCAN adapter on a pty with emulated wheel-encoder nodes"),
+    "camera": ("trundle.tools.emulate_camera", "camera stream from a synthetic scene or a video file"),
 }
 
 

@@ -10,8 +10,8 @@ import sys
 
 import numpy as np
 
-from logs.errors import UserError
-from logs.reader import LogReader
+from trundle.logs.errors import UserError
+from trundle.logs.reader import LogReader
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -2,7 +2,7 @@
 
 ``carmen``: CARMEN ``.clf``/``.log``/``.gfs.log`` (ODOM, FLASER, RLASER, ROBOTLASER1). With
 ``--drift`` the odometry is made from the laser lines' poses (in GMapping output: the corrected
-path) with systematic and random drift (:mod:`fusion.odometry_drift`), for evaluating SLAM
+path) with systematic and random drift (:mod:`trundle.fusion.odometry_drift`), for evaluating SLAM
 against those poses; ``--reference`` writes those poses as ``t_ns,x,y,theta`` CSV.
 ``breezyslam``: BreezySLAM ``.dat`` (wheel ticks -> JointState, URG-04LX ranges -> LaserScan).
 """
@@ -13,10 +13,10 @@ import argparse
 import math
 from pathlib import Path
 
-from fusion.map_io import write_trajectory_csv
-from fusion.odometry_drift import drifting_odometry
-from logs.importers.breezyslam import import_breezyslam
-from logs.importers.carmen import import_carmen, read_carmen, scan_poses
+from trundle.fusion.map_io import write_trajectory_csv
+from trundle.fusion.odometry_drift import drifting_odometry
+from trundle.logs.importers.breezyslam import import_breezyslam
+from trundle.logs.importers.carmen import import_carmen, read_carmen, scan_poses
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -6,7 +6,7 @@ import argparse
 import json
 from datetime import datetime, timezone
 
-from logs.reader import LogInfo, LogReader
+from trundle.logs.reader import LogInfo, LogReader
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -17,14 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.geometry import relative, scan_to_points, voxel_filter
-from fusion.localization import TRACKING, Localizer, grid_from_map
-from fusion.map_io import load_map, write_trajectory_csv
-from logs import messages as m
-from logs.errors import UserError
-from logs.reader import LogReader
-from tools.commands.slam import laser_pose, load_config, make_odometry
-from tools.progress import Progress
+from trundle.fusion.geometry import relative, scan_to_points, voxel_filter
+from trundle.fusion.localization import TRACKING, Localizer, grid_from_map
+from trundle.fusion.map_io import load_map, write_trajectory_csv
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
+from trundle.logs.reader import LogReader
+from trundle.tools.commands.slam import laser_pose, load_config, make_odometry
+from trundle.tools.progress import Progress
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -15,10 +15,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from logs.errors import UserError
-from perception.features import DESCRIPTORS, EDGES, METHODS, available
-from perception.image_matching import PairMatch, match_images
-from perception.keypoints import to_cv
+from trundle.logs.errors import UserError
+from trundle.perception.features import DESCRIPTORS, EDGES, METHODS, available
+from trundle.perception.image_matching import PairMatch, match_images
+from trundle.perception.keypoints import to_cv
 
 FEATURES = [m for m in METHODS if m not in EDGES]
 

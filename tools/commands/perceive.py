@@ -31,15 +31,15 @@ from typing import Any
 import cv2
 import numpy as np
 
-from logs import messages as m
-from logs import ros2
-from logs.errors import UserError
-from logs.reader import LogReader
-from logs.writer import Logger
-from perception.color import ColorSegmentation, HsvTemplate, segment_color, template_histograms
-from perception.images import decode_image
-from perception.markers import MarkerDetector, marker_pose
-from tools.progress import Progress
+from trundle.logs import messages as m
+from trundle.logs import ros2
+from trundle.logs.errors import UserError
+from trundle.logs.reader import LogReader
+from trundle.logs.writer import Logger
+from trundle.perception.color import ColorSegmentation, HsvTemplate, segment_color, template_histograms
+from trundle.perception.images import decode_image
+from trundle.perception.markers import MarkerDetector, marker_pose
+from trundle.tools.progress import Progress
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
@@ -77,7 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     k.add_argument("--marker-size", type=float, help="printed marker side in metres (enables poses)")
     k.add_argument("--camera-info", help="CameraInfo topic (default: <camera namespace>/camera_info)")
     f = p.add_argument_group("features pipeline")
-    f.add_argument("--method", default="orb", help="detector name known to perception.features (default orb)")
+    f.add_argument("--method", default="orb", help="detector name known to trundle.perception.features (default orb)")
     f.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="detector parameter (repeatable)")
     p.set_defaults(func=run)
 
@@ -242,13 +242,13 @@ class MarkerPipeline(Pipeline):
 
 
 class FeaturePipeline(Pipeline):
-    """Local features from ``perception.features.detect(image, method, **params)``."""
+    """Local features from ``trundle.perception.features.detect(image, method, **params)``."""
 
     def __init__(self, args: argparse.Namespace) -> None:
         try:
-            from perception.features import METHODS, available, detect
+            from trundle.perception.features import METHODS, available, detect
         except ImportError:
-            raise UserError("the features pipeline needs perception.features, which is not installed") from None
+            raise UserError("the features pipeline needs trundle.perception.features, which is not installed") from None
         if args.method not in METHODS:
             raise UserError(f"unknown feature detector {args.method!r} (choose from {', '.join(METHODS)})")
         if not available(args.method):

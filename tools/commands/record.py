@@ -11,14 +11,14 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from drivers.lifecycle import Driver
-from fusion.odometry import OdometrySink, odometry_from_config
-from logs import messages as m
-from logs.errors import UserError
-from logs.writer import Logger
+from trundle.drivers.lifecycle import Driver
+from trundle.fusion.odometry import OdometrySink, odometry_from_config
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
+from trundle.logs.writer import Logger
 
 # device family -> module providing driver_from_url(url, sink, config) -> Driver
-FAMILIES = {"lrf": "drivers.lrf", "can": "drivers.wheels", "camera": "drivers.camera"}
+FAMILIES = {"lrf": "trundle.drivers.lrf", "can": "trundle.drivers.wheels", "camera": "trundle.drivers.camera"}
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from logs.recover import recover
+from trundle.logs.recover import recover
 
 
 def register(sub: argparse._SubParsersAction) -> None:

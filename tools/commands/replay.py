@@ -6,9 +6,9 @@ import argparse
 import collections
 import time
 
-from logs.reader import LogMessage, LogReader
-from logs.replay import replay
-from tools.progress import Progress
+from trundle.logs.reader import LogMessage, LogReader
+from trundle.logs.replay import replay
+from trundle.tools.progress import Progress
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -5,7 +5,7 @@ path and loop closures over the map), ``trajectory.csv`` (``t_ns,x,y,theta`` of 
 the map frame), ``report.json`` and ``slam.mcap`` with ``/map``, ``/tf`` (map -> odom per scan)
 and ``/path``. The wheel model comes from the config's ``[odometry]`` table (``wheel_radius_m``,
 ``track_m``, ``wheels = [left, right]``, ``wheel_variance_per_m``) or the log's metadata (see
-:func:`make_odometry`); ``[slam]`` holds :class:`fusion.slam.SlamConfig`; ``[laser]`` (``x_m``,
+:func:`make_odometry`); ``[slam]`` holds :class:`trundle.fusion.slam.SlamConfig`; ``[laser]`` (``x_m``,
 ``y_m``, ``yaw_rad``) overrides the laser mount of the log's ``/tf_static``.
 """
 
@@ -20,14 +20,14 @@ from typing import Any
 
 import numpy as np
 
-from fusion.map_io import plot_trajectory, save_map, write_trajectory_csv
-from fusion.odometry import DiffDriveOdometry, odometry_from_config
-from fusion.slam import Slam, SlamConfig
-from logs import messages as m
-from logs.errors import UserError
-from logs.importers import write_log
-from logs.reader import LogInfo, LogReader
-from tools.progress import Progress
+from trundle.fusion.map_io import plot_trajectory, save_map, write_trajectory_csv
+from trundle.fusion.odometry import DiffDriveOdometry, odometry_from_config
+from trundle.fusion.slam import Slam, SlamConfig
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
+from trundle.logs.importers import write_log
+from trundle.logs.reader import LogInfo, LogReader
+from trundle.tools.progress import Progress
 
 ODOMETRY_KEYS = {"wheel_radius_m", "track_m", "wheels", "wheel_variance_per_m"}
 LASER_KEYS = {"x_m", "y_m", "yaw_rad"}

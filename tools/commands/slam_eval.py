@@ -13,9 +13,9 @@ import argparse
 import json
 from dataclasses import asdict
 
-from fusion.evaluation import (Trajectory, absolute_trajectory_error, read_reference, relation_error,
+from trundle.fusion.evaluation import (Trajectory, absolute_trajectory_error, read_reference, relation_error,
                                relative_pose_error, trajectory_relations)
-from logs.errors import UserError
+from trundle.logs.errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -6,8 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from tools.daemon import format_status, query_status
-from tools.daemon_config import default_socket_path, load_config
+from trundle.tools.daemon import format_status, query_status
+from trundle.tools.daemon_config import default_socket_path, load_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:

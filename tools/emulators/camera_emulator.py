@@ -23,10 +23,10 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from drivers.frame_source import FrameSource
-from drivers.lifecycle import DeviceError
-from drivers.video_file import ImageFolderSource, VideoFileSource, probe_video
-from logs.errors import UserError
+from trundle.drivers.frame_source import FrameSource
+from trundle.drivers.lifecycle import DeviceError
+from trundle.drivers.video_file import ImageFolderSource, VideoFileSource, probe_video
+from trundle.logs.errors import UserError
 
 BOUNDARY = "trundleframe"
 STREAM_PATH = "/stream.mjpg"

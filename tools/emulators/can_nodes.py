@@ -4,7 +4,7 @@ callable, and faults: dropped frames, error frames, bus-off, counter wrap, a nod
 its heartbeat or goes silent.
 
 The bus is whatever the devices would sit on: the device side of the SLCAN adapter emulator
-(:class:`tools.emulators.slcan_emulator.AdapterBus`) or a python-can ``virtual`` bus. The CiA 406
+(:class:`trundle.tools.emulators.slcan_emulator.AdapterBus`) or a python-can ``virtual`` bus. The CiA 406
 node's object dictionary and SDO server are the ``canopen`` package's ``LocalNode``, loaded from
 the same kind of EDS a real encoder ships with; its NMT state machine and heartbeat are modelled
 here so faults can be injected.
@@ -24,9 +24,9 @@ import canopen
 import cantools
 import numpy as np
 
-from drivers import cia406, odrive
-from drivers.can_bus import CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_PROT, CAN_ERR_RESTARTED
-from logs.errors import UserError
+from trundle.drivers import cia406, odrive
+from trundle.drivers.can_bus import CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_PROT, CAN_ERR_RESTARTED
+from trundle.logs.errors import UserError
 
 SpeedSource = Callable[[float], Sequence[float]]
 

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Protocol
 
-from tools.emulators.pty_link import PtyLink
+from trundle.tools.emulators.pty_link import PtyLink
 
 
 class Device(Protocol):

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from logs.errors import UserError
+from trundle.logs.errors import UserError
 
 DURATIONS = {"stall_s": 0.3, "unplug_s": 0.5, "reboot_s": 0.3}
 

@@ -5,7 +5,7 @@ requests (GET_INFO, GET_HEALTH, GET_SAMPLERATE, GET_ACC_BOARD_FLAG, SET_MOTOR_PW
 RESET, SCAN, FORCE_SCAN, EXPRESS_SCAN), ``poll`` streams the samples measured by ``now`` as
 legacy nodes or express capsules, with faults from a ``FaultPlan`` (corrupt check bits or
 capsule checksums, lost bytes, garbage, stalls, unplug; flags ``streaming`` and
-``health_error``). Serve it with ``tools.emulators.device_server.DeviceServer``.
+``health_error``). Serve it with ``trundle.tools.emulators.device_server.DeviceServer``.
 
 Geometry: sample k of a revolution lies at ``k * 360 / N`` degrees, clockwise seen from above
 as the device counts; in the ROS laser frame that is ``pi - angle`` (as rplidar_ros
@@ -21,9 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers import rplidar as rp
-from tools.emulators.faults import FaultPlan
-from tools.emulators.scene import RangeSource
+from trundle.drivers import rplidar as rp
+from trundle.tools.emulators.faults import FaultPlan
+from trundle.tools.emulators.scene import RangeSource
 
 KINDS = ("checksum", "truncate", "garbage", "stall", "unplug")
 FLAGS = ("streaming", "health_error")

@@ -5,7 +5,7 @@ host's command lines, ``poll`` emits the scans that are due while MD/MS/ME strea
 faults injected from a ``FaultPlan`` (checksum flips, truncated lines, garbage between replies,
 ``0M`` unstable scans, stalls, abnormal status, clock reset, unplug) modelled on SCIP's ``DB``
 malfunction simulation and seqsense/urg_stamped's simulator. Serve it with
-``tools.emulators.device_server.DeviceServer`` on a pty or TCP port.
+``trundle.tools.emulators.device_server.DeviceServer`` on a pty or TCP port.
 
 Timing: the motor turns from power-on; scan k passes the rear (angle pi, where the 24-bit
 millisecond timestamp refers, as urg_node assumes) at ``boot + k * period`` and is sent one
@@ -20,10 +20,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers import scip2
-from drivers.scip2 import Measure, ScipError, SensorParams
-from tools.emulators.faults import FaultPlan
-from tools.emulators.scene import RangeSource
+from trundle.drivers import scip2
+from trundle.drivers.scip2 import Measure, ScipError, SensorParams
+from trundle.tools.emulators.faults import FaultPlan
+from trundle.tools.emulators.scene import RangeSource
 
 KINDS = ("checksum", "truncate", "garbage", "unstable", "stall", "abnormal", "reboot", "unplug")
 FLAGS = ("streaming",)

@@ -27,7 +27,7 @@ from typing import Any, Iterable
 
 import can
 
-from tools.emulators.pty_link import PtyLink
+from trundle.tools.emulators.pty_link import PtyLink
 
 OK, ERROR = b"\r", b"\x07"
 BITRATES = {b"0": 10000, b"1": 20000, b"2": 50000, b"3": 100000, b"4": 125000, b"5": 250000, b"6": 500000,

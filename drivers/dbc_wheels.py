@@ -17,6 +17,8 @@ from cantools.database.errors import Error as CantoolsError
 from trundle.drivers.can_bus import CanBus
 from trundle.drivers.encoder_protocol import EncoderProtocol, HeartbeatWatchdog, WheelReading, per_wheel
 
+VESC_DBC = Path(__file__).with_name("data") / "vesc_status.dbc"  # VESC status frames: an example DBC
+
 
 class DbcWheels(EncoderProtocol):
     """DBC-described encoders: ``signals[i]`` = ``"Message.Signal"`` of wheel ``wheels[i]``.

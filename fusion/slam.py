@@ -33,7 +33,7 @@ import numpy as np
 
 from trundle.fusion.ekf import PoseEKF, odometry_noise
 from trundle.fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance,
-                             scan_to_points, voxel_filter)
+                                     scan_to_points, voxel_filter)
 from trundle.fusion.icp import LineReference, icp
 from trundle.fusion.occupancy_grid import LogOddsGrid
 from trundle.fusion.odometry import DiffDriveOdometry

@@ -14,14 +14,14 @@ from typing import Any, Callable, Iterator
 import can
 import numpy as np
 
+from trundle.drivers.dbc_wheels import VESC_DBC
 from trundle.drivers.wheels import WheelsDriver, driver_from_url
 from trundle.fusion.odometry import DiffDriveOdometry, OdometrySink, odometry_from_config
 from trundle.logs import messages as m
 from trundle.tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes,
-                                       odrive_nodes, vesc_nodes)
+                                               odrive_nodes, vesc_nodes)
 from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
-VESC_DBC = Path(__file__).resolve().parents[1] / "drivers" / "data" / "vesc_status.dbc"
 RADIUS, TRACK = 0.1, 0.5
 POLE_PAIRS = 7
 

@@ -12,7 +12,7 @@ from mcap.writer import CompressionType, Writer
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
 from trundle.logs.writer import Logger
-from trundle.tools.cli import main
+from trundle.tools.cli.main import main
 
 
 def make_log(path: Path, n: int = 200, **kwargs) -> None:

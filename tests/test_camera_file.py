@@ -21,7 +21,7 @@ from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogMessage, LogReader
 from trundle.logs.writer import Logger
-from trundle.tools.cli import main
+from trundle.tools.cli.main import main
 
 IMAGE_TOPIC = "/camera/image_raw/compressed"
 

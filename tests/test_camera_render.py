@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from trundle.tools.camera_render import CameraPose, CameraRenderer, PinholeCamera, optical_rotation, project
-from trundle.tools.world import load_world
+from trundle.tools.sim.camera_render import CameraPose, CameraRenderer, PinholeCamera, optical_rotation, project
+from trundle.tools.sim.world import load_world
 
 # Poses along the office corridors, each looking at one or two markers.
 VIEWS = [CameraPose(22.0, 5.25, 0.45, 0.0), CameraPose(10.0, 5.25, 0.45, 0.0),

@@ -14,7 +14,7 @@ import pytest
 from camera_clips import avi_video_chunks, wait_for, write_clip
 from trundle.drivers.camera import CameraDriver, driver_from_url
 from trundle.logs import messages as m
-from trundle.tools.cli import main
+from trundle.tools.cli.main import main
 from trundle.tools.emulators.camera_emulator import BOUNDARY, CameraEmulator, synthetic_frame
 
 

@@ -16,7 +16,7 @@ from trundle.drivers import odrive
 from trundle.drivers.wheels import MAX_CARRY_S
 from trundle.fusion.odometry import odometry_from_config
 from trundle.logs.reader import LogReader
-from trundle.tools.cli import main
+from trundle.tools.cli.main import main
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -20,10 +20,10 @@ import pytest
 from trundle.drivers.lrf import driver_from_url
 from lrf_harness import Recorder, running, wait_until
 from trundle.logs.writer import Logger
-from trundle.tools.cli import main
+from trundle.tools.cli.main import main
 from trundle.tools.emulators.device_server import DeviceServer
 from trundle.tools.emulators.scip2_emulator import MODELS, ScipDevice
-from trundle.tools.sensor_model import RangeImpairment
+from trundle.tools.sim.sensor_model import RangeImpairment
 
 GAIN, BIAS, QUAD, CENTRE, HYST, NOISE = 1.02, 0.05, 0.02, 2.5, 0.03, 0.01
 LEVELS = np.round(np.arange(1.0, 4.0001, 0.25), 2)  # 13 levels, symmetric about CENTRE

@@ -15,8 +15,8 @@ import pytest
 from trundle.drivers.lifecycle import Backoff, DeviceError, Driver
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
-from trundle.tools.daemon import Daemon, format_status, query_status
-from trundle.tools.daemon_config import parse_config
+from trundle.tools.daemon.service import Daemon, format_status, query_status
+from trundle.tools.daemon.config import parse_config
 
 Usage = namedtuple("Usage", "total used free")
 

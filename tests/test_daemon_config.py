@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trundle.logs.errors import UserError
-from trundle.tools.daemon_config import default_socket_path, format_config, load_config, parse_config
+from trundle.tools.daemon.config import default_socket_path, format_config, load_config, parse_config
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "tools" / "daemon_example.toml"
+EXAMPLE = Path(__file__).resolve().parents[1] / "tools" / "daemon" / "example.toml"
 
 
 def example() -> dict:

@@ -15,11 +15,11 @@ from trundle.drivers.lifecycle import Driver
 from trundle.fusion.geometry import compose, inverse
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
-from trundle.tools.camera_render import optical_rotation
-from trundle.tools.daemon import Daemon
-from trundle.tools.daemon_config import parse_config
-from trundle.tools.robot_sim import RobotSim
-from trundle.tools.world import load_world
+from trundle.tools.sim.camera_render import optical_rotation
+from trundle.tools.daemon.service import Daemon
+from trundle.tools.daemon.config import parse_config
+from trundle.tools.sim.robot import RobotSim
+from trundle.tools.sim.world import load_world
 
 START_S = 14.0  # heading east towards marker 3 on the east wall
 

@@ -20,9 +20,9 @@ import cv2
 import pytest
 
 from trundle.logs.reader import LogReader
-from trundle.tools.cli import main
-from trundle.tools.camera_render import CameraPose, CameraRenderer
-from trundle.tools.world import load_world
+from trundle.tools.cli.main import main
+from trundle.tools.sim.camera_render import CameraPose, CameraRenderer
+from trundle.tools.sim.world import load_world
 
 REPO = Path(__file__).resolve().parents[1]
 

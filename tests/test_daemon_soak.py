@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 
 from trundle.logs.reader import LogReader
-from trundle.tools.daemon import query_status
-from trundle.tools.daemon_config import format_config
+from trundle.tools.daemon.service import query_status
+from trundle.tools.daemon.config import format_config
 from trundle.tools.emulators.faults import FaultPlan
-from trundle.tools.robot_sim import RobotSim
-from trundle.tools.sim_devices import SimDevices
-from trundle.tools.world import load_world
+from trundle.tools.sim.robot import RobotSim
+from trundle.tools.emulators.sim_devices import SimDevices
+from trundle.tools.sim.world import load_world
 
 REPO = Path(__file__).resolve().parents[1]
 RECOVERY_S = 6.0  # reconnect back-off + handshake allowed after a device comes back

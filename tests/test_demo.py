@@ -15,10 +15,10 @@ from hypothesis import strategies as st
 from trundle.fusion.map_io import load_map, read_trajectory_csv
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
-from trundle.tools.cli import main
-from trundle.tools.commands.demo import camera_size
-from trundle.tools.demo import ATE_LIMIT_M
-from trundle.tools.world import load_world
+from trundle.tools.cli.main import main
+from trundle.tools.cli.demo import camera_size
+from trundle.tools.demo.run import ATE_LIMIT_M
+from trundle.tools.sim.world import load_world
 
 DURATION_S = 8.0
 

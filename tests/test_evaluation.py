@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trundle.fusion.evaluation import (Relations, Trajectory, absolute_trajectory_error, align_se2, read_reference,
-                               read_relations, relation_error, relative_pose_error, seconds_to_ns,
-                               trajectory_relations)
+                                       read_relations, relation_error, relative_pose_error, seconds_to_ns,
+                                       trajectory_relations)
 from trundle.fusion.geometry import compose
 from trundle.fusion.map_io import write_trajectory_csv
 from trundle.logs.errors import UserError
@@ -178,7 +178,7 @@ def test_intel_reference_and_drifting_odometry():
 
 
 def test_slam_eval_command(tmp_path, capsys):
-    from trundle.tools.cli import main
+    from trundle.tools.cli.main import main
 
     result, reference = tmp_path / "trajectory.csv", tmp_path / "reference.csv"
     estimate = trajectory((0, 0, 0), (1.1, 0, 0), (2.1, 0.2, math.pi / 2 + 0.1))
@@ -203,7 +203,7 @@ def test_slam_eval_command(tmp_path, capsys):
 
 @pytest.mark.parametrize("args", [["absent.csv", "ref.csv"], ["traj.csv", "bad.relations"], ["traj.csv", "ref.csv", "--step", "0"]])
 def test_slam_eval_user_errors_are_one_line(tmp_path, capsys, monkeypatch, args):
-    from trundle.tools.cli import main
+    from trundle.tools.cli.main import main
 
     monkeypatch.chdir(tmp_path)
     write_trajectory_csv(tmp_path / "traj.csv", REFERENCE.stamps_ns, REFERENCE.poses)

@@ -14,7 +14,7 @@ from trundle.fusion.odometry import DiffDriveOdometry
 from trundle.logs.importers.breezyslam import ANGLE_MIN, ANGLE_STEP, import_breezyslam, parse_line, ranges_to_metres
 from trundle.logs.reader import LogReader
 from tests.conftest import shared_file
-from trundle.tools.cli import main
+from trundle.tools.cli.main import main
 
 
 @pytest.fixture(scope="module")

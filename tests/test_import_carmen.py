@@ -13,10 +13,10 @@ from trundle.fusion.geometry import relative
 from trundle.fusion.odometry_drift import drifting_odometry
 from trundle.logs import messages as m
 from trundle.logs.importers.carmen import (CarmenLaser, CarmenOdom, import_carmen, messages, parse_line, read_carmen,
-                                   scan_poses)
+                                           scan_poses)
 from trundle.logs.reader import LogReader
 from tests.conftest import shared_file
-from trundle.tools.cli import main
+from trundle.tools.cli.main import main
 
 
 def test_odom_line() -> None:

@@ -1,6 +1,6 @@
 """Localisation on a fixed map: global search, convergence from an unknown start, kidnap recovery.
 
-Two maps: the simulated office of ``tools/worlds`` (exact ground truth, scans from the world
+Two maps: the simulated office of ``tools/sim/worlds`` (exact ground truth, scans from the world
 simulator) and the Intel Research Lab map built from the GMapping-corrected poses of
 ``intel.gfs.log`` (every other scan; the localizer then runs on the scans left out).
 """
@@ -16,7 +16,7 @@ import pytest
 
 from trundle.fusion.geometry import compose, inverse, relative, scan_to_points, transform_points, voxel_filter
 from trundle.fusion.localization import (CoarseMap, Localizer, LocalizerConfig, coarse_map, correlate_headings,
-                                 global_search, grid_from_map)
+                                         global_search, grid_from_map)
 from trundle.fusion.map_io import read_trajectory_csv
 from trundle.fusion.occupancy_grid import LogOddsGrid
 from trundle.fusion.odometry_drift import drifting_odometry
@@ -32,7 +32,7 @@ class Office:
     """The simulated office: route poses, scans (robot-frame points) and a map built from exact scans."""
 
     def __init__(self) -> None:
-        from trundle.tools.world import LaserModel, load_world, simulate_scan
+        from trundle.tools.sim.world import LaserModel, load_world, simulate_scan
 
         self.world = load_world()
         self.model = LaserModel(beams=361, range_max=20.0)
@@ -256,7 +256,7 @@ def test_localize_command_on_a_spliced_intel_log(intel, tmp_path, capsys):
     from trundle.fusion.map_io import save_map
     from trundle.logs.importers import write_log
     from trundle.logs.importers.carmen import CarmenLog, messages, read_carmen
-    from trundle.tools.cli import main
+    from trundle.tools.cli.main import main
 
     lasers = [laser for laser in read_carmen(INTEL).lasers if laser.kind == "FLASER"]
     index = np.concatenate([np.arange(101, 131, 2), np.arange(601, 641, 2)])
@@ -281,7 +281,7 @@ def test_localize_command_on_a_spliced_intel_log(intel, tmp_path, capsys):
 
 
 def test_localize_command_user_errors(tmp_path, capsys):
-    from trundle.tools.cli import main
+    from trundle.tools.cli.main import main
 
     assert main(["localize", str(tmp_path / "absent.mcap"), "--map", str(tmp_path)]) == 2
     err = capsys.readouterr().err

@@ -18,7 +18,7 @@ from trundle.logs import ros2
 from trundle.logs.reader import LogReader
 from trundle.logs.replay import replay
 from trundle.logs.writer import Logger
-from trundle.tools.cli import main
+from trundle.tools.cli.main import main
 
 
 T0 = 1_763_784_000_000_000_000

@@ -8,7 +8,7 @@ import numpy as np
 
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
-from trundle.tools import cli
+from trundle.tools.cli.main import main
 from trundle.tools.emulators.device_server import DeviceServer
 from trundle.tools.emulators.rplidar_emulator import MODELS as RPLIDAR_MODELS, RplidarDevice
 from trundle.tools.emulators.scene import load_scene
@@ -22,7 +22,7 @@ def test_record_scip2_to_mcap(tmp_path):
     config.write_text('[lrf]\nframe_id = "front_laser"\nx = 0.2\nyaw = 0.1\n')
     out = tmp_path / "run.mcap"
     with DeviceServer(device, link_path=tmp_path / "lrf"):
-        code = cli.main(["record", "--lrf", f"scip2://{tmp_path / 'lrf'}", "--config", str(config),
+        code = main(["record", "--lrf", f"scip2://{tmp_path / 'lrf'}", "--config", str(config),
                          "-o", str(out), "--duration", "2"])
     assert code == 0
     with LogReader(out) as reader:
@@ -49,7 +49,7 @@ def test_record_rplidar_to_mcap(tmp_path):
     device = RplidarDevice(model, load_scene().range_source(model.angles), now_ns=time.time_ns())
     out = tmp_path / "run.mcap"
     with DeviceServer(device, link_path=tmp_path / "ttyUSB0"):
-        code = cli.main(["record", "--lrf", f"rplidar://{tmp_path / 'ttyUSB0'}?model=a2&beams=180",
+        code = main(["record", "--lrf", f"rplidar://{tmp_path / 'ttyUSB0'}?model=a2&beams=180",
                          "-o", str(out), "--duration", "1.5"])
     assert code == 0
     with LogReader(out) as reader:
@@ -65,12 +65,12 @@ def test_record_rplidar_to_mcap(tmp_path):
 
 
 def test_emulate_lrf_command(tmp_path, capsys):
-    assert cli.main(["emulate", "lrf", "--link", str(tmp_path / "lrf"), "--faults", "bogus=1"]) == 2
+    assert main(["emulate", "lrf", "--link", str(tmp_path / "lrf"), "--faults", "bogus=1"]) == 2
     assert "unknown fault 'bogus'" in capsys.readouterr().err
-    assert cli.main(["emulate", "lrf", "--link", str(tmp_path / "none" / "lrf")]) == 2
-    assert cli.main(["emulate", "lrf", "--protocol", "rplidar", "--model", "urg-04lx", "--tcp", "0"]) == 2
-    assert cli.main(["emulate", "lrf", "--scene", str(tmp_path / "missing.toml"), "--tcp", "0"]) == 2
+    assert main(["emulate", "lrf", "--link", str(tmp_path / "none" / "lrf")]) == 2
+    assert main(["emulate", "lrf", "--protocol", "rplidar", "--model", "urg-04lx", "--tcp", "0"]) == 2
+    assert main(["emulate", "lrf", "--scene", str(tmp_path / "missing.toml"), "--tcp", "0"]) == 2
     assert "scene file not found" in capsys.readouterr().err
-    code = cli.main(["emulate", "lrf", "--protocol", "rplidar", "--model", "a2", "--link", str(tmp_path / "lrf"),
+    code = main(["emulate", "lrf", "--protocol", "rplidar", "--model", "a2", "--link", str(tmp_path / "lrf"),
                      "--faults", "checksum=0.1,seed=2", "--duration", "0.3"])
     assert code == 0 and "emulating rplidar a2" in capsys.readouterr().err

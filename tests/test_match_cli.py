@@ -11,7 +11,7 @@ import pytest
 
 from feature_scenes import scene
 from trundle.perception.feature_eval import corner_error
-from trundle.tools.cli import main
+from trundle.tools.cli.main import main
 
 WARP = np.array([[0.95, 0.08, 12.0], [-0.06, 0.97, 8.0], [1e-5, -2e-5, 1.0]])
 

@@ -13,7 +13,7 @@ from trundle.logs import messages as m
 from trundle.logs.reader import read_messages
 from trundle.logs.writer import Logger
 from trundle.perception.markers import dictionary_by_name
-from trundle.tools.cli import main
+from trundle.tools.cli.main import main
 
 ORANGE = (0, 128, 255)
 CENTRES = [(80.0, 60.0), (230.0, 150.0), (150.0, 205.0)]

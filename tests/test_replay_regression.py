@@ -14,9 +14,9 @@ import pytest
 from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error
 from trundle.fusion.map_io import read_trajectory_csv
 from trundle.logs.reader import LogReader
-from trundle.tools.demo import (IMAGE_TOPIC, SCAN_TOPIC, WHEELS_TOPIC, map_wall_distances, path_length, run_slam,
-                        score_markers, sensor_mount, wheel_odometry)
-from trundle.tools.world import load_world
+from trundle.tools.demo.run import (IMAGE_TOPIC, SCAN_TOPIC, WHEELS_TOPIC, map_wall_distances, path_length, run_slam,
+                                    score_markers, sensor_mount, wheel_odometry)
+from trundle.tools.sim.world import load_world
 
 DATA = Path(__file__).parent / "data" / "demo_short"
 LOG = DATA / "demo.mcap"

@@ -9,8 +9,8 @@ import pytest
 
 from trundle.fusion.odometry import DiffDriveOdometry
 from trundle.logs import messages as m
-from trundle.tools.robot_sim import Mount, RobotModel, RobotSim
-from trundle.tools.world import cast_rays, load_world, parse_world, simulate_scan
+from trundle.tools.sim.robot import Mount, RobotModel, RobotSim
+from trundle.tools.sim.world import cast_rays, load_world, parse_world, simulate_scan
 
 
 @pytest.fixture(scope="module")

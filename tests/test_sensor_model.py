@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from trundle.tools.sensor_model import RangeImpairment
+from trundle.tools.sim.sensor_model import RangeImpairment
 
 
 def test_formula_without_noise() -> None:

@@ -17,7 +17,7 @@ from trundle.logs.importers import write_log
 from trundle.logs.reader import LogReader
 from tests.planar_world import ROOM, scan
 from tests.test_slam import loop_path
-from trundle.tools.cli import main
+from trundle.tools.cli.main import main
 
 
 def trundle(capsys, *argv: str) -> tuple[int, str, str]:
@@ -102,7 +102,7 @@ def test_wheel_model_sources_in_order() -> None:
 
     from trundle.logs.errors import UserError
     from trundle.logs.reader import LogInfo, TopicInfo
-    from trundle.tools.commands.slam import make_odometry
+    from trundle.tools.cli.slam import make_odometry
 
     wheels = {"/wheels": TopicInfo("sensor_msgs/msg/JointState")}
     robot = json.dumps({"wheel_radius_m": 0.077, "track_m": 0.33, "wheels": ["left", "right"]})

@@ -17,7 +17,7 @@ from trundle.fusion.odometry_drift import drifting_odometry
 from trundle.fusion.slam import Slam, SlamConfig
 from trundle.logs.importers import breezyslam, carmen
 from tests.conftest import shared_file
-from trundle.tools.cli import main
+from trundle.tools.cli.main import main
 
 
 def intel_run(scans: int | None, loop_closure: bool = True) -> tuple[Slam, Trajectory]:

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trundle.logs.errors import UserError
-from trundle.tools.world import DEFAULT_WORLD, LaserModel, cast_rays, load_world, parse_world, simulate_scan
+from trundle.tools.sim.world import DEFAULT_WORLD, LaserModel, cast_rays, load_world, parse_world, simulate_scan
 
 # A 4 m x 4 m room centred on the origin, walls listed counter-clockwise from the bottom one.
 ROOM = np.array([[-2, -2, 2, -2], [2, -2, 2, 2], [2, 2, -2, 2], [-2, 2, -2, -2]], dtype=float)

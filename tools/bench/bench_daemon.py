@@ -28,12 +28,12 @@ import cv2
 
 from trundle.logs.reader import LogReader
 from trundle.tools.bench import report
-from trundle.tools.camera_render import CameraRenderer
-from trundle.tools.daemon import query_status
-from trundle.tools.daemon_config import format_config
-from trundle.tools.robot_sim import RobotSim
-from trundle.tools.sim_devices import SimDevices
-from trundle.tools.world import load_world
+from trundle.tools.sim.camera_render import CameraRenderer
+from trundle.tools.daemon.service import query_status
+from trundle.tools.daemon.config import format_config
+from trundle.tools.sim.robot import RobotSim
+from trundle.tools.emulators.sim_devices import SimDevices
+from trundle.tools.sim.world import load_world
 
 REPO = Path(__file__).resolve().parents[2]
 WIDTH, HEIGHT, FPS = 1280, 720, 30.0

@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 
 from trundle.tools.bench import report
-from trundle.tools.camera_render import CameraPose, CameraRenderer, PinholeCamera
-from trundle.tools.world import LaserModel, cast_rays, load_world, simulate_scan
+from trundle.tools.sim.camera_render import CameraPose, CameraRenderer, PinholeCamera
+from trundle.tools.sim.world import LaserModel, cast_rays, load_world, simulate_scan
 
 
 def main() -> None:

@@ -24,7 +24,7 @@ from typing import Any, Callable
 import numpy as np
 
 from trundle.logs.errors import UserError
-from trundle.tools.world import cast_rays
+from trundle.tools.sim.world import cast_rays
 
 DEFAULT_SCENE = Path(__file__).with_name("room.toml")
 RangeSource = Callable[[float], np.ndarray]

@@ -4,7 +4,7 @@ Device tables use the same layout as ``trundle record --config``: ``[lrf]``, ``[
 ``[camera]`` each hold a ``url`` and the driver's own options, passed to the driver unchanged
 (the driver checks them); a list of tables (``[[camera]]``) declares several devices of one
 family, each with its own ``name``. Everything else is the daemon's and is checked here: a wrong
-key or value is a ``UserError`` of one line naming the key. See ``tools/daemon_example.toml``.
+key or value is a ``UserError`` of one line naming the key. See ``tools/daemon/example.toml``.
 """
 
 from __future__ import annotations

@@ -3,8 +3,8 @@ map, a trajectory and marker detections, each scored against the simulator's gro
 
 Stages (what ``trundle demo`` runs, one function each so tests can run them alone):
 
-1. :func:`record`: ``trundle.tools.robot_sim.RobotSim`` drives the office route;
-   ``trundle.tools.sim_devices.SimDevices`` serves its laser (SCIP 2.0 on a pty), wheel encoders (ODrive
+1. :func:`record`: ``trundle.tools.sim.robot.RobotSim`` drives the office route;
+   ``trundle.tools.emulators.sim_devices.SimDevices`` serves its laser (SCIP 2.0 on a pty), wheel encoders (ODrive
    axes behind an SLCAN pty) and camera (MJPEG over HTTP); the real daemon (``python -m trundle.tools.cli
    daemon``, the code of ``trundle daemon``) records them and is stopped by SIGTERM. The robot
    stands at its start until every device streams. Ground truth comes from the emulators: each
@@ -50,15 +50,14 @@ from trundle.logs.reader import LogInfo, LogReader
 from trundle.logs.replay import replay
 from trundle.perception.images import decode_image, to_gray
 from trundle.perception.markers import MarkerDetector, marker_pose
-from trundle.tools.camera_render import CameraRenderer, CameraPose, PinholeCamera, optical_rotation
-from trundle.tools.daemon import query_status
-from trundle.tools.daemon_config import format_config
-from trundle.tools.progress import Progress
-from trundle.tools.robot_sim import Mount, RobotSim
-from trundle.tools.sim_devices import SimDevices
-from trundle.tools.world import DEFAULT_WORLD, World, load_world
+from trundle.tools.sim.camera_render import CameraRenderer, CameraPose, PinholeCamera, optical_rotation
+from trundle.tools.daemon.service import query_status
+from trundle.tools.daemon.config import format_config
+from trundle.tools.cli.progress import Progress
+from trundle.tools.sim.robot import Mount, RobotSim
+from trundle.tools.emulators.sim_devices import SimDevices
+from trundle.tools.sim.world import DEFAULT_WORLD, World, load_world
 
-REPO = Path(__file__).resolve().parents[1]
 SCAN_TOPIC, WHEELS_TOPIC, IMAGE_TOPIC = "/scan", "/wheels", "/camera/image_raw/compressed"
 CAMERA_INFO_TOPIC = "/camera/camera_info"
 LOG_NAME = "demo.mcap"
@@ -150,7 +149,7 @@ class FrameTimes:
 
 
 def daemon_config(devices: SimDevices, folder: Path, socket_path: Path, calibration: Path) -> dict[str, Any]:
-    """The daemon's configuration tables for the emulated robot (see ``tools/daemon_example.toml``)."""
+    """The daemon's configuration tables for the emulated robot (see ``tools/daemon/example.toml``)."""
     tables = devices.device_tables()
     tables["lrf"]["timeout_s"] = LRF_TIMEOUT_S
     tables["can"]["odrive"] = {"heartbeat_timeout_s": WHEEL_TIMEOUT_S, "data_timeout_s": WHEEL_TIMEOUT_S}
@@ -218,10 +217,9 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
                 f"camera {devices.urls['camera']}")
             daemon_log = out / "daemon.log"
             with open(daemon_log, "w") as log_file:
-                proc = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "daemon", "--config", str(config)],
-                                        stdout=log_file, stderr=subprocess.STDOUT, cwd=out,
-                                        env={**os.environ, "PYTHONPATH": os.pathsep.join(
-                                            filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))})
+                # -P: the output folder (the daemon's cwd) is not put on sys.path, so nothing in it shadows trundle
+                proc = subprocess.Popen([sys.executable, "-P", "-m", "trundle.tools.cli", "daemon", "--config",
+                                         str(config)], stdout=log_file, stderr=subprocess.STDOUT, cwd=out)
             try:
                 say(f"daemon started (pid {proc.pid}): trundle daemon --config {config}")
                 deadline = time.monotonic() + STREAM_TIMEOUT_S

@@ -1,4 +1,4 @@
-"""A differential-drive robot driving a waypoint route through a ``trundle.tools.world.World``.
+"""A differential-drive robot driving a waypoint route through a ``trundle.tools.sim.world.World``.
 
 The whole run is simulated once, at construction, with a fixed control period: a pure-pursuit
 controller (look-ahead point on the route, curvature-limited and acceleration-limited speed)
@@ -10,7 +10,7 @@ truth pose is exact at any time ``t``, not just at control ticks.
 Sensors are sampled at any ``t`` (seconds from the start) by the device emulators:
 ``wheel_angles_at`` / ``wheel_speeds_at`` (true wheel rotation, what a perfect encoder reads),
 ``encoder_angles_at`` (quantised to counts, with noise), ``ranges_at`` (the laser, via
-``trundle.tools.world.simulate_scan``) and ``frame_at`` (the camera, via ``trundle.tools.camera_render``). Noise
+``trundle.tools.sim.world.simulate_scan``) and ``frame_at`` (the camera, via ``trundle.tools.sim.camera_render``). Noise
 is drawn from a generator seeded by ``(seed, t)``, so the same ``t`` gives the same reading.
 """
 
@@ -25,8 +25,8 @@ import numpy as np
 from trundle.fusion.geometry import compose, wrap_angle
 from trundle.fusion.odometry import integrate, integrate_path
 from trundle.logs.errors import UserError
-from trundle.tools.camera_render import CameraPose, CameraRenderer, PinholeCamera
-from trundle.tools.world import LaserModel, World, simulate_scan
+from trundle.tools.sim.camera_render import CameraPose, CameraRenderer, PinholeCamera
+from trundle.tools.sim.world import LaserModel, World, simulate_scan
 
 
 @dataclass(frozen=True)

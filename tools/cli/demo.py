@@ -12,13 +12,13 @@ import argparse
 from pathlib import Path
 
 from trundle.logs.errors import UserError
-from trundle.tools.demo import ATE_LIMIT_M, LOG_NAME, DemoSettings, run_demo
-from trundle.tools.world import DEFAULT_WORLD
+from trundle.tools.demo.run import ATE_LIMIT_M, LOG_NAME, DemoSettings, run_demo
+from trundle.tools.sim.world import DEFAULT_WORLD
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="whole pipeline on emulated hardware in a simulated world -> log, map, report",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def register(p: argparse.ArgumentParser) -> None:
+    p.description = __doc__
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("-o", "--output", type=Path, default=Path("trundle-demo"),
                    help="output folder (default ./trundle-demo)")
     p.add_argument("--duration", type=float, help="robot time to record, s (default: the whole route, about a minute)")

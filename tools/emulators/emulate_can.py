@@ -18,12 +18,12 @@ import time
 from pathlib import Path
 
 from trundle.drivers import cia406
+from trundle.drivers.dbc_wheels import VESC_DBC
 from trundle.logs.errors import UserError
-from trundle.tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes, odrive_nodes,
-                                       vesc_nodes)
+from trundle.tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes,
+                                               odrive_nodes, vesc_nodes)
 from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
-VESC_DBC = Path(__file__).resolve().parents[1] / "drivers" / "data" / "vesc_status.dbc"
 DEFAULT_NODES = {"odrive": "0,1", "cia406": "5,6", "dbc": "9,10"}
 NODE_FAULTS = ("heartbeat-stop", "heartbeat-resume", "silent", "alive")
 BUS_FAULTS = ("errors", "bus-off", "noise", "unplug", "replug")

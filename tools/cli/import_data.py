@@ -19,8 +19,7 @@ from trundle.logs.importers.breezyslam import import_breezyslam
 from trundle.logs.importers.carmen import import_carmen, read_carmen, scan_poses
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("import", help="convert a public dataset (CARMEN, BreezySLAM) to an MCAP log")
+def register(p: argparse.ArgumentParser) -> None:
     formats = p.add_subparsers(dest="format", metavar="FORMAT")
     formats.required = True
     c = formats.add_parser("carmen", help="CARMEN log (.clf, .log, .gfs.log; .gz too)")

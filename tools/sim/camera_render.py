@@ -1,4 +1,4 @@
-"""What a level pinhole camera sees in a ``trundle.tools.world.World``: walls, floor, ceiling, ArUco
+"""What a level pinhole camera sees in a ``trundle.tools.sim.world.World``: walls, floor, ceiling, ArUco
 markers and coloured objects, rendered exactly (no approximation beyond pixel sampling).
 
 Every face in the world is vertical and floor-to-ceiling and the camera is level (no pitch or
@@ -24,7 +24,7 @@ import numpy as np
 
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-from trundle.tools.world import MARKER_MARGIN, Decal, RayHits, World, cast_rays
+from trundle.tools.sim.world import MARKER_MARGIN, Decal, RayHits, World, cast_rays
 
 TEXTURE_TILE_M = 2.0
 TEXTURE_PX = 256

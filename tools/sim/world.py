@@ -1,6 +1,6 @@
 """A 2-D world read from a floor-plan file, and what a planar laser range finder sees in it.
 
-The floor plan is JSON (see ``tools/worlds/office.json``): wall polylines and obstacle polygons
+The floor plan is JSON (see ``tools/sim/worlds/office.json``): wall polylines and obstacle polygons
 (every edge a vertical face from the floor to ``wall_height_m``), ArUco markers and coloured
 objects hung on those faces at known poses, and a waypoint route. Units are metres and radians,
 map frame per REP 103 (x east, y north, yaw counter-clockwise from x).

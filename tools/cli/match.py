@@ -23,8 +23,7 @@ from trundle.perception.keypoints import to_cv
 FEATURES = [m for m in METHODS if m not in EDGES]
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("match", help="match local features between two images (keypoints, matches, RANSAC model)")
+def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("image1", help="first image (any format OpenCV reads)")
     p.add_argument("image2", help="second image")
     p.add_argument("--features", default="sift", choices=FEATURES, help="detector (default sift)")

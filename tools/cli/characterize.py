@@ -24,8 +24,7 @@ from trundle.logs.reader import LogReader
 STILL_SPEED = 1e-3  # m/s or rad/s below which the robot counts as standing still
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("characterize", help="sensor characteristics (range, resolution, precision, ...) from a log")
+def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("log")
     p.add_argument("--topic", required=True, help="sensor topic, e.g. /scan, /wheels, /camera/image/compressed")
     p.add_argument("--reference", type=Path, help="CSV of true values over time: columns t_ns (or t_s) and value")

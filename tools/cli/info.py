@@ -9,8 +9,7 @@ from datetime import datetime, timezone
 from trundle.logs.reader import LogInfo, LogReader
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("info", help="summarise a log: duration, size, topics, types, counts, rates")
+def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("file", help="MCAP log (.mcap or .mcap.active)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.set_defaults(func=run)

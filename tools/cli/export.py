@@ -14,8 +14,7 @@ from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="export one topic as CSV or NDJSON")
+def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("file")
     p.add_argument("--topic", required=True)
     p.add_argument("--format", choices=("csv", "ndjson"), default="csv")

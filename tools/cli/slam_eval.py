@@ -14,13 +14,13 @@ import json
 from dataclasses import asdict
 
 from trundle.fusion.evaluation import (Trajectory, absolute_trajectory_error, read_reference, relation_error,
-                               relative_pose_error, trajectory_relations)
+                                       relative_pose_error, trajectory_relations)
 from trundle.logs.errors import UserError
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("slam-eval", help="relation error (Kuemmerle 2009), ATE and RPE of a SLAM trajectory",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def register(p: argparse.ArgumentParser) -> None:
+    p.description = __doc__
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("result", help="trajectory.csv from `trundle slam` (t_ns,x,y,theta)")
     p.add_argument("reference", help=".relations file, t_ns,x,y,theta CSV or CARMEN log")
     p.add_argument("--step", type=int, default=1,

@@ -5,15 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from trundle.tools.daemon import Daemon
-from trundle.tools.daemon_config import load_config
+from trundle.tools.daemon.service import Daemon
+from trundle.tools.daemon.config import load_config
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("daemon", help="run the onboard service: supervised drivers, logging, SLAM, status",
-                       description="Runs until SIGTERM or SIGINT (the log is closed cleanly); SIGHUP starts a "
-                                   "new log file. Under systemd (Type=notify) it reports READY and pings the "
-                                   "watchdog. See tools/daemon_example.toml for the configuration.")
+def register(p: argparse.ArgumentParser) -> None:
+    p.description = ("Runs until SIGTERM or SIGINT (the log is closed cleanly); SIGHUP starts a new log file. "
+                     "Under systemd (Type=notify) it reports READY and pings the watchdog. "
+                     "See tools/daemon/example.toml for the configuration.")
     p.add_argument("--config", required=True, type=Path, help="robot TOML (devices, logger, disk, processing, ...)")
     p.add_argument("--check", action="store_true", help="only check the configuration and exit")
     p.set_defaults(func=run)

@@ -8,8 +8,7 @@ from pathlib import Path
 from trundle.logs.recover import recover
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("recover", help="salvage a truncated or .active log")
+def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", help="damaged MCAP (e.g. run.mcap.active)")
     p.add_argument("output", nargs="?", help="output file (default: IN without .active, or IN.recovered.mcap)")
     p.set_defaults(func=run)

@@ -27,14 +27,13 @@ from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.importers import write_log
 from trundle.logs.reader import LogInfo, LogReader
-from trundle.tools.progress import Progress
+from trundle.tools.cli.progress import Progress
 
 ODOMETRY_KEYS = {"wheel_radius_m", "track_m", "wheels", "wheel_variance_per_m"}
 LASER_KEYS = {"x_m", "y_m", "yaw_rad"}
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("slam", help="build a map and trajectory from a log (LaserScan + odometry)")
+def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("log", type=Path, help="MCAP log with LaserScan and JointState or Odometry")
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder (created)")
     p.add_argument("--config", type=Path, help="TOML with [slam], [odometry] and [laser] tables")

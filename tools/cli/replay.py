@@ -8,11 +8,10 @@ import time
 
 from trundle.logs.reader import LogMessage, LogReader
 from trundle.logs.replay import replay
-from trundle.tools.progress import Progress
+from trundle.tools.cli.progress import Progress
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("replay", help="play a log in (scaled) real time")
+def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("file")
     p.add_argument("--rate", type=float, default=1.0, help="time scale: 1 real time, 0 as fast as possible")
     p.add_argument("--topics", nargs="+", help="only these topics")

@@ -23,13 +23,13 @@ from trundle.fusion.map_io import load_map, write_trajectory_csv
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
-from trundle.tools.commands.slam import laser_pose, load_config, make_odometry
-from trundle.tools.progress import Progress
+from trundle.tools.cli.slam import laser_pose, load_config, make_odometry
+from trundle.tools.cli.progress import Progress
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("localize", help="localise a log on a saved map (unknown start, kidnap recovery)",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def register(p: argparse.ArgumentParser) -> None:
+    p.description = __doc__
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("log", type=Path, help="MCAP log with LaserScan (and Odometry or wheel JointState)")
     p.add_argument("--map", type=Path, required=True, help="folder with map.yaml + map.pgm, or the map YAML itself")
     p.add_argument("--config", type=Path, help="TOML with [odometry] and [laser] tables (as for trundle slam)")

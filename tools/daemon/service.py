@@ -12,7 +12,7 @@
 - runs wheel odometry on the wheels driver's messages (``trundle.fusion.odometry.OdometrySink``, when the
   ``[can]`` table has ``wheel_radius_m`` and ``track_m``) and online processing off the drivers'
   threads (SLAM on ``/scan`` + ``/odom``, ArUco markers on camera images);
-- streams the same topics to Foxglove over a WebSocket when ``[live] enabled`` (``trundle.tools.live_view``);
+- streams the same topics to Foxglove over a WebSocket when ``[live] enabled`` (``trundle.tools.daemon.live_view``);
 - publishes ``/diagnostics`` every period, answers ``trundle status`` on a UNIX socket with one
   JSON object, and speaks systemd's notify protocol (READY=1, WATCHDOG=1, STATUS=, STOPPING=1);
 - SIGTERM/SIGINT stop it cleanly (every file closed and renamed), SIGHUP starts a new split.
@@ -46,8 +46,8 @@ from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.writer import Logger, LoggerError, metadata_json
 from trundle.perception.markers import MarkerDetector, marker_pose
-from trundle.tools.daemon_config import DaemonConfig, Device
-from trundle.tools.live_view import LiveView
+from trundle.tools.daemon.config import DaemonConfig, Device
+from trundle.tools.daemon.live_view import LiveView
 
 DriverFactory = Callable[[str, str, Any, dict[str, Any]], Driver]
 NO_SPLIT_BYTES = 1 << 62  # split only on request: the logger then numbers its files
@@ -327,7 +327,7 @@ class Daemon:
     def __init__(self, config: DaemonConfig, *, make_driver: DriverFactory | None = None) -> None:
         self.config = config
         if make_driver is None:
-            from trundle.tools.commands.record import make_driver as record_make_driver
+            from trundle.tools.cli.record import make_driver as record_make_driver
             make_driver = record_make_driver
         self._make_driver = make_driver
         self.supervised: list[Supervised] = []

@@ -21,8 +21,7 @@ from trundle.logs.writer import Logger
 FAMILIES = {"lrf": "trundle.drivers.lrf", "can": "trundle.drivers.wheels", "camera": "trundle.drivers.camera"}
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("record", help="record devices to an MCAP log")
+def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lrf", action="append", default=[], metavar="URL",
                    help="laser: scip2:///dev/ttyACM0, scip2+tcp://host:10940, rplidar:///dev/ttyUSB0")
     p.add_argument("--can", action="append", default=[], metavar="URL",

@@ -6,12 +6,11 @@ import argparse
 import json
 from pathlib import Path
 
-from trundle.tools.daemon import format_status, query_status
-from trundle.tools.daemon_config import default_socket_path, load_config
+from trundle.tools.daemon.service import format_status, query_status
+from trundle.tools.daemon.config import default_socket_path, load_config
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("status", help="status of the running daemon: devices, rates, errors, logger, disk")
+def register(p: argparse.ArgumentParser) -> None:
     where = p.add_mutually_exclusive_group()
     where.add_argument("--socket", type=Path, help=f"the daemon's status socket (default {default_socket_path()}, "
                                                    "else /run/trundle/status.sock)")

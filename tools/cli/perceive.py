@@ -39,7 +39,7 @@ from trundle.logs.writer import Logger
 from trundle.perception.color import ColorSegmentation, HsvTemplate, segment_color, template_histograms
 from trundle.perception.images import decode_image
 from trundle.perception.markers import MarkerDetector, marker_pose
-from trundle.tools.progress import Progress
+from trundle.tools.cli.progress import Progress
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
@@ -49,9 +49,9 @@ MAX_QUEUED = 500            # wait for the logger rather than let it drop messag
 Detections = tuple[int, list[tuple[str, m.Message]]]   # count and the (topic, message) pairs to write
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("perceive", help="run an image-feature pipeline over a log's images",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def register(p: argparse.ArgumentParser) -> None:
+    p.description = __doc__
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("file", help="MCAP log with images")
     p.add_argument("--pipeline", required=True, choices=("color", "markers", "features"))
     p.add_argument("-o", "--output", required=True, help="output MCAP file")

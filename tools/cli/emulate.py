@@ -7,14 +7,13 @@ import importlib
 
 # family -> module defining add_arguments(parser) and run(args) -> int
 EMULATORS = {
-    "lrf": ("trundle.tools.emulate_lrf", "laser range finder (SCIP 2.0 or RPLIDAR) on a pty or TCP port"),
-    "can": ("trundle.tools.emulate_can", "SLCAN adapter on a pty with emulated wheel-encoder nodes"),
-    "camera": ("trundle.tools.emulate_camera", "camera stream from a synthetic scene or a video file"),
+    "lrf": ("trundle.tools.emulators.emulate_lrf", "laser range finder (SCIP 2.0 or RPLIDAR) on a pty or TCP port"),
+    "can": ("trundle.tools.emulators.emulate_can", "SLCAN adapter on a pty with emulated wheel-encoder nodes"),
+    "camera": ("trundle.tools.emulators.emulate_camera", "camera stream from a synthetic scene or a video file"),
 }
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("emulate", help="start a device emulator")
+def register(p: argparse.ArgumentParser) -> None:
     families = p.add_subparsers(dest="family", metavar="DEVICE")
     families.required = True
     for family, (module_name, help_text) in EMULATORS.items():

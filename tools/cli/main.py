@@ -1,0 +1,83 @@
+"""The `trundle` command line.
+
+Each command lives in ``tools/cli/<name>.py`` (``-`` in the name as ``_``; ``import`` in
+``import_data.py``) and defines ``register(parser)``, which adds the command's arguments and sets
+``func`` to a callable taking the parsed arguments and returning the exit code. Only the module of
+the command being run is imported: ``trundle --help`` and ``trundle --version`` import none, so
+the command line starts at once. A user's mistake raises ``UserError`` (or an OSError about a
+path) and ends as one line on stderr with a non-zero exit code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from trundle import __version__
+from trundle.logs.errors import UserError
+
+EXIT_USER_ERROR = 2
+
+# command -> one-line help; the order of `trundle --help`
+COMMANDS = {
+    "demo": "whole pipeline on emulated hardware in a simulated world -> log, map, report",
+    "record": "record devices to an MCAP log",
+    "daemon": "run the onboard service: supervised drivers, logging, SLAM, status",
+    "status": "status of the running daemon: devices, rates, errors, logger, disk",
+    "info": "summarise a log: duration, size, topics, types, counts, rates",
+    "recover": "salvage a truncated or .active log",
+    "replay": "play a log in (scaled) real time",
+    "export": "export one topic as CSV or NDJSON",
+    "slam": "build a map and trajectory from a log (LaserScan + odometry)",
+    "slam-eval": "relation error (Kuemmerle 2009), ATE and RPE of a SLAM trajectory",
+    "localize": "localise a log on a saved map (unknown start, kidnap recovery)",
+    "perceive": "run an image-feature pipeline over a log's images",
+    "match": "match local features between two images (keypoints, matches, RANSAC model)",
+    "import": "convert a public dataset (CARMEN, BreezySLAM) to an MCAP log",
+    "emulate": "start a device emulator",
+    "characterize": "sensor characteristics (range, resolution, precision, ...) from a log",
+}
+MODULES = {"import": "import_data"}
+
+
+def module_name(command: str) -> str:
+    """The module that implements ``command``."""
+    return "trundle.tools.cli." + MODULES.get(command, command.replace("-", "_"))
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser; only the command named in ``argv`` (if any) gets its arguments and module."""
+    parser = argparse.ArgumentParser(prog="trundle", description="Onboard software of a wheeled mobile robot.")
+    parser.add_argument("--version", action="version", version=f"trundle {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    wanted = next((arg for arg in (sys.argv[1:] if argv is None else argv) if not arg.startswith("-")), None)
+    for command, help_text in COMMANDS.items():
+        p = sub.add_parser(command, help=help_text)
+        if command == wanted:
+            importlib.import_module(module_name(command)).register(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser(argv).parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except UserError as error:
+        print(f"trundle {args.command}: {error}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as error:
+        where = f": {error.filename}" if error.filename else ""
+        print(f"trundle {args.command}: {error.strerror or error}{where}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print(f"trundle {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+def entry() -> None:
+    """Console-script entry point."""
+    sys.exit(main())

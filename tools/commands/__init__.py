@@ -1,1 +1,0 @@
-"""One module per `trundle` sub-command; each defines ``register(subparsers)``."""

@@ -1,0 +1,1 @@
+"""The onboard service: life cycle, supervision, online processing, status socket, systemd, disk guard, config."""

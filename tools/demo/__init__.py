@@ -1,0 +1,1 @@
+"""`trundle demo`: the simulated robot recorded by the real daemon, replayed through SLAM and markers, scored."""

@@ -1,0 +1,1 @@
+"""The world simulator: floor plan and ray casting, the robot, the camera renderer, the sensor error model."""

@@ -16,7 +16,8 @@ from typing import Any, Mapping, TypeVar
 from urllib.parse import parse_qsl, urlsplit
 
 from trundle.drivers.lifecycle import Driver, Sink
-from trundle.logs import messages as m
+from trundle.drivers.rplidar_driver import RplidarConfig, RplidarDriver
+from trundle.drivers.scip2_driver import ScipConfig, ScipDriver
 from trundle.logs.errors import UserError
 
 SCHEMES = ("scip2", "scip2+tcp", "rplidar")
@@ -34,12 +35,6 @@ def _value(text: str) -> Any:
         except ValueError:
             pass
     return text
-
-
-def laser_transform(config: Any, stamp_ns: int) -> m.TFMessage:
-    """The static transform ``parent_frame`` -> ``frame_id`` at ``x, y, z, yaw`` of a laser config."""
-    return m.TFMessage((m.TransformStamped.planar(stamp_ns, config.parent_frame, config.frame_id, config.x, config.y,
-                                                  config.yaw, config.z),))
 
 
 def make_config(cls: type[Config], port: str, options: Mapping[str, Any], device: str) -> Config:
@@ -84,9 +79,5 @@ def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = Non
         if not port:
             raise UserError(f"laser URL {url!r} needs a device path, e.g. {scheme}:///dev/ttyUSB0")
     if scheme == "rplidar":
-        from trundle.drivers.rplidar_driver import RplidarConfig, RplidarDriver
-
         return RplidarDriver(make_config(RplidarConfig, port, options, "an RPLIDAR"), sink)
-    from trundle.drivers.scip2_driver import ScipConfig, ScipDriver
-
     return ScipDriver(make_config(ScipConfig, port, options, "a SCIP 2.0 laser"), sink)

@@ -22,8 +22,8 @@ import numpy as np
 import serial
 
 from trundle.drivers import rplidar as rp
+from trundle.drivers.laser_mount import laser_transform
 from trundle.drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
-from trundle.drivers.lrf import laser_transform
 from trundle.drivers.serial_link import SerialLink, set_modem_line
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError

@@ -18,8 +18,8 @@ from typing import Callable
 import numpy as np
 
 from trundle.drivers import scip2
+from trundle.drivers.laser_mount import laser_transform
 from trundle.drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
-from trundle.drivers.lrf import laser_transform
 from trundle.drivers.scip2 import Measure, Reply, ScipError, ScipFramer, SensorParams
 from trundle.drivers.sensor_clock import SensorClock
 from trundle.drivers.serial_link import SerialLink

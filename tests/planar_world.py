@@ -1,4 +1,4 @@
-"""A polygon world and an exact vectorised ray caster for SLAM tests (known geometry, known poses)."""
+"""Polygon worlds for SLAM tests (known geometry, known poses), ray cast by the world simulator."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from trundle.logs.messages import LaserScan
+from trundle.tools.sim.world import cast_rays
 
 # Walls sit off the 5 cm / 2 cm cell lattice (as real walls do), so no reading lies on a cell edge.
 _OFF = np.array([0.0123, 0.0271, 0.0123, 0.0271])
@@ -25,18 +26,7 @@ CORRIDOR = _OFF + np.array([[-15.0, -1.0, 15.0, -1.0], [-15.0, 1.0, 15.0, 1.0]])
 def cast(walls: np.ndarray, pose: np.ndarray, angles: np.ndarray, max_range: float = 30.0) -> np.ndarray:
     """Exact ranges (m) from ``pose`` along robot-frame ``angles`` to the nearest wall segment; inf if none."""
     x, y, theta = pose
-    a = theta + np.asarray(angles, dtype=np.float64)
-    d = np.stack([np.cos(a), np.sin(a)], axis=1)[:, None, :]
-    p1, p2 = walls[None, :, :2], walls[None, :, 2:]
-    e = p2 - p1
-    w = p1 - np.array([x, y])
-    den = d[..., 0] * (-e[..., 1]) + d[..., 1] * e[..., 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (w[..., 0] * (-e[..., 1]) + w[..., 1] * e[..., 0]) / den
-        u = (d[..., 0] * w[..., 1] - d[..., 1] * w[..., 0]) / den
-    hit = np.isfinite(t) & (t > 0) & (u >= 0) & (u <= 1)
-    r = np.where(hit, t, np.inf).min(axis=1)
-    return np.where(r <= max_range, r, np.inf)
+    return cast_rays(walls, (x, y), theta + np.asarray(angles, dtype=np.float64), max_range).distance
 
 
 def scan(walls: np.ndarray, pose: np.ndarray, *, beams: int = 360, fov: float = 2 * math.pi, noise_m: float = 0.0,

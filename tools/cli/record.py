@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib
 import signal
 import threading
 import time
@@ -11,14 +10,13 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from trundle.drivers.devices import FAMILIES, make_driver
 from trundle.drivers.lifecycle import Driver
 from trundle.fusion.odometry import OdometrySink, odometry_from_config
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.writer import Logger
 
-# device family -> module providing driver_from_url(url, sink, config) -> Driver
-FAMILIES = {"lrf": "trundle.drivers.lrf", "can": "trundle.drivers.wheels", "camera": "trundle.drivers.camera"}
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -49,15 +47,6 @@ def load_config(path: Path | None) -> dict[str, Any]:
             return tomllib.load(f)
     except tomllib.TOMLDecodeError as error:
         raise UserError(f"{path} is not valid TOML: {error}") from None
-
-
-def make_driver(family: str, url: str, sink: Any, config: dict[str, Any]) -> Driver:
-    """A driver of ``family`` for ``url``; a family whose support is missing is a user error."""
-    try:
-        module = importlib.import_module(FAMILIES[family])
-    except ModuleNotFoundError as error:
-        raise UserError(f"{family} devices are not supported by this installation ({error.name})") from None
-    return module.driver_from_url(url, sink, config)
 
 
 def diagnostics(drivers: list[Driver]) -> m.DiagnosticArray:

@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from trundle.drivers.devices import FAMILIES
 from trundle.fusion.slam import SlamConfig
 from trundle.logs.errors import UserError
 
-FAMILIES = ("lrf", "can", "camera")
 DEVICE_KEYS = {"url", "enabled", "name"}  # read by the daemon; every other key goes to the driver
 ACTIONS = ("delete_oldest", "stop")
 COMPRESSIONS = ("zstd", "lz4", "none")

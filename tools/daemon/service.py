@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from trundle.drivers import devices
 from trundle.drivers.lifecycle import Driver, wall_ns
 from trundle.fusion.odometry import OdometrySink, odometry_from_config
 from trundle.fusion.slam import Slam, SlamConfig
@@ -326,10 +327,7 @@ class Daemon:
 
     def __init__(self, config: DaemonConfig, *, make_driver: DriverFactory | None = None) -> None:
         self.config = config
-        if make_driver is None:
-            from trundle.tools.cli.record import make_driver as record_make_driver
-            make_driver = record_make_driver
-        self._make_driver = make_driver
+        self._make_driver = make_driver or devices.make_driver
         self.supervised: list[Supervised] = []
         self.rates: dict[str, TopicRates] = {}
         self.logger: Logger | None = None

@@ -15,8 +15,9 @@ import pytest
 from trundle.drivers.lifecycle import Backoff, DeviceError, Driver
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
-from trundle.tools.daemon.service import Daemon, format_status, query_status
 from trundle.tools.daemon.config import parse_config
+from trundle.tools.daemon.service import Daemon
+from trundle.tools.daemon.status import StatusServer, format_status, query_status
 
 Usage = namedtuple("Usage", "total used free")
 
@@ -108,7 +109,7 @@ def read_log(folder: Path):
 
 def test_status_socket_reports_devices_logger_and_disk(tmp_path):
     with Running(config(tmp_path)) as run:
-        wait_for(lambda: run.daemon.rates["lrf"].rates.get("/scan", 0) > 20)
+        wait_for(lambda: run.daemon.supervised[0].rates.rates.get("/scan", 0) > 20)
         status = query_status(tmp_path / "status.sock")
         device = status["devices"][0]
         assert device["name"] == "lrf" and device["state"] == "streaming"
@@ -191,7 +192,7 @@ def test_disk_guard_deletes_the_oldest_logs_first(tmp_path, monkeypatch):
     with Running(config(tmp_path)) as run:
         wait_for(lambda: run.daemon.logger is not None and run.drivers["lrf"].counters["scans"] > 5)
         assert [p.exists() for p in old] == [False, False, True]  # 50 + 2 x 30 MB >= 100 MB floor
-        assert run.daemon.disk["deleted"] == ["old_0.mcap", "old_1.mcap"]
+        assert run.daemon.disk_guard.status["deleted"] == ["old_0.mcap", "old_1.mcap"]
         assert run.daemon.logger.current_path.exists()
 
 
@@ -225,4 +226,4 @@ def test_second_daemon_on_the_same_socket_is_refused(tmp_path):
     with Running(config(tmp_path)):
         other = Daemon(config(tmp_path), make_driver=lambda f, u, s, o: ScriptedDriver(f, s))
         with pytest.raises(UserError, match="another trundle daemon"):
-            other._start_status_server()
+            StatusServer(other.config.status.socket, other.status)

@@ -16,8 +16,8 @@ import pytest
 
 from trundle.logs.reader import LogReader
 from trundle.tools.sim.camera_render import project
-from trundle.tools.daemon.service import query_status
 from trundle.tools.daemon.config import format_config
+from trundle.tools.daemon.status import query_status
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.emulators.sim_devices import SimDevices
 from trundle.tools.sim.world import load_world

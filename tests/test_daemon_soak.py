@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from trundle.logs.reader import LogReader
-from trundle.tools.daemon.service import query_status
 from trundle.tools.daemon.config import format_config
+from trundle.tools.daemon.status import query_status
 from trundle.tools.emulators.faults import FaultPlan
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.emulators.sim_devices import SimDevices

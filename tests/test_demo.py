@@ -17,7 +17,7 @@ from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
 from trundle.tools.cli.demo import camera_size
-from trundle.tools.demo.run import ATE_LIMIT_M
+from trundle.tools.demo.report import ATE_LIMIT_M
 from trundle.tools.sim.world import load_world
 
 DURATION_S = 8.0

@@ -14,8 +14,9 @@ import pytest
 from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error
 from trundle.fusion.map_io import read_trajectory_csv
 from trundle.logs.reader import LogReader
-from trundle.tools.demo.run import (IMAGE_TOPIC, SCAN_TOPIC, WHEELS_TOPIC, map_wall_distances, path_length, run_slam,
-                                    score_markers, sensor_mount, wheel_odometry)
+from trundle.tools.demo.scoring import map_wall_distances, path_length, score_markers, sensor_mount
+from trundle.tools.demo.slam import run_slam, wheel_odometry
+from trundle.tools.demo.topics import IMAGE_TOPIC, SCAN_TOPIC, WHEELS_TOPIC
 from trundle.tools.sim.world import load_world
 
 DATA = Path(__file__).parent / "data" / "demo_short"
@@ -31,7 +32,7 @@ def truth():
 
 @pytest.fixture(scope="module")
 def slam_run():
-    return run_slam(LOG, say=lambda text: None)  # with the demo's SLAM options
+    return run_slam(LOG)  # with the demo's SLAM options, no progress display
 
 
 def test_ground_truth_files_belong_to_the_log(truth):
@@ -82,7 +83,7 @@ def test_slam_trajectory_and_map_against_the_ground_truth(truth, slam_run):
 def test_markers_in_view_are_detected_with_their_ids_and_poses(truth):
     _, frames = truth
     world = load_world()
-    score = score_markers(LOG, frames, world, sensor_mount(LOG, "camera"), say=lambda text: None)
+    score = score_markers(LOG, frames, world, sensor_mount(LOG, "camera"))
     assert score.frames == FRAMES and score.unmatched == 0
     # which markers the simulator had in view, from the true camera pose of each frame
     assert dict(score.in_view) == {96: 7, 3: 8, 150: 2}

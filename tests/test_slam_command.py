@@ -102,7 +102,7 @@ def test_wheel_model_sources_in_order() -> None:
 
     from trundle.logs.errors import UserError
     from trundle.logs.reader import LogInfo, TopicInfo
-    from trundle.tools.cli.slam import make_odometry
+    from trundle.tools.jobs.config import make_odometry
 
     wheels = {"/wheels": TopicInfo("sensor_msgs/msg/JointState")}
     robot = json.dumps({"wheel_radius_m": 0.077, "track_m": 0.33, "wheels": ["left", "right"]})

@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from trundle.tools.daemon.service import Daemon
 from trundle.tools.daemon.config import load_config
+from trundle.tools.daemon.service import Daemon
 
 
 def register(p: argparse.ArgumentParser) -> None:
+    """The command's options on its subparser ``p``."""
     p.description = ("Runs until SIGTERM or SIGINT (the log is closed cleanly); SIGHUP starts a new log file. "
                      "Under systemd (Type=notify) it reports READY and pings the watchdog. "
                      "See tools/daemon/example.toml for the configuration.")
@@ -19,6 +20,7 @@ def register(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Check the configuration (``--check``: and stop there), else run the daemon until it is told to stop."""
     config = load_config(args.config)
     if args.check:
         devices = ", ".join(f"{d.name} ({d.family} {d.url})" for d in config.devices)

@@ -3,7 +3,7 @@
 No hardware and no arguments needed: the world simulator drives the laser, wheel-encoder and
 camera emulators, the real onboard daemon records them for about a minute of robot time, and
 the log is replayed through SLAM and marker detection, scored against the simulator's ground
-truth. See ``tools/demo.py``.
+truth. See ``tools/demo/``.
 """
 
 from __future__ import annotations
@@ -12,11 +12,14 @@ import argparse
 from pathlib import Path
 
 from trundle.logs.errors import UserError
-from trundle.tools.demo.run import ATE_LIMIT_M, LOG_NAME, DemoSettings, run_demo
+from trundle.tools.cli.progress import Progress
+from trundle.tools.demo.report import ATE_LIMIT_M
+from trundle.tools.demo.run import LOG_NAME, DemoSettings, run_demo
 from trundle.tools.sim.world import DEFAULT_WORLD
 
 
 def register(p: argparse.ArgumentParser) -> None:
+    """The command's options on its subparser ``p``."""
     p.description = __doc__
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("-o", "--output", type=Path, default=Path("trundle-demo"),
@@ -45,6 +48,7 @@ def camera_size(text: str) -> tuple[int, int]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run the demo with the options in ``args``, print its figures and checks; 0 if every check passed."""
     if args.duration is not None and not args.duration > 0:
         raise UserError("--duration must be a positive number of seconds")
     if not 0 < args.camera_fps <= 60:
@@ -55,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
                             camera_size=camera_size(args.camera_size), camera_quality=args.camera_quality,
                             seed=args.seed)
     out = args.output
-    report = run_demo(out, settings, say=lambda text: print(text, flush=True))
+    report = run_demo(out, settings, say=lambda text: print(text, flush=True), progress=Progress)
     checks = report["checks"]
     print(f"\nSLAM trajectory error {report['ate_rmse_m'] * 100:.1f} cm RMSE over {report['path_length_m']:.1f} m "
           f"(limit {ATE_LIMIT_M * 100:.0f} cm; wheel odometry alone "

@@ -6,11 +6,12 @@ import argparse
 import json
 from pathlib import Path
 
-from trundle.tools.daemon.service import format_status, query_status
 from trundle.tools.daemon.config import default_socket_path, load_config
+from trundle.tools.daemon.status import format_status, query_status
 
 
 def register(p: argparse.ArgumentParser) -> None:
+    """The command's options on its subparser ``p``."""
     where = p.add_mutually_exclusive_group()
     where.add_argument("--socket", type=Path, help=f"the daemon's status socket (default {default_socket_path()}, "
                                                    "else /run/trundle/status.sock)")
@@ -23,6 +24,7 @@ SYSTEM_SOCKET = Path("/run/trundle/status.sock")  # the systemd unit's RuntimeDi
 
 
 def run(args: argparse.Namespace) -> int:
+    """Ask the daemon at the chosen socket and print its answer (text, or ``--json`` as sent)."""
     if args.socket or args.config:
         path = args.socket or load_config(args.config).status.socket
     else:  # this user's daemon, else the system service's

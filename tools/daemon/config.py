@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 from trundle.drivers.devices import FAMILIES
-from trundle.fusion.slam import SlamConfig
 from trundle.logs.errors import UserError
 
 DEVICE_KEYS = {"url", "enabled", "name"}  # read by the daemon; every other key goes to the driver
@@ -290,6 +289,8 @@ def parse_config(data: dict[str, Any], source: str = "") -> DaemonConfig:
     if not devices:
         raise UserError(f"{_where(source, 'no device')}: add an [lrf], [can] or [camera] table with a url")
     slam = _table(data, "slam", source)
+    from trundle.fusion.slam import SlamConfig  # SciPy: not for every `trundle status`
+
     try:
         SlamConfig.from_mapping(slam)  # checked even while SLAM is off, so a typo shows at once
     except UserError as error:

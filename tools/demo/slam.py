@@ -1,0 +1,99 @@
+"""SLAM over a demo log: the log replayed (as fast as possible) through ``trundle.fusion.slam.Slam``
+with wheel odometry from ``/wheels`` (the wheel model of the daemon's config, stored in the log)
+and the laser mount from ``/tf_static``, with the demo's SLAM options.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from trundle.fusion.evaluation import Trajectory
+from trundle.fusion.odometry import DiffDriveOdometry, odometry_from_config
+from trundle.fusion.slam import Slam, SlamConfig
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
+from trundle.logs.reader import LogInfo, LogReader
+from trundle.logs.replay import replay
+from trundle.tools.jobs.progress import NoProgress, ProgressFactory
+from trundle.tools.demo.topics import SCAN_TOPIC, WHEELS_TOPIC
+
+# SLAM options of the demo (the [slam] table of its robot.toml), each for a property of the emulated robot:
+SLAM_OPTIONS: dict[str, Any] = {
+    # heading noise floor per scan step (rad): the wheel odometry jumps by degrees between two scans when
+    # the left and right wheel readings come from different instants (bunched when the machine is busy)
+    "odom_sigma_theta_rad": 0.05,
+    # the simulated laser casts a whole scan from one pose (it does not sweep): there is nothing to de-skew
+    "deskew": False,
+}
+
+
+@dataclass(eq=False)
+class SlamRun:
+    """SLAM over a log: the optimised trajectory (one pose per scan, map frame), the wheel
+    odometry at the same stamps (odom frame), the map, the SLAM object (stats, keyframes) and
+    the wall-clock time SLAM took (s)."""
+
+    slam: Slam
+    trajectory: Trajectory
+    odometry: Trajectory
+    grid: m.OccupancyGrid
+    processing_s: float
+
+
+def wheel_odometry(info: LogInfo) -> DiffDriveOdometry:
+    """Wheel odometry with the wheel model of the ``[can]`` table the daemon ran with (log metadata)."""
+    devices = json.loads(info.metadata.get("trundle", {}).get("devices", "{}"))
+    can = next((d for d in devices.values() if d.get("family") == "can"), None)
+    odometry = odometry_from_config(can) if can is not None else None
+    if odometry is None:
+        raise UserError(f"{info.path}: no wheel model (wheel_radius_m, track_m) in the log's device metadata")
+    return odometry
+
+
+def run_slam(log: Path, config: SlamConfig | None = None, progress: ProgressFactory = NoProgress) -> SlamRun:
+    """Replay ``log`` (as fast as possible) through SLAM with wheel odometry from ``/wheels``
+    (``config`` default: ``SLAM_OPTIONS``), showing the scans done on a ``progress`` display."""
+    with LogReader(log) as reader:
+        info = reader.info()
+    if SCAN_TOPIC not in info.topics:
+        raise UserError(f"{log}: no {SCAN_TOPIC} topic")
+    odometry = wheel_odometry(info)
+    slam = Slam(config or SlamConfig.from_mapping(SLAM_OPTIONS), odometry)
+    odom_stamps: list[int] = []
+    odom_poses: list[np.ndarray] = []
+    bar = progress("slam", info.topics[SCAN_TOPIC].count)
+
+    def feed(item: Any) -> None:
+        result = slam.process(item.topic, item.msg)
+        if item.topic == WHEELS_TOPIC and not odometry.stale:
+            odom_stamps.append(item.msg.stamp_ns)
+            odom_poses.append(odometry.pose.copy())
+        elif result is not None:
+            bar.update(slam.stats.scans, f"{slam.stats.scans} scans, {slam.stats.loop_closures} loop closures")
+
+    started = time.perf_counter()
+    replay(log, feed, rate=0.0, topics=["/tf_static", WHEELS_TOPIC, SCAN_TOPIC])
+    slam.finish()
+    bar.close()
+    if slam.stats.scans == 0:
+        raise UserError(f"{log}: no scans on {SCAN_TOPIC}")
+    stamps, poses = slam.trajectory()
+    grid = slam.build_map().to_message(int(stamps[-1]), "map")
+    processing_s = time.perf_counter() - started
+    odom = Trajectory(np.array(odom_stamps, np.int64), np.array(odom_poses).reshape(-1, 3))
+    return SlamRun(slam, Trajectory(stamps, poses), interpolate(odom, stamps), grid, processing_s)
+
+
+def interpolate(trajectory: Trajectory, stamps_ns: np.ndarray) -> Trajectory:
+    """``trajectory`` at ``stamps_ns`` (linear in x, y and unwrapped heading; clamped at the ends)."""
+    t = trajectory.stamps_ns - trajectory.stamps_ns[0]
+    q = np.asarray(stamps_ns, np.int64) - trajectory.stamps_ns[0]
+    poses = np.stack([np.interp(q, t, trajectory.poses[:, 0]), np.interp(q, t, trajectory.poses[:, 1]),
+                      np.interp(q, t, np.unwrap(trajectory.poses[:, 2]))], axis=1)
+    return Trajectory(stamps_ns, poses)

@@ -1,0 +1,63 @@
+"""The characterize report: the plots as PNG files and the figures as a Markdown page."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def write_plots(folder: Path, plots: dict[str, Any]) -> list[str]:
+    """The PNGs of ``plots`` (per-beam noise, sensitivity) in ``folder``; returns their file names."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = []
+    if "beam_noise" in plots:
+        angles, std = plots["beam_noise"]
+        fig, ax = plt.subplots(figsize=(8, 3.5))
+        ax.semilogy(np.degrees(angles), std * 1000, lw=0.8)
+        ax.axhline(np.nanmedian(std) * 1000, color="k", ls="--", lw=0.8, label=f"median {np.nanmedian(std) * 1000:.1f} mm")
+        ax.set(xlabel="beam angle (deg)", ylabel="noise std (mm, log)", title="Per-beam noise while standing still")
+        ax.legend(loc="upper right")
+        fig.tight_layout()
+        fig.savefig(folder / "beam_noise.png", dpi=110)
+        plt.close(fig)
+        names.append("beam_noise.png")
+    if "sensitivity" in plots:
+        true, measured = plots["sensitivity"]
+        keep = np.isfinite(true) & np.isfinite(measured)
+        step = max(1, keep.sum() // 20000)
+        fig, ax = plt.subplots(figsize=(5, 5))
+        ax.plot(true[keep][::step], measured[keep][::step], ",", alpha=0.4)
+        lim = [np.nanmin(true[keep]), np.nanmax(true[keep])]
+        ax.plot(lim, lim, "k--", lw=0.8)
+        ax.set(xlabel="true value (m)", ylabel="measured (m)", title="Sensitivity")
+        fig.tight_layout()
+        fig.savefig(folder / "sensitivity.png", dpi=110)
+        plt.close(fig)
+        names.append("sensitivity.png")
+    return names
+
+
+def markdown(figures: dict[str, Any], topic: str, plots: list[str]) -> str:
+    """The report of ``topic``'s figures as Markdown: the sensor class, a table of every figure, the ``plots``."""
+    lines = [f"# Sensor characteristics: `{topic}`", ""]
+    cls = figures["class"]
+    lines += [f"Class: **{cls['sense']}**, **{cls['energy']}**; application: {cls['application']}.", ""]
+
+    def walk(prefix: str, value: Any) -> None:
+        """One table row per leaf of ``value`` (dotted name ``prefix``), the sensor class left out."""
+        if isinstance(value, dict):
+            for k, v in value.items():
+                walk(f"{prefix}.{k}" if prefix else k, v)
+        elif prefix != "class" and not prefix.startswith("class."):
+            lines.append(f"| {prefix} | {value:.6g} |" if isinstance(value, float) else f"| {prefix} | {value} |")
+
+    lines += ["| quantity | value (SI) |", "|---|---|"]
+    walk("", {k: v for k, v in figures.items() if k != "class"})
+    lines += [""] + [f"![{p}]({p})" for p in plots]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,110 @@
+"""The slam job: map one log; write map files, trajectory, report and an MCAP into a folder.
+
+Outputs: ``map.pgm`` + ``map.yaml`` (map_server), ``map.png``, ``trajectory.png`` (the path and
+loop closures over the map), ``trajectory.csv`` (``t_ns,x,y,theta`` of every scan in the map
+frame), ``report.json`` and ``slam.mcap`` with ``/map``, ``/tf`` (map -> odom per scan) and
+``/path``. The wheel model comes from the config's ``[odometry]`` table or the log's metadata (see
+:func:`trundle.tools.jobs.config.make_odometry`); ``[slam]`` holds
+:class:`trundle.fusion.slam.SlamConfig`; ``[laser]`` (``x_m``, ``y_m``, ``yaw_rad``) overrides the
+laser mount of the log's ``/tf_static``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from trundle.fusion.map_io import plot_trajectory, save_map, write_trajectory_csv
+from trundle.fusion.slam import Slam, SlamConfig
+from trundle.logs import messages as m
+from trundle.logs.errors import UserError
+from trundle.logs.importers import write_log
+from trundle.logs.reader import LogReader
+from trundle.tools.jobs.config import config_table, laser_pose, make_odometry
+from trundle.tools.jobs.progress import NoProgress, ProgressFactory
+
+
+def _stats(values: list[float]) -> dict[str, float]:
+    """Mean, median, min, 5th percentile and max of the finite ``values`` ({} if there are none)."""
+    if not values:
+        return {}
+    a = np.asarray(values, dtype=np.float64)
+    a = a[np.isfinite(a)]
+    return {"mean": float(a.mean()), "median": float(np.median(a)), "min": float(a.min()),
+            "p05": float(np.percentile(a, 5)), "max": float(a.max())} if a.size else {}
+
+
+def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, local_only: bool = False,
+             progress: ProgressFactory = NoProgress) -> dict[str, Any]:
+    """Run SLAM over ``log`` and write its outputs into the folder ``output`` (created).
+
+    ``config`` is the parsed TOML (``[slam]``, ``[odometry]``, ``[laser]`` tables; none by default);
+    ``local_only`` turns loop closure off whatever the config says. ``progress`` shows the log
+    seconds done. Returns the report (also written as ``report.json``): counts, timings (s),
+    residuals (m), path length (m), map size and the SLAM options used.
+    """
+    config = config or {}
+    reader = LogReader(log)
+    info = reader.info()
+    slam_config = SlamConfig.from_mapping(config_table(config, "slam", set(SlamConfig.__dataclass_fields__)))
+    if local_only:
+        slam_config.loop_closure = False
+    scan_topic = info.topics.get(slam_config.scan_topic)
+    if scan_topic is None or scan_topic.ros_type != "sensor_msgs/msg/LaserScan":
+        raise UserError(f"{log} has no LaserScan topic {slam_config.scan_topic} "
+                        f"(topics: {', '.join(sorted(info.topics)) or 'none'})")
+    slam = Slam(slam_config, make_odometry(info, config), laser_pose(info, config))
+    output.mkdir(parents=True, exist_ok=True)
+
+    bar = progress("slam", max(info.duration_s, 1e-9))
+    t0 = info.start_ns or 0
+    transforms: list[tuple[str, m.Message, int]] = []
+    started, cpu_started = time.perf_counter(), time.process_time()
+    for item in reader.messages():
+        result = slam.process(item.topic, item.msg)
+        if result is not None:
+            transforms.append(("/tf", m.TFMessage((m.TransformStamped.planar(
+                result.stamp_ns, "map", "odom", *(float(v) for v in slam.map_to_odom)),)), item.log_time_ns))
+            bar.update((item.log_time_ns - t0) * 1e-9, f"{slam.stats.scans} scans {slam.stats.loop_closures} loops")
+    slam.finish()
+    grid = slam.build_map()
+    processing_s, cpu_s = time.perf_counter() - started, time.process_time() - cpu_started
+    bar.close()
+    if slam.stats.scans == 0:
+        raise UserError(f"{log}: no scans on {slam_config.scan_topic}")
+
+    stamps, poses = slam.trajectory()
+    end_ns = int(stamps.max())
+    map_msg = grid.to_message(end_ns, "map")
+    save_map(map_msg, output / "map")
+    write_trajectory_csv(output / "trajectory.csv", stamps, poses)
+    keyframes = slam.keyframe_poses()
+    loops = [(keyframes[i], keyframes[j]) for i, j in slam.loop_edges()]
+    plot_trajectory(map_msg, output / "trajectory.png", [poses], loops=loops)
+    path_msg = m.Path(end_ns, "map", stamps, poses)
+    write_log(transforms + [("/map", map_msg, end_ns), ("/path", path_msg, end_ns)], output / "slam.mcap",
+              metadata={"command": "slam", "source": str(log)})
+
+    st = slam.stats
+    duration = info.duration_s
+    report = {
+        "log": str(log), "scans": st.scans, "keyframes": st.keyframes, "duration_s": duration,
+        "processing_s": processing_s, "cpu_s": cpu_s,
+        "real_time_factor": duration / processing_s if processing_s > 0 else None,
+        "loop_closures": st.loop_closures, "loop_attempts": st.loop_attempts, "loop_rejected": st.loop_rejected,
+        "loop_unverified": st.loop_unverified,
+        "optimizations": st.optimizations, "matched": st.matched, "searched": st.searched,
+        "gated_out": st.gated_out, "odometry_only": st.odometry_only,
+        "match_score": _stats(st.scores), "scan_to_submap_residual_m": _stats(st.residuals),
+        "scan_to_map_residual_m": _stats(list(slam.map_residuals(grid))),
+        "path_length_m": float(np.sum(np.hypot(*np.diff(poses[:, :2], axis=0).T))) if len(poses) > 1 else 0.0,
+        "map": {"resolution": float(map_msg.resolution), "width": map_msg.width, "height": map_msg.height},
+        "config": {k: v for k, v in vars(slam_config).items()},
+    }
+    (output / "report.json").write_text(json.dumps(report, indent=2, default=float))
+    return report

@@ -9,14 +9,11 @@ import socket
 import struct
 import time
 
-import pytest
+from websockets.sync import client as websockets_client
 
 from trundle.logs import messages as m
 from trundle.logs import ros2
 from tests.test_daemon import Running, config, wait_for
-
-pytest.importorskip("foxglove", reason="the live view needs the optional extra trundle[live] (foxglove-sdk)")
-websockets_client = pytest.importorskip("websockets.sync.client", reason="the test client needs websockets")
 
 
 def free_port() -> int:

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from trundle.fusion.ekf import GATE_CHI2_99, PoseEKF, odometry_noise
 
 
 def test_gate_constant_is_the_chi2_quantile():
-    stats = pytest.importorskip("scipy.stats")
     assert GATE_CHI2_99 == pytest.approx(stats.chi2.ppf(0.99, 3), rel=1e-12)
 
 
@@ -103,7 +103,6 @@ def test_filter_is_consistent_nees():
             e[2] = (e[2] + np.pi) % (2 * np.pi) - np.pi
             nees[k] += e @ np.linalg.solve(ekf.covariance, e)
     average = nees / runs
-    stats = pytest.importorskip("scipy.stats")
     low, high = stats.chi2.ppf([0.025, 0.975], 3 * runs) / runs
     inside = np.mean((average > low) & (average < high))
     assert inside > 0.8

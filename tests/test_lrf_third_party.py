@@ -10,8 +10,11 @@ import errno
 import math
 import time
 
+import hokuyolx
 import numpy as np
+import pyrplidar
 import pytest
+import rplidar
 import serial
 
 from trundle.tools.emulators import rplidar_emulator, scip2_emulator
@@ -27,7 +30,6 @@ def scene_mm(angles_rad: np.ndarray) -> np.ndarray:
 
 
 def test_hokuyolx_reads_the_scene_over_tcp():
-    hokuyolx = pytest.importorskip("hokuyolx")
     model = scip2_emulator.MODELS["ust-10lx"]
     device = scip2_emulator.ScipDevice(model, EXACT.range_source(model.angles), now_ns=time.time_ns())
     with DeviceServer(device, tcp_port=0) as server:
@@ -90,7 +92,6 @@ def rplidar_expected_mm(angle_deg: np.ndarray, step_mm: float = 0.25) -> np.ndar
 
 
 def test_rplidar_roboticia_reads_the_scene_on_a_pty(tmp_path, pty_modem_lines):
-    rplidar = pytest.importorskip("rplidar")
     model = rplidar_emulator.MODELS["a2"]
     device = rplidar_emulator.RplidarDevice(model, EXACT.range_source(model.angles), now_ns=time.time_ns())
     with DeviceServer(device, link_path=tmp_path / "ttyUSB0"):
@@ -120,7 +121,6 @@ def test_rplidar_roboticia_reads_the_scene_on_a_pty(tmp_path, pty_modem_lines):
 
 
 def test_pyrplidar_reads_standard_and_express_scans(tmp_path):
-    pyrplidar = pytest.importorskip("pyrplidar")
     model = rplidar_emulator.MODELS["a1"]
     device = rplidar_emulator.RplidarDevice(model, EXACT.range_source(model.angles), now_ns=time.time_ns())
     with DeviceServer(device, link_path=tmp_path / "ttyUSB0"):

@@ -134,7 +134,6 @@ def test_markers_without_camera_info_count_missing_poses(log: Path, tmp_path: Pa
 
 
 def test_features_pipeline(log: Path, tmp_path: Path, capsys) -> None:
-    pytest.importorskip("trundle.perception.features", reason="perception/features.py (issue 6, features half) not present")
     out = tmp_path / "features.mcap"
     code, summary = _run(capsys, str(log), "--pipeline", "features", "--method", "orb", "-o", str(out))
     assert code == 0 and summary["keypoints"] > 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pyrplidar_protocol
 import pytest
 from hypothesis import given, settings, strategies as st
 
@@ -98,7 +99,6 @@ def test_capsule_round_trip_and_checksum():
 
 
 def test_capsule_angles_match_the_sdk_port_in_pyrplidar():
-    pyrplidar_protocol = pytest.importorskip("pyrplidar_protocol")
     rng = np.random.default_rng(11)
     for start, nxt in [(0, 2048), (22000, 1000), (100, 100 + 5 * 64), (23000, 40)]:
         first, second = random_capsule(rng, start), random_capsule(rng, nxt)

@@ -10,12 +10,16 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
+
+
+Replace = Callable[[str, str, int, bytes], "bytes | None"]  # topic, schema name, log time ns, data
 
 
 @dataclass(frozen=True)
@@ -31,10 +35,18 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recover
 
     Raises ``UserError`` when ``src`` is not MCAP or nothing at all could be read.
     """
+    return copy_log(src, dst)
+
+
+def copy_log(src: str | os.PathLike[str], dst: str | os.PathLike[str], replace: Replace | None = None,
+             metadata: dict[str, dict[str, str]] | None = None) -> RecoverResult:
+    """Copy every readable record of ``src`` to ``dst`` (as :func:`recover`), passing each message through
+    ``replace(topic, schema_name, log_time_ns, data)``, which returns the data to write or None to
+    drop it; ``metadata`` records (name -> key -> value) are added."""
     reader = LogReader(src)
     dst = Path(dst)
     if dst.resolve() == reader.path.resolve():
-        raise UserError("recover needs an output path different from its input")
+        raise UserError("the output must be a different file from the input")
     tmp = dst.with_name(dst.name + ".tmp")
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
@@ -49,6 +61,8 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recover
                 header = getattr(record, "profile", None)
                 writer.start(profile=header if header is not None else "ros2",
                              library=getattr(record, "library", "trundle recover"))
+                for name, values in (metadata or {}).items():
+                    writer.add_metadata(name, values)
                 header_written = True
                 if header is not None:
                     continue
@@ -58,12 +72,18 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recover
                 pending_channels[record.id] = record
             elif isinstance(record, Message):
                 new_id = channel_ids.get(record.channel_id)
+                channel = pending_channels.get(record.channel_id)
                 if new_id is None:
-                    channel = pending_channels.get(record.channel_id)
                     if channel is None:
                         continue
                     new_id = channel_ids[record.channel_id] = _register(writer, channel, schemas, schema_ids)
-                writer.add_message(new_id, record.log_time, record.data, record.publish_time, record.sequence)
+                data = record.data
+                if replace is not None and channel is not None:
+                    schema = schemas.get(channel.schema_id)
+                    data = replace(channel.topic, schema.name if schema else "", record.log_time, record.data)
+                    if data is None:
+                        continue
+                writer.add_message(new_id, record.log_time, data, record.publish_time, record.sequence)
                 count += 1
             elif isinstance(record, Metadata):
                 writer.add_metadata(record.name, record.metadata)

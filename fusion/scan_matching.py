@@ -110,7 +110,9 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     likelihood-field width (default one cell). With ``prior_std_xy_m`` / ``prior_std_theta_rad``
     each score is weighted by a Gaussian prior around the initial pose (as in Olson's real-time
     correlative matcher), which keeps a corridor or a row of doors from pulling the match to a
-    look-alike place far from the prediction; the score returned is then the weighted one.
+    look-alike place far from the prediction; the score returned is then the weighted one, while
+    ``min_score`` applies to the unweighted score of that pose (a good match far out in a wide
+    prior is still a good match).
     Branch and bound over a max-pooled pyramid makes the result the exact lattice optimum at a
     fraction of the exhaustive cost.
     """
@@ -159,7 +161,8 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     a, ox, oy = np.meshgrid(np.arange(len(thetas)), offsets, offsets, indexing="ij")
     candidates = np.stack([a.ravel(), ox.ravel(), oy.ravel()], axis=1)
     scores = scores_of(top, candidates)
-    bound = min_score
+    weighted = prior_std_xy_m is not None or prior_std_theta_rad is not None
+    bound = 0.0 if weighted else min_score
 
     # Greedy dives from the best top blocks reach leaves at once: a lower bound to prune with.
     dive = candidates[np.argsort(scores)[::-1][:8]]
@@ -180,7 +183,8 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     if len(scores) == 0:
         return None
     i = int(np.argmax(scores))
-    if scores[i] < min_score:
+    raw = float(_block_scores(pyramid[0], base, candidates[i:i + 1])[0]) if weighted else float(scores[i])
+    if raw < min_score:
         return None
     a_i, dx, dy = candidates[i]
     return np.array([x0 + (dx - limit) * res, y0 + (dy - limit) * res, wrap_angle(thetas[a_i])]), float(scores[i])

@@ -31,13 +31,17 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from trundle.fusion.ekf import PoseEKF, odometry_noise
+from trundle.fusion.ekf import GATE_CHI2_99, PoseEKF, odometry_noise
 from trundle.fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance,
-                                     scan_to_points, voxel_filter)
+                                     scan_to_points, transform_points, voxel_filter)
 from trundle.fusion.icp import LineReference, icp
+from trundle.fusion.map_check import MapCheck, check_map
+from trundle.fusion.motion_model import MotionModel, MotionPrediction
 from trundle.fusion.occupancy_grid import LogOddsGrid
 from trundle.fusion.odometry import DiffDriveOdometry
+from trundle.fusion.odometry_check import OdometryCheck
 from trundle.fusion.pose_graph import PoseGraph
+from trundle.fusion.robust_window import RobustWindow
 from trundle.fusion.scan_matching import MatchResult, match_scan, refine_pose
 from trundle.fusion.submaps import Submap, SubmapStack
 from trundle.logs import messages as m
@@ -64,15 +68,15 @@ class SlamConfig:
     keyframe_angle_rad: float = math.radians(10.0)
     keyframe_time_s: float = 5.0
     scans_per_submap: int = 25
-    # tracking
+    # tracking: search windows are 3 standard deviations of the prediction, between these bounds
     search_above_xy_m: float = 0.05
     search_above_theta_rad: float = math.radians(2.0)
-    search_window_xy_m: tuple[float, float] = (0.1, 1.0)
-    search_window_theta_rad: tuple[float, float] = (math.radians(3.0), math.radians(30.0))
+    search_window_xy_m: tuple[float, float] = (0.1, 2.0)
+    search_window_theta_rad: tuple[float, float] = (math.radians(3.0), math.radians(45.0))
     search_angular_step_rad: float = math.radians(0.5)
     search_prior_scale: float = 2.0
     min_match_score: float = 0.3
-    gate_chi2: float = 50.0
+    gate_chi2: float = GATE_CHI2_99  # a match poorer than usual is believed only this close to the prediction
     # odometry noise model per scan step: a floor (wheel/laser timing) plus per metre travelled / radian turned
     odom_sigma_xy_m: float = 0.01
     odom_sigma_theta_rad: float = math.radians(0.5)
@@ -80,8 +84,11 @@ class SlamConfig:
     odom_sigma_theta_per_m: float = math.radians(5.0)
     odom_sigma_theta_per_rad: float = 0.2
     odom_timeout_s: float = 0.25
-    no_odom_sigma_xy_per_s: float = 0.5
-    no_odom_sigma_theta_per_s: float = math.radians(30.0)
+    # test each odometry increment against the scan match and bridge those the laser contradicts
+    odometry_check: bool = True
+    # motion model (without odometry, or to test it): learned from the log; this prior per scan interval until then
+    motion_prior_sigma_xy_m: float = 0.3
+    motion_prior_sigma_theta_rad: float = math.radians(10.0)
     # loop closure
     loop_closure: bool = True
     loop_every_keyframes: int = 1
@@ -148,6 +155,8 @@ class SlamStats:
     searched: int = 0
     gated_out: int = 0
     odometry_only: int = 0
+    motion_model_only: int = 0
+    odometry_rejected: int = 0
     loop_attempts: int = 0
     loop_closures: int = 0
     loop_rejected: int = 0
@@ -178,9 +187,12 @@ class Slam:
         self._odom: list[tuple[int, np.ndarray]] = []
         self._last_scan_odom: np.ndarray | None = None
         self._last_stamp: int | None = None
-        self._velocity = np.zeros(3)
-        self._dt = 0.0
         self._last_local: np.ndarray | None = None
+        floor = (self.config.resolution, self.config.resolution, self.config.search_angular_step_rad)
+        self.motion = MotionModel((self.config.motion_prior_sigma_xy_m, self.config.motion_prior_sigma_xy_m,
+                                   self.config.motion_prior_sigma_theta_rad), floor)
+        self.odometry_check = OdometryCheck(floor)
+        self._scores = RobustWindow()
         self._static: dict[str, np.ndarray] = {}
         self._mount = np.zeros(3)
         self._kf_cov = np.zeros((3, 3))
@@ -255,7 +267,8 @@ class Slam:
         mount = self.laser_pose if self.laser_pose is not None else self._static.get(scan.frame_id, np.zeros(3))
         self._mount = mount
         odom = self.odometry_at(scan.stamp_ns)
-        velocity = self._sweep_velocity(scan.stamp_ns, odom) if cfg.deskew else None
+        dt = 0.0 if self._last_stamp is None else max(0.0, (scan.stamp_ns - self._last_stamp) * 1e-9)
+        velocity = self._sweep_velocity(dt, odom) if cfg.deskew else None
         points = scan_to_points(scan, mount, max(cfg.min_range_m, scan.range_min), min(cfg.max_range_m, scan.range_max),
                                 velocity)
         free_ends = None
@@ -263,30 +276,37 @@ class Slam:
             free_ends = mount[:2] + cfg.no_return_clear_m * no_return_directions(scan, mount)
         match_points = voxel_filter(points, cfg.voxel_m)
         self.stats.scans += 1
-        self._predict(scan.stamp_ns, odom)
-        assert self.ekf is not None
+        self._last_stamp = scan.stamp_ns
 
         result: MatchResult | None = None
         matched = searched = False
-        submap = self.submaps.matching_submap()
-        if submap is not None and len(match_points) >= 10:
-            result, searched = self._track(submap, match_points)
-            if result is not None:
-                matched = self.ekf.correct(result.pose, result.covariance, cfg.gate_chi2)
-                if matched:
-                    self.stats.matched += 1
-                    self.stats.scores.append(result.score)
-                    self.stats.residuals.append(result.residual_m)
-                else:
-                    self.stats.gated_out += 1
+        if self.ekf is None:  # the map frame starts where odometry starts (map -> odom identity)
+            self.ekf = PoseEKF(np.zeros(3) if odom is None else odom, np.diag([1e-6, 1e-6, 1e-8]))
+        else:
+            odom_step = None if odom is None or self._last_scan_odom is None else relative(self._last_scan_odom, odom)
+            motion = self.motion.predict(dt)
+            submap = self.submaps.matching_submap()
+            if submap is not None and len(match_points) >= 10:
+                result, searched = self._track(submap, match_points, odom_step, motion)
+                matched = result is not None
             else:
-                self.stats.odometry_only += 1
+                self._predict(odom_step, motion)
+            if matched:
+                self.stats.matched += 1
+                self.stats.scores.append(result.score)
+                self.stats.residuals.append(result.residual_m)
+                self._scores.add(result.score)
+            elif submap is not None:
+                if odom_step is not None:
+                    self.stats.odometry_only += 1
+                else:
+                    self.stats.motion_model_only += 1
+        self._last_scan_odom = odom  # after a gap the first reading only sets the reference again
         self.stats.searched += int(searched)
         pose_local = self.ekf.pose.copy()
         if self._last_local is not None:
             self._path_m += float(np.hypot(*(pose_local[:2] - self._last_local[:2])))
-            if self._dt > 0:
-                self._velocity = relative(self._last_local, pose_local) / self._dt
+        self.motion.update(scan.stamp_ns, pose_local, tracked=matched or self._last_local is None)
         self._last_local = pose_local
 
         node = -1
@@ -301,56 +321,118 @@ class Slam:
             self.map_to_odom = compose(pose_map, inverse(odom))
         return ScanResult(scan.stamp_ns, pose_map, result, matched, searched, node)
 
-    def _sweep_velocity(self, stamp_ns: int, odom: np.ndarray | None) -> np.ndarray | None:
+    def _sweep_velocity(self, dt: float, odom: np.ndarray | None) -> np.ndarray | None:
         """Robot velocity (robot frame) over the last scan interval: odometry's, else the tracked one."""
-        if self._last_stamp is None:
-            return None
-        dt = (stamp_ns - self._last_stamp) * 1e-9
         if not 0.0 < dt <= self.config.deskew_max_gap_s:
             return None
         if odom is not None and self._last_scan_odom is not None:
             return relative(self._last_scan_odom, odom) / dt
-        return self._velocity
+        return self.motion.velocity
 
-    def _predict(self, stamp_ns: int, odom: np.ndarray | None) -> None:
+    def _odometry_noise(self, step: np.ndarray) -> np.ndarray:
         cfg = self.config
-        dt = self._dt = 0.0 if self._last_stamp is None else max(0.0, (stamp_ns - self._last_stamp) * 1e-9)
-        self._last_stamp = stamp_ns
-        if self.ekf is None:  # the map frame starts where odometry starts (map -> odom identity)
-            self.ekf = PoseEKF(np.zeros(3) if odom is None else odom, np.diag([1e-6, 1e-6, 1e-8]))
-            self._last_scan_odom = odom
-            return
-        if odom is not None and self._last_scan_odom is not None:
-            delta = relative(self._last_scan_odom, odom)
-            noise = odometry_noise(delta, cfg.odom_sigma_xy_m, cfg.odom_sigma_theta_rad, cfg.odom_sigma_xy_per_m,
-                                   cfg.odom_sigma_theta_per_m, cfg.odom_sigma_theta_per_rad)
-        else:
-            delta = self._velocity * dt
-            sxy, sth = cfg.no_odom_sigma_xy_per_s * dt + 1e-3, cfg.no_odom_sigma_theta_per_s * dt + 1e-3
-            noise = np.diag([sxy ** 2, sxy ** 2, sth ** 2])
-        self.ekf.predict(delta, noise)
-        self._last_scan_odom = odom  # after a gap the first reading only sets the reference again
+        return odometry_noise(step, cfg.odom_sigma_xy_m, cfg.odom_sigma_theta_rad, cfg.odom_sigma_xy_per_m,
+                              cfg.odom_sigma_theta_per_m, cfg.odom_sigma_theta_per_rad)
 
-    def _track(self, submap: Submap, points: np.ndarray) -> tuple[MatchResult | None, bool]:
-        cfg = self.config
+    def _predict(self, odom_step: np.ndarray | None, motion: MotionPrediction) -> None:
+        """Move the EKF by the odometry increment, or by the motion model's step without odometry."""
         assert self.ekf is not None
-        prediction, cov = self.ekf.pose, self.ekf.covariance
-        sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2]).max()), 0.0))
-        sigma_theta = math.sqrt(max(float(cov[2, 2]), 0.0))
-        tight = sigma_xy <= cfg.search_above_xy_m and sigma_theta <= cfg.search_above_theta_rad
-        if tight:
-            result = refine_pose(submap.grid, points, prediction)
-            if result.score >= cfg.min_match_score and self.ekf.mahalanobis2(result.pose, result.covariance) <= cfg.gate_chi2:
-                return result, False
+        if odom_step is not None:
+            self.ekf.predict(odom_step, self._odometry_noise(odom_step))
+        else:
+            self.ekf.predict(motion.delta, motion.covariance)
+
+    def _track(self, submap: Submap, points: np.ndarray, odom_step: np.ndarray | None,
+               motion: MotionPrediction) -> tuple[MatchResult | None, bool]:
+        """Match the scan and correct the EKF; returns the match used (None: prediction only) and whether it searched.
+
+        A match scoring as well as the recent ones on this log is believed; a poorer one only where
+        the prediction expects it. With odometry the match starts from its increment; when that
+        match is poor, or the laser contradicts the increment (:class:`OdometryCheck`), the scan is
+        matched again from the motion model alone, and the better match bridges the increment,
+        which is rejected. Without odometry a failed match is retried once over the widest window.
+        """
+        assert self.ekf is not None
+        before = PoseEKF(self.ekf.pose, self.ekf.covariance)
+        self._predict(odom_step, motion)
+        result, searched = self._match(submap, points, self.ekf.pose, self.ekf.covariance)
+        usual = result is not None and self._usual(result)
+        if odom_step is not None and self.config.odometry_check:
+            outlier = usual and self.odometry_check.is_outlier(
+                relative(self.ekf.pose, result.pose), rotate_covariance(result.covariance, -float(self.ekf.pose[2])),
+                self._odometry_noise(odom_step))
+            if usual and not outlier:
+                self.odometry_check.accept(relative(self.ekf.pose, result.pose))
+                return self._fuse(result), searched
+            before.predict(motion.delta, motion.covariance)
+            alternative, also_searched = self._match(submap, points, before.pose, before.covariance)
+            searched |= also_searched
+            if alternative is not None and self._usual(alternative) and (not usual or alternative.score > result.score):
+                result, usual = alternative, True
+            if usual:  # the laser contradicts the odometry increment: the match bridges it
+                self.stats.odometry_rejected += 1
+                self.ekf = before
+                return self._fuse(result), searched
+        elif odom_step is None and usual:
+            return self._fuse(result), searched
+        elif odom_step is None:  # motion unlike any seen lately (a robot that turned on the spot sets off): the widest window,
+            # around the prediction and around the last pose (a velocity extrapolated too far)
+            widest = np.diag([(self.config.search_window_xy_m[1] / 3.0) ** 2] * 2
+                             + [(self.config.search_window_theta_rad[1] / 3.0) ** 2])
+            centres = [self.ekf.pose] if motion.predictor == "standstill" else [self.ekf.pose, before.pose]
+            retries = [self._match(submap, points, centre, widest) for centre in centres]
+            searched |= any(also for _, also in retries)
+            usual_retries = [r for r, _ in retries if r is not None and self._usual(r)]
+            if usual_retries:
+                self.ekf.covariance = self.ekf.covariance + widest
+                return self._fuse(max(usual_retries, key=lambda r: r.score)), searched
+        if result is not None and self.ekf.mahalanobis2(result.pose, result.covariance) <= self.config.gate_chi2:
+            return self._fuse(result), searched
+        if result is not None:
+            self.stats.gated_out += 1
+        return None, searched
+
+    def _usual(self, result: MatchResult) -> bool:
+        """Does a match score as well as the recent ones on this log? At least ``min_match_score`` and
+        within 4 robust sigma or 20 % of their median, whichever is wider (scores barely vary while
+        the robot stands)."""
+        if result.score < self.config.min_match_score:
+            return False
+        if len(self._scores) < 10:
+            return True
+        median = float(self._scores.median())
+        return result.score >= min(median - 4.0 * float(self._scores.scale()), 0.8 * median)
+
+    def _fuse(self, result: MatchResult) -> MatchResult:
+        """Correct the EKF with a believed match. A prediction that the match puts beyond its 99 % gate
+        claimed too little uncertainty: its covariance is widened by the excess first, so the match
+        is not averaged with a prediction it has shown wrong."""
+        assert self.ekf is not None
+        d2 = self.ekf.mahalanobis2(result.pose, result.covariance)
+        if d2 > GATE_CHI2_99:
+            self.ekf.covariance = self.ekf.covariance * (d2 / GATE_CHI2_99)
+        self.ekf.correct(result.pose, result.covariance, None)
+        return result
+
+    def _match(self, submap: Submap, points: np.ndarray, prediction: np.ndarray,
+               covariance: np.ndarray) -> tuple[MatchResult | None, bool]:
+        """Best match near ``prediction``: refinement alone when the prediction is tight and that scores
+        as usual, else a correlative search over three standard deviations (prior-weighted), refined."""
+        cfg = self.config
+        sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:2, :2]).max()), 0.0))
+        sigma_theta = math.sqrt(max(float(covariance[2, 2]), 0.0))
+        refined = refine_pose(submap.grid, points, prediction)
+        if sigma_xy <= cfg.search_above_xy_m and sigma_theta <= cfg.search_above_theta_rad and self._usual(refined):
+            return refined, False
         window_xy = float(np.clip(3.0 * sigma_xy, *cfg.search_window_xy_m))
         window_theta = float(np.clip(3.0 * sigma_theta, *cfg.search_window_theta_rad))
         result = match_scan(submap.grid, points, prediction, window_xy_m=window_xy, window_theta_rad=window_theta,
                             angular_step_rad=cfg.search_angular_step_rad, min_score=cfg.min_match_score,
                             prior_std_xy_m=cfg.search_prior_scale * max(sigma_xy, cfg.resolution),
                             prior_std_theta_rad=cfg.search_prior_scale * max(sigma_theta, cfg.search_angular_step_rad))
-        if result is not None and result.score < cfg.min_match_score:
-            result = None
-        return result, True
+        if result is None or refined.score > result.score:
+            result = refined
+        return (result if result.score >= cfg.min_match_score else None), True
 
     def _is_keyframe(self, pose_local: np.ndarray, stamp_ns: int) -> bool:
         cfg = self.config
@@ -476,6 +558,10 @@ class Slam:
         nodes = self.graph.poses[np.array(self._scan_node)]
         return np.array(self._scan_stamp, np.int64), compose(nodes, np.array(self._scan_rel))
 
+    def keyframe_stamps(self) -> np.ndarray:
+        """Stamps (ns) of the keyframes."""
+        return np.array(self._kf_stamp, np.int64)
+
     def keyframe_poses(self) -> np.ndarray:
         """Optimised map poses (K, 3) of the keyframes."""
         return self.graph.poses
@@ -497,6 +583,24 @@ class Slam:
             free_ends = None if free is None else free @ rot.T + pose[:2]
             grid.insert_rays(origin, hits, free_ends)
         return grid
+
+    def check_map(self) -> MapCheck:
+        """The map self-check (:func:`trundle.fusion.map_check.check_map`) at the optimised poses: each
+        keyframe against the submaps outside the two it was tracked against and inserted into."""
+        poses = self.graph.poses
+        frames = np.array([s.local_to_map(poses[s.anchor_node]) for s in self.submaps.submaps]).reshape(-1, 3)
+        points = [voxel_filter(p, self.config.voxel_m) for p in self._kf_points]
+        return check_map(self.submaps.submaps, frames, poses, points, 2 * self.config.scans_per_submap)
+
+    def keyframe_endpoints(self) -> list[np.ndarray]:
+        """Every keyframe's scan points (N, 2) at its optimised pose, map frame."""
+        return [transform_points(pose, points) for pose, points in zip(self.graph.poses, self._kf_points)]
+
+    def keyframe_scans(self, first: int, last: int) -> np.ndarray:
+        """Optimised map poses of the scans whose keyframes are ``first`` .. ``last`` (inclusive)."""
+        stamps, poses = self.trajectory()
+        nodes = np.array(self._scan_node)
+        return poses[(nodes >= first) & (nodes <= last)]
 
     def map_residuals(self, grid: LogOddsGrid) -> np.ndarray:
         """Mean distance (m) of each keyframe's points to ``grid``'s occupied cells at its optimised pose."""

@@ -7,6 +7,7 @@ turns the command line into its parameters and prints its summary.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from trundle.tools.cli.progress import Progress
@@ -30,5 +31,12 @@ def run(args: argparse.Namespace) -> int:
           f"{report['processing_s']:.1f} s ({report['real_time_factor']:.1f}x real time); "
           f"{report['loop_closures']} loop closures; mean scan-to-map residual "
           f"{report['scan_to_map_residual_m'].get('mean', float('nan')) * 100:.1f} cm")
-    print(f"wrote {args.output}/map.pgm, map.yaml, map.png, trajectory.png, trajectory.csv, report.json, slam.mcap")
+    print(f"wrote {args.output}/map.pgm, map.yaml, map.png, trajectory.png, scans.png, trajectory.csv, report.json, slam.mcap")
+    check = report["map_check"]
+    if not check["passed"]:
+        failing = [s for s in check["stretches"] if s["last_keyframe"] - s["first_keyframe"] + 1 >= check["min_stretch"]]
+        where = ", ".join(f"{s['start_s']:.0f}-{s['end_s']:.0f} s" for s in failing[:5])
+        print(f"trundle slam: warning: the map fails its self-check (consistency {check['consistency']:.2f}; "
+              f"{check['inconsistent_keyframes']} keyframes contradict the rest of the map, at {where}; "
+              f"magenta in trajectory.png)", file=sys.stderr)
     return 0

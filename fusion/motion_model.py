@@ -1,0 +1,124 @@
+"""A motion model that learns from the log how far the next scan can be: no fixed speed or rate.
+
+Two predictions of the motion to the next scan are kept side by side: *standstill* (no motion)
+and *constant velocity* (robot frame; measured over at least the log's typical scan interval
+back, so one short interval, e.g. two scans stamped 40 ms apart in a 4 Hz log, cannot make a
+wild velocity). After every
+tracked scan the error each would have made is recorded. The model predicts with whichever has
+had the smaller recent errors, and its uncertainty is the spread of those errors, so the search
+window follows the log: a 10 Hz laser on a slow robot gets a window of centimetres, a log that
+keeps one scan per metre travelled (GMapping's output) one of about a metre. Errors are recorded
+in units of the log's typical scan interval, so a dropout of several intervals widens the window
+in proportion. Until ``warmup`` errors are known a prior stands in.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from trundle.fusion.geometry import relative
+
+
+@dataclass(frozen=True)
+class MotionPrediction:
+    """Predicted step (robot frame at the last scan), its per-axis standard deviations and largest
+    recent error (x m, y m, theta rad), and which predictor made it."""
+
+    delta: np.ndarray
+    sigma: np.ndarray
+    largest: np.ndarray
+    predictor: str
+    learned: bool
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return np.diag(self.sigma ** 2)
+
+
+class MotionModel:
+    """Standstill or constant-velocity prediction with errors learned over the last ``history`` scans.
+
+    ``prior_sigma`` (x m, y m, theta rad) is the uncertainty per scan interval before ``warmup``
+    errors are known; ``floor_sigma`` the least uncertainty ever claimed (the matcher's own
+    precision: a grid cell and the angular step).
+    """
+
+    PREDICTORS = ("standstill", "constant_velocity")
+
+    def __init__(self, prior_sigma: tuple[float, float, float], floor_sigma: tuple[float, float, float],
+                 history: int = 50, warmup: int = 8) -> None:
+        self.prior_sigma = np.asarray(prior_sigma, np.float64)
+        self.floor_sigma = np.asarray(floor_sigma, np.float64)
+        self.warmup = int(warmup)
+        self._errors = {name: deque(maxlen=history) for name in self.PREDICTORS}
+        self._intervals: deque[float] = deque(maxlen=history)
+        self._last: tuple[int, np.ndarray] | None = None
+        self._tracked: deque[tuple[int, np.ndarray]] = deque(maxlen=history)
+        self._velocity: np.ndarray | None = None  # per second, robot frame
+
+    @property
+    def velocity(self) -> np.ndarray:
+        """The velocity (vx m/s, vy m/s, wz rad/s, robot frame) of the last tracked step (zeros at first)."""
+        return np.zeros(3) if self._velocity is None else self._velocity.copy()
+
+    def typical_interval_s(self) -> float:
+        """Median interval between tracked scans (s); 0 before two scans."""
+        return float(np.median(self._intervals)) if self._intervals else 0.0
+
+    def _guess(self, name: str, dt: float) -> np.ndarray:
+        if name == "constant_velocity" and self._velocity is not None:
+            return self._velocity * dt
+        return np.zeros(3)
+
+    def predict(self, dt_s: float) -> MotionPrediction:
+        """The step expected over the next ``dt_s`` seconds and its uncertainty."""
+        typical = self.typical_interval_s()
+        intervals = max(1.0, dt_s / typical) if typical > 0 else 1.0
+        counts = {name: len(errors) for name, errors in self._errors.items()}
+        if min(counts.values()) < self.warmup:
+            name = "constant_velocity" if self._velocity is not None else "standstill"
+            sigma = self.prior_sigma * intervals
+            return MotionPrediction(self._guess(name, dt_s), np.maximum(sigma, self.floor_sigma), 3.0 * sigma, name,
+                                    False)
+        scores = {}
+        for name, errors in self._errors.items():
+            e = np.abs(np.array(errors))
+            scores[name] = float(np.sum(np.sqrt(np.mean(e ** 2, axis=0)) / self.floor_sigma))
+        name = min(scores, key=scores.get)
+        e = np.abs(np.array(self._errors[name]))
+        sigma = np.maximum(np.sqrt(np.mean(e ** 2, axis=0)) * intervals, self.floor_sigma)
+        return MotionPrediction(self._guess(name, dt_s), sigma, e.max(axis=0) * intervals, name, True)
+
+    def update(self, stamp_ns: int, pose: np.ndarray, tracked: bool = True) -> None:
+        """Record the pose of a scan: when it was ``tracked`` (matched), each predictor's error (per
+        typical interval) and the velocity; otherwise (a predicted pose) only the pose."""
+        pose = np.asarray(pose, np.float64)
+        if self._last is not None and tracked:
+            last_stamp, last_pose = self._last
+            dt = (stamp_ns - last_stamp) * 1e-9
+            step = relative(last_pose, pose)
+            if dt > 0:
+                self._intervals.append(dt)
+                typical = self.typical_interval_s()
+                scale = max(1.0, dt / typical) if typical > 0 else 1.0
+                for name in self.PREDICTORS:
+                    if name == "constant_velocity" and self._velocity is None:
+                        continue
+                    self._errors[name].append(relative(self._guess(name, dt), step) / scale)
+        if tracked:
+            self._tracked.append((int(stamp_ns), pose.copy()))
+            self._velocity = self._measured_velocity()
+        self._last = (int(stamp_ns), pose.copy())
+
+    def _measured_velocity(self) -> np.ndarray | None:
+        """Velocity from the newest tracked pose back to the latest one at least a typical interval older."""
+        now_ns, now = self._tracked[-1]
+        span = self.typical_interval_s()
+        for stamp_ns, pose in reversed(self._tracked):
+            dt = (now_ns - stamp_ns) * 1e-9
+            if dt > 0 and dt >= span * (1.0 - 1e-9):
+                return relative(pose, now) / dt
+        return None

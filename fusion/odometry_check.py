@@ -1,14 +1,21 @@
-"""Odometry is evidence, not truth: each increment is tested against the scan match.
+"""Odometry is evidence, not truth: each increment is tested against the scan match, and its noise learned.
 
 Wheel odometry fails in ways no noise model covers: a heading glitch of twenty degrees in half a
 second, a wheel spinning on a smooth floor, a reading paired with the other wheel's from another
 instant. The laser sees the same motion, so each odometry increment is compared with the scan
-match of that step: their disagreement ``odometry_pose^-1 (+) match_pose`` (robot frame) is
-normalised by the spread of the recent disagreements on this log (robust: MAD about zero) plus
-the match's own covariance, so a direction the scan does not constrain (a corridor's axis)
-carries no weight. An increment whose squared normalised disagreement exceeds the chi-square
-99.9 % quantile is an outlier: the laser contradicts it. Until enough disagreements are known the
-odometry noise model of the increment stands in for their spread.
+match of that step: their disagreement ``e = odometry_pose^-1 (+) match_pose`` (robot frame).
+
+How far odometry and laser normally disagree is learned from the log: the configured noise model
+``Q(u)`` (a floor plus a share per metre and per radian, :func:`trundle.fusion.ekf.odometry_noise`)
+gives the shape, and a factor per axis, ``kappa^2``, the level: the median of ``e^2 / Q`` over the
+recent increments that were used, divided by the median of a squared standard normal (so a
+Gaussian disagreement of variance ``kappa^2 Q`` gives ``kappa^2``). The disagreement holds the
+match's error too, so the learned noise errs on the safe side. ``kappa^2 Q(u)`` is the odometry
+noise a filter should use on this log (a 40 Hz laser on good wheels: about a tenth of the
+model's standard deviation). An increment whose squared Mahalanobis disagreement under
+``kappa^2 Q(u) + R`` (``R`` the match's covariance, large along a corridor's axis, so that
+direction weighs little) exceeds the chi-square 99.9 % quantile is an outlier: the laser
+contradicts it. Until ``warmup`` increments are known, ``kappa = 1`` (the model as configured).
 """
 
 from __future__ import annotations
@@ -18,33 +25,40 @@ import numpy as np
 from trundle.fusion.robust_window import RobustWindow
 
 CHI2_3DOF_999 = 16.266236196238129  # scipy.stats.chi2.ppf(0.999, 3)
+CHI2_1DOF_MEDIAN = 0.454936423119572  # scipy.stats.chi2.ppf(0.5, 1): median of a squared standard normal
+MIN_KAPPA2 = 1e-4  # odometry is never taken as more than 100 times better than its configured model
 
 
 class OdometryCheck:
-    """Robust test of odometry increments against scan matches; ``floor_sigma`` (x m, y m, theta rad)
-    is the least spread assumed (the matcher's own precision)."""
+    """Robust test of odometry increments against scan matches, and the odometry noise level they show."""
 
-    def __init__(self, floor_sigma: tuple[float, float, float], history: int = 50, warmup: int = 10) -> None:
-        self.floor_sigma = np.asarray(floor_sigma, np.float64)
+    def __init__(self, history: int = 100, warmup: int = 10) -> None:
         self.warmup = int(warmup)
-        self._disagreements = RobustWindow(history)
+        self._ratios = RobustWindow(history)
 
-    def spread(self, prior_covariance: np.ndarray) -> np.ndarray:
-        """Covariance (3x3, robot frame) of a normal disagreement: learned, or ``prior_covariance`` at first."""
-        if len(self._disagreements) < self.warmup:
-            return np.asarray(prior_covariance, np.float64) + np.diag(self.floor_sigma ** 2)
-        return np.diag(np.maximum(self._disagreements.scale(about_zero=True), self.floor_sigma) ** 2)
+    def kappa2(self) -> np.ndarray:
+        """Learned noise level per axis (x, y, theta) relative to the configured model (1 until warmed up)."""
+        if len(self._ratios) < self.warmup:
+            return np.ones(3)
+        return np.maximum(self._ratios.median(), MIN_KAPPA2)
 
-    def distance2(self, disagreement: np.ndarray, match_covariance: np.ndarray, prior_covariance: np.ndarray) -> float:
-        """Squared normalised disagreement of one increment with its match."""
+    def noise(self, model_covariance: np.ndarray) -> np.ndarray:
+        """The odometry noise (3x3, robot frame) of an increment whose configured noise is ``model_covariance``."""
+        scale = np.sqrt(self.kappa2())
+        return model_covariance * np.outer(scale, scale)
+
+    def distance2(self, disagreement: np.ndarray, match_covariance: np.ndarray,
+                  model_covariance: np.ndarray) -> float:
+        """Squared Mahalanobis disagreement of one increment with its match (both covariances robot frame)."""
         e = np.asarray(disagreement, np.float64)
-        covariance = self.spread(prior_covariance) + np.asarray(match_covariance, np.float64)
+        covariance = self.noise(model_covariance) + np.asarray(match_covariance, np.float64)
         return float(e @ np.linalg.solve(covariance, e))
 
-    def is_outlier(self, disagreement: np.ndarray, match_covariance: np.ndarray, prior_covariance: np.ndarray) -> bool:
+    def is_outlier(self, disagreement: np.ndarray, match_covariance: np.ndarray, model_covariance: np.ndarray) -> bool:
         """Does the laser contradict this increment?"""
-        return self.distance2(disagreement, match_covariance, prior_covariance) > CHI2_3DOF_999
+        return self.distance2(disagreement, match_covariance, model_covariance) > CHI2_3DOF_999
 
-    def accept(self, disagreement: np.ndarray) -> None:
-        """Record the disagreement of an increment that was used."""
-        self._disagreements.add(disagreement)
+    def accept(self, disagreement: np.ndarray, match_covariance: np.ndarray, model_covariance: np.ndarray) -> None:
+        """Learn from an increment that was used."""
+        e = np.asarray(disagreement, np.float64)
+        self._ratios.add(e * e / CHI2_1DOF_MEDIAN / np.maximum(np.diag(model_covariance), 1e-300))

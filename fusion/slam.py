@@ -27,13 +27,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
 from trundle.fusion.ekf import GATE_CHI2_99, PoseEKF, odometry_noise
 from trundle.fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance,
-                                     scan_to_points, transform_points, voxel_filter)
+                                     scan_to_points, transform_points, voxel_filter, wrap_angle)
 from trundle.fusion.icp import LineReference, icp
 from trundle.fusion.map_check import MapCheck, check_map
 from trundle.fusion.motion_model import MotionModel, MotionPrediction
@@ -42,13 +42,20 @@ from trundle.fusion.odometry import DiffDriveOdometry
 from trundle.fusion.odometry_check import OdometryCheck
 from trundle.fusion.pose_graph import PoseGraph
 from trundle.fusion.robust_window import RobustWindow
-from trundle.fusion.scan_matching import MatchResult, match_scan, refine_pose
+from trundle.fusion.scan_matching import MatchResult, match_scan, refine_pose, samples_walls_densely
 from trundle.fusion.submaps import Submap, SubmapStack
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 
 # chi-square 3 dof: 99.9 % quantile, for pruning loop edges that disagree after optimisation
 CHI2_3DOF_999 = 16.266236196238129
+
+
+def _mahalanobis2(prediction: np.ndarray, covariance: np.ndarray, result: MatchResult) -> float:
+    """Squared Mahalanobis distance of a match from a predicted pose with ``covariance`` (both uncertain)."""
+    innovation = result.pose - prediction
+    innovation[2] = wrap_angle(innovation[2])
+    return float(innovation @ np.linalg.solve(covariance + result.covariance, innovation))
 
 
 @dataclass
@@ -69,8 +76,6 @@ class SlamConfig:
     keyframe_time_s: float = 5.0
     scans_per_submap: int = 25
     # tracking: search windows are 3 standard deviations of the prediction, between these bounds
-    search_above_xy_m: float = 0.05
-    search_above_theta_rad: float = math.radians(2.0)
     search_window_xy_m: tuple[float, float] = (0.1, 2.0)
     search_window_theta_rad: tuple[float, float] = (math.radians(3.0), math.radians(45.0))
     search_angular_step_rad: float = math.radians(0.5)
@@ -91,7 +96,7 @@ class SlamConfig:
     motion_prior_sigma_theta_rad: float = math.radians(10.0)
     # loop closure
     loop_closure: bool = True
-    loop_every_keyframes: int = 1
+    loop_every_keyframes: int = 3
     loop_min_node_gap: int = 30
     loop_search_radius_m: float = 6.0
     loop_max_candidates: int = 3
@@ -147,6 +152,20 @@ class ScanResult:
     node: int
 
 
+@dataclass(frozen=True)
+class _Closure:
+    """A verified loop-closure candidate: submap ``anchor`` node -> ``node`` with its measurement and
+    covariance (anchor frame), and the map pose it implies for ``node`` with that covariance (map frame)."""
+
+    anchor: int
+    node: int
+    submap: int
+    measurement: np.ndarray
+    covariance: np.ndarray
+    implied: np.ndarray
+    implied_covariance: np.ndarray
+
+
 @dataclass
 class SlamStats:
     scans: int = 0
@@ -161,6 +180,8 @@ class SlamStats:
     loop_closures: int = 0
     loop_rejected: int = 0
     loop_unverified: int = 0
+    loop_paired: int = 0
+    loop_inconsistent: int = 0
     optimizations: int = 0
     scores: list[float] = field(default_factory=list)
     residuals: list[float] = field(default_factory=list)
@@ -179,7 +200,7 @@ class Slam:
         self.config = config or SlamConfig()
         self.wheels = odometry
         self.laser_pose = None if laser_pose is None else np.asarray(laser_pose, np.float64)
-        self.submaps = SubmapStack(self.config.resolution, self.config.scans_per_submap)
+        self.submaps = SubmapStack(self.config.resolution, self.config.scans_per_submap, subcell=True)
         self.graph = PoseGraph()
         self.stats = SlamStats()
         self.ekf: PoseEKF | None = None
@@ -191,8 +212,9 @@ class Slam:
         floor = (self.config.resolution, self.config.resolution, self.config.search_angular_step_rad)
         self.motion = MotionModel((self.config.motion_prior_sigma_xy_m, self.config.motion_prior_sigma_xy_m,
                                    self.config.motion_prior_sigma_theta_rad), floor)
-        self.odometry_check = OdometryCheck(floor)
+        self.odometry_check = OdometryCheck()
         self._scores = RobustWindow()
+        self._dense = True  # does the current scan sample walls densely (point-to-line refinement)?
         self._static: dict[str, np.ndarray] = {}
         self._mount = np.zeros(3)
         self._kf_cov = np.zeros((3, 3))
@@ -201,12 +223,15 @@ class Slam:
         self._kf_points: list[np.ndarray] = []
         self._kf_free: list[np.ndarray | None] = []
         self._kf_stamp: list[int] = []
+        self._kf_spacing: list[float] = []  # angle between beams of each keyframe's scan (rad)
         self._kf_path_m: list[float] = []
         self._path_m = 0.0
         self._scan_node: list[int] = []
         self._scan_rel: list[np.ndarray] = []
         self._scan_stamp: list[int] = []
         self._loop_edges: list[int] = []
+        self._kf_chain: list[np.ndarray] = []  # summed covariance of the sequential edges up to each keyframe
+        self._pending: list[_Closure] = []
         self._last_loop_node: dict[int, int] = {}
         self._nodes_at_last_optimization = 0
         self._loops_at_last_optimization = 0
@@ -268,13 +293,19 @@ class Slam:
         self._mount = mount
         odom = self.odometry_at(scan.stamp_ns)
         dt = 0.0 if self._last_stamp is None else max(0.0, (scan.stamp_ns - self._last_stamp) * 1e-9)
-        velocity = self._sweep_velocity(dt, odom) if cfg.deskew else None
-        points = scan_to_points(scan, mount, max(cfg.min_range_m, scan.range_min), min(cfg.max_range_m, scan.range_max),
-                                velocity)
+        swept = cfg.deskew and 0.0 < dt <= cfg.deskew_max_gap_s
+        with_odometry = swept and odom is not None and self._last_scan_odom is not None
+        limits = (max(cfg.min_range_m, scan.range_min), min(cfg.max_range_m, scan.range_max))
+        # de-skewed by the odometry's velocity, or the tracked one; the latter also when the odometry is
+        # rejected (a glitch's velocity would bend the scan it is tested against)
+        tracked_points = scan_to_points(scan, mount, *limits, self.motion.velocity if swept else None)
+        points = (scan_to_points(scan, mount, *limits, relative(self._last_scan_odom, odom) / dt) if with_odometry
+                  else tracked_points)
         free_ends = None
         if cfg.no_return_clear_m > 0:
             free_ends = mount[:2] + cfg.no_return_clear_m * no_return_directions(scan, mount)
         match_points = voxel_filter(points, cfg.voxel_m)
+        self._dense = samples_walls_densely(points, cfg.resolution)
         self.stats.scans += 1
         self._last_stamp = scan.stamp_ns
 
@@ -287,15 +318,19 @@ class Slam:
             motion = self.motion.predict(dt)
             submap = self.submaps.matching_submap()
             if submap is not None and len(match_points) >= 10:
-                result, searched = self._track(submap, match_points, odom_step, motion)
+                rejected = self.stats.odometry_rejected
+                result, searched = self._track(submap, match_points, odom_step, motion,
+                                               lambda: voxel_filter(tracked_points, cfg.voxel_m))
                 matched = result is not None
+                if self.stats.odometry_rejected > rejected:
+                    points = tracked_points
             else:
                 self._predict(odom_step, motion)
             if matched:
                 self.stats.matched += 1
                 self.stats.scores.append(result.score)
                 self.stats.residuals.append(result.residual_m)
-                self._scores.add(result.score)
+                self._scores.add(result.overlap_score)
             elif submap is not None:
                 if odom_step is not None:
                     self.stats.odometry_only += 1
@@ -311,6 +346,7 @@ class Slam:
 
         node = -1
         if self._is_keyframe(pose_local, scan.stamp_ns):
+            self._kf_spacing.append(abs(float(scan.angle_increment)))
             node = self._add_keyframe(pose_local, points, mount, free_ends, scan.stamp_ns)
         kf = len(self._kf_local) - 1
         self._scan_node.append(kf)
@@ -321,36 +357,30 @@ class Slam:
             self.map_to_odom = compose(pose_map, inverse(odom))
         return ScanResult(scan.stamp_ns, pose_map, result, matched, searched, node)
 
-    def _sweep_velocity(self, dt: float, odom: np.ndarray | None) -> np.ndarray | None:
-        """Robot velocity (robot frame) over the last scan interval: odometry's, else the tracked one."""
-        if not 0.0 < dt <= self.config.deskew_max_gap_s:
-            return None
-        if odom is not None and self._last_scan_odom is not None:
-            return relative(self._last_scan_odom, odom) / dt
-        return self.motion.velocity
-
     def _odometry_noise(self, step: np.ndarray) -> np.ndarray:
         cfg = self.config
         return odometry_noise(step, cfg.odom_sigma_xy_m, cfg.odom_sigma_theta_rad, cfg.odom_sigma_xy_per_m,
                               cfg.odom_sigma_theta_per_m, cfg.odom_sigma_theta_per_rad)
 
     def _predict(self, odom_step: np.ndarray | None, motion: MotionPrediction) -> None:
-        """Move the EKF by the odometry increment, or by the motion model's step without odometry."""
+        """Move the EKF by the odometry increment (with the noise learned on this log), or by the motion
+        model's step without odometry."""
         assert self.ekf is not None
         if odom_step is not None:
-            self.ekf.predict(odom_step, self._odometry_noise(odom_step))
+            self.ekf.predict(odom_step, self.odometry_check.noise(self._odometry_noise(odom_step)))
         else:
             self.ekf.predict(motion.delta, motion.covariance)
 
     def _track(self, submap: Submap, points: np.ndarray, odom_step: np.ndarray | None,
-               motion: MotionPrediction) -> tuple[MatchResult | None, bool]:
+               motion: MotionPrediction, tracked_points: Callable[[], np.ndarray]) -> tuple[MatchResult | None, bool]:
         """Match the scan and correct the EKF; returns the match used (None: prediction only) and whether it searched.
 
         A match scoring as well as the recent ones on this log is believed; a poorer one only where
-        the prediction expects it. With odometry the match starts from its increment; when that
-        match is poor, or the laser contradicts the increment (:class:`OdometryCheck`), the scan is
-        matched again from the motion model alone, and the better match bridges the increment,
-        which is rejected. Without odometry a failed match is retried once over the widest window.
+        the prediction expects it. With odometry the match starts from its increment; when the
+        laser contradicts the increment (:class:`OdometryCheck`) that match bridges it, and when
+        the match is poor the scan is matched again from the motion model alone (a glitch may have
+        thrown the prediction beyond its window) and a good match from there bridges it; either
+        way the increment is rejected. Without odometry a failed match is retried once over the widest window.
         """
         assert self.ekf is not None
         before = PoseEKF(self.ekf.pose, self.ekf.covariance)
@@ -358,17 +388,23 @@ class Slam:
         result, searched = self._match(submap, points, self.ekf.pose, self.ekf.covariance)
         usual = result is not None and self._usual(result)
         if odom_step is not None and self.config.odometry_check:
-            outlier = usual and self.odometry_check.is_outlier(
-                relative(self.ekf.pose, result.pose), rotate_covariance(result.covariance, -float(self.ekf.pose[2])),
-                self._odometry_noise(odom_step))
+            disagreement = relative(self.ekf.pose, result.pose) if result is not None else np.zeros(3)
+            match_covariance = rotate_covariance(result.covariance, -float(self.ekf.pose[2])) if result else np.eye(3)
+            model = self._odometry_noise(odom_step)
+            outlier = usual and self.odometry_check.is_outlier(disagreement, match_covariance, model)
             if usual and not outlier:
-                self.odometry_check.accept(relative(self.ekf.pose, result.pose))
+                self.odometry_check.accept(disagreement, match_covariance, model)
                 return self._fuse(result), searched
             before.predict(motion.delta, motion.covariance)
-            alternative, also_searched = self._match(submap, points, before.pose, before.covariance)
-            searched |= also_searched
-            if alternative is not None and self._usual(alternative) and (not usual or alternative.score > result.score):
-                result, usual = alternative, True
+            points = tracked_points()  # de-skewed without the odometry in question
+            if not usual:  # the truth may lie outside the odometry's window: match from the motion model
+                alternative, also_searched = self._match(submap, points, before.pose, before.covariance)
+                searched |= also_searched
+                if alternative is not None and self._usual(alternative) and self._clearly_better(alternative, result):
+                    result, usual = alternative, True
+            elif result is not None:
+                result = refine_pose(submap.grid, points, result.pose, shaped_covariance=True, wall_lines=self._dense)
+                usual = self._usual(result)
             if usual:  # the laser contradicts the odometry increment: the match bridges it
                 self.stats.odometry_rejected += 1
                 self.ekf = before
@@ -393,15 +429,23 @@ class Slam:
         return None, searched
 
     def _usual(self, result: MatchResult) -> bool:
-        """Does a match score as well as the recent ones on this log? At least ``min_match_score`` and
-        within 4 robust sigma or 20 % of their median, whichever is wider (scores barely vary while
-        the robot stands)."""
+        """Does a match fit as well as the recent ones on this log? Its score at least ``min_match_score``,
+        and its score where the submap has seen anything (``overlap_score``: new space seen is no
+        fault) within 4 robust sigma or 20 % of their median, whichever is wider (scores barely vary
+        while the robot stands)."""
         if result.score < self.config.min_match_score:
             return False
         if len(self._scores) < 10:
             return True
         median = float(self._scores.median())
-        return result.score >= min(median - 4.0 * float(self._scores.scale()), 0.8 * median)
+        return result.overlap_score >= min(median - 4.0 * float(self._scores.scale()), 0.8 * median)
+
+    def _clearly_better(self, result: MatchResult, other: MatchResult | None) -> bool:
+        """Does ``result`` fit clearly better than ``other`` (by a tenth of its score)? A match from a
+        wider window has more chances to fit a look-alike place nearly as well. The same scan's
+        matches compare by their whole score: one that puts the scan out into unknown space would
+        look fine where it still overlaps."""
+        return other is None or result.score >= 1.1 * other.score
 
     def _fuse(self, result: MatchResult) -> MatchResult:
         """Correct the EKF with a believed match. A prediction that the match puts beyond its 99 % gate
@@ -416,20 +460,22 @@ class Slam:
 
     def _match(self, submap: Submap, points: np.ndarray, prediction: np.ndarray,
                covariance: np.ndarray) -> tuple[MatchResult | None, bool]:
-        """Best match near ``prediction``: refinement alone when the prediction is tight and that scores
-        as usual, else a correlative search over three standard deviations (prior-weighted), refined."""
+        """Best match near ``prediction``: the refinement from it when that fits as usual where the
+        prediction expects it (most scans, and cheap), else a correlative search over three standard
+        deviations (prior-weighted), refined."""
         cfg = self.config
         sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:2, :2]).max()), 0.0))
         sigma_theta = math.sqrt(max(float(covariance[2, 2]), 0.0))
-        refined = refine_pose(submap.grid, points, prediction)
-        if sigma_xy <= cfg.search_above_xy_m and sigma_theta <= cfg.search_above_theta_rad and self._usual(refined):
+        refined = refine_pose(submap.grid, points, prediction, shaped_covariance=True, wall_lines=self._dense)
+        if self._usual(refined) and _mahalanobis2(prediction, covariance, refined) <= cfg.gate_chi2:
             return refined, False
         window_xy = float(np.clip(3.0 * sigma_xy, *cfg.search_window_xy_m))
         window_theta = float(np.clip(3.0 * sigma_theta, *cfg.search_window_theta_rad))
         result = match_scan(submap.grid, points, prediction, window_xy_m=window_xy, window_theta_rad=window_theta,
                             angular_step_rad=cfg.search_angular_step_rad, min_score=cfg.min_match_score,
                             prior_std_xy_m=cfg.search_prior_scale * max(sigma_xy, cfg.resolution),
-                            prior_std_theta_rad=cfg.search_prior_scale * max(sigma_theta, cfg.search_angular_step_rad))
+                            prior_std_theta_rad=cfg.search_prior_scale * max(sigma_theta, cfg.search_angular_step_rad),
+                            shaped_covariance=True, wall_lines=self._dense)
         if result is None or refined.score > result.score:
             result = refined
         return (result if result.score >= cfg.min_match_score else None), True
@@ -453,6 +499,9 @@ class Slam:
             relative_cov = rotate_covariance(covariance + self._kf_cov, -float(previous[2]))
             relative_cov += np.diag([1e-4, 1e-4, 1e-6])
             self.graph.add_edge(node - 1, node, relative(previous, pose_local), np.linalg.inv(relative_cov))
+            self._kf_chain.append(self._kf_chain[-1] + rotate_covariance(relative_cov, float(previous[2])))
+        else:
+            self._kf_chain.append(np.zeros((3, 3)))
         self._kf_cov = covariance
         self._kf_local.append(pose_local.copy())
         self._kf_points.append(points)
@@ -493,19 +542,63 @@ class Slam:
             self.stats.loop_attempts += 1
             result = match_scan(submap.grid, points, guess, window_xy_m=window_xy, window_theta_rad=window_theta,
                                 angular_step_rad=cfg.loop_angular_step_rad, min_score=cfg.loop_min_score,
-                                min_std_xy_m=cfg.loop_min_std_xy_m, min_std_theta_rad=cfg.loop_min_std_theta_rad)
+                                min_std_xy_m=cfg.loop_min_std_xy_m, min_std_theta_rad=cfg.loop_min_std_theta_rad,
+                                shaped_covariance=True, wall_lines=self._dense)
             if result is None or result.score < cfg.loop_min_score or result.inlier_fraction < cfg.loop_min_inliers:
                 continue
             if not self._verified(submap, points, result.pose):
                 self.stats.loop_unverified += 1
                 continue
-            measurement = relative(submap.anchor_local, result.pose)
-            covariance = rotate_covariance(result.covariance, -float(submap.anchor_local[2]))
-            edge = self.graph.add_edge(submap.anchor_node, node, measurement, np.linalg.inv(covariance))
-            self._loop_edges.append(edge)
-            self._last_loop_node[submap.index] = node
-            self.stats.loop_closures += 1
+            frame = submap.local_to_map(poses[submap.anchor_node])
+            closure = _Closure(submap.anchor_node, node, submap.index, relative(submap.anchor_local, result.pose),
+                               rotate_covariance(result.covariance, -float(submap.anchor_local[2])),
+                               compose(frame, result.pose), rotate_covariance(result.covariance, float(frame[2])))
+            self._consider(closure, poses)
             return
+
+    def _chain_covariance(self, first: int, last: int) -> np.ndarray:
+        """Covariance (map frame) of the relative pose of keyframes ``first`` -> ``last`` along the
+        sequential edges: their summed covariances, and the translation a heading error causes over
+        the distance between them."""
+        chain = self._kf_chain[last] - self._kf_chain[first]
+        distance = self._kf_path_m[last] - self._kf_path_m[first]
+        chain[:2, :2] += np.eye(2) * chain[2, 2] * distance ** 2
+        return chain
+
+    def _consider(self, closure: _Closure, poses: np.ndarray) -> None:
+        """A verified loop closure goes into the graph if it agrees with the chain of keyframes (the
+        correction it asks for is within the chain's own uncertainty) or with another closure made
+        shortly before (both ask for one correction); otherwise it waits for such a partner for
+        ``2 * scans_per_submap`` keyframes and is then dropped (``loop_inconsistent``)."""
+        correction = closure.implied - poses[closure.node]
+        correction[2] = wrap_angle(correction[2])
+        covariance = self._chain_covariance(closure.anchor, closure.node) + closure.implied_covariance
+        if float(correction @ np.linalg.solve(covariance, correction)) <= CHI2_3DOF_999:
+            self._add_closure(closure)
+            return
+        horizon = 2 * self.config.scans_per_submap
+        expired = [p for p in self._pending if closure.node - p.node > horizon]
+        self.stats.loop_inconsistent += len(expired)
+        self._pending = [p for p in self._pending if closure.node - p.node <= horizon]
+        for partner in self._pending:
+            predicted = compose(partner.implied, relative(poses[partner.node], poses[closure.node]))
+            difference = closure.implied - predicted
+            difference[2] = wrap_angle(difference[2])
+            spread = (partner.implied_covariance + closure.implied_covariance
+                      + self._chain_covariance(partner.node, closure.node))
+            if float(difference @ np.linalg.solve(spread, difference)) <= CHI2_3DOF_999:
+                self._pending.remove(partner)
+                self._add_closure(partner)
+                self._add_closure(closure)
+                self.stats.loop_paired += 2
+                return
+        self._pending.append(closure)
+
+    def _add_closure(self, closure: _Closure) -> None:
+        edge = self.graph.add_edge(closure.anchor, closure.node, closure.measurement, np.linalg.inv(closure.covariance))
+        self._loop_edges.append(edge)
+        self._last_loop_node[closure.submap] = closure.node
+        self.stats.loop_closures += 1
 
     def _verified(self, submap: Submap, points: np.ndarray, pose: np.ndarray) -> bool:
         """Does point-to-line ICP against the submap's occupied cells agree with the grid match?"""
@@ -590,7 +683,9 @@ class Slam:
         poses = self.graph.poses
         frames = np.array([s.local_to_map(poses[s.anchor_node]) for s in self.submaps.submaps]).reshape(-1, 3)
         points = [voxel_filter(p, self.config.voxel_m) for p in self._kf_points]
-        return check_map(self.submaps.submaps, frames, poses, points, 2 * self.config.scans_per_submap)
+        ranges = [np.hypot(*(p - self._mount[:2]).T) for p in points]
+        return check_map(self.submaps.submaps, frames, poses, points, ranges, np.array(self._kf_spacing),
+                         2 * self.config.scans_per_submap)
 
     def keyframe_endpoints(self) -> list[np.ndarray]:
         """Every keyframe's scan points (N, 2) at its optimised pose, map frame."""

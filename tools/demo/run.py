@@ -42,7 +42,7 @@ from trundle.tools.demo.ground_truth import FrameTimes, Recording, frame_ground_
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 from trundle.tools.demo.report import build_report, draw_detections, plot_run, write_report
 from trundle.tools.demo.scoring import score_markers, sensor_mount
-from trundle.tools.demo.slam import SLAM_OPTIONS, run_slam
+from trundle.tools.demo.slam import run_slam
 from trundle.tools.daemon.status import query_status
 from trundle.tools.daemon.config import format_config
 from trundle.tools.sim.robot import RobotSim
@@ -94,7 +94,7 @@ def daemon_config(devices: SimDevices, folder: Path, socket_path: Path, calibrat
     return {"robot": {"name": "trundle-demo"}, **tables,
             "logger": {"folder": str(folder), "compression": "zstd", "flush_period_s": 0.5},
             "disk": {"min_free_mb": 100.0, "action": "stop"},
-            "processing": {"odometry": True, "slam": False, "markers": False}, "slam": SLAM_OPTIONS,
+            "processing": {"odometry": True, "slam": False, "markers": False},
             "status": {"socket": str(socket_path), "diagnostics_period_s": 1.0}}
 
 

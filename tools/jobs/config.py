@@ -46,6 +46,16 @@ def config_table(config: Mapping[str, Any], name: str, keys: set[str]) -> dict[s
     return table
 
 
+def _robot_model(metadata: Mapping[str, str]) -> dict[str, Any]:
+    """The ``robot`` metadata as the importers write it (a JSON table: wheel model, laser mount); {} when
+    it is something else (the daemon stores the robot's name there)."""
+    try:
+        robot = json.loads(metadata.get("robot", "{}") or "{}")
+    except json.JSONDecodeError:
+        return {}
+    return robot if isinstance(robot, dict) else {}
+
+
 def make_odometry(info: LogInfo, config: Mapping[str, Any]) -> DiffDriveOdometry | None:
     """Wheel odometry for a log with wheel joint states; None if it has none (or only ``Odometry``).
 
@@ -57,7 +67,7 @@ def make_odometry(info: LogInfo, config: Mapping[str, Any]) -> DiffDriveOdometry
         return None
     metadata = info.metadata.get("trundle", {})
     devices = json.loads(metadata.get("devices", "{}") or "{}")
-    sources = [config_table(config, "odometry", ODOMETRY_KEYS), json.loads(metadata.get("robot", "{}") or "{}"),
+    sources = [config_table(config, "odometry", ODOMETRY_KEYS), _robot_model(metadata),
                next((d for d in devices.values() if isinstance(d, dict) and d.get("family") == "can"), {})]
     for source in sources:
         odometry = odometry_from_config(source) if source else None
@@ -75,7 +85,7 @@ def laser_pose(info: LogInfo, config: Mapping[str, Any]) -> tuple[float, float, 
     table = config_table(config, "laser", LASER_KEYS)
     if table:
         return (float(table.get("x_m", 0.0)), float(table.get("y_m", 0.0)), float(table.get("yaw_rad", 0.0)))
-    robot = json.loads(info.metadata.get("trundle", {}).get("robot", "{}") or "{}")
+    robot = _robot_model(info.metadata.get("trundle", {}))
     if any(k in robot for k in ("laser_x_m", "laser_y_m", "laser_yaw_rad")):
         return (float(robot.get("laser_x_m", 0.0)), float(robot.get("laser_y_m", 0.0)),
                 float(robot.get("laser_yaw_rad", 0.0)))

@@ -137,11 +137,12 @@ def faulty_wheels(times_s: np.ndarray, left_rad: np.ndarray, right_rad: np.ndarr
 def random_glitches(count: int, span_s: float, magnitude_rad: float, duration_s: float,
                     seed: int) -> list[OdometryFault]:
     """``count`` heading glitches of ``+-magnitude_rad`` (random sign) over ``duration_s`` each, at random
-    times in the middle 80 % of ``span_s`` seconds, at least ``span_s / (2 count)`` apart."""
+    times in the middle 80 % of ``span_s`` seconds, at least ``span_s / (2 count)`` apart and never
+    overlapping."""
     if count <= 0:
         return []
     rng = np.random.default_rng(seed)
-    gap = span_s / (2.0 * count)
+    gap = max(span_s / (2.0 * count), duration_s)
     low, high = 0.1 * span_s, 0.9 * span_s - duration_s
     if high - low < (count - 1) * gap:
         raise ValueError(f"{count} glitches of {duration_s} s do not fit {span_s:.1f} s of odometry")

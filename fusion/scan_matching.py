@@ -291,9 +291,8 @@ def match_covariance(jacobian: np.ndarray, residuals: np.ndarray, weights: np.nd
     else:
         best_xy = float(np.linalg.eigvalsh(raw[:2, :2])[0])
         scale = max(1.0, min_std_xy_m ** 2 / max(best_xy, 1e-300), min_std_theta_rad ** 2 / max(float(raw[2, 2]), 1e-300))
-        largest = float(np.linalg.eigvalsh(raw)[-1])
-        covariance = min(scale, max_variance / max(largest, 1e-300)) * raw
-        covariance = covariance + 1e-6 * floor
+        values, axes = np.linalg.eigh(scale * raw)
+        covariance = (axes * np.minimum(values, max_variance)) @ axes.T + 1e-6 * floor
     return 0.5 * (covariance + covariance.T)
 
 

@@ -214,6 +214,31 @@ def test_a_failing_log_fails_its_row_alone_and_keeps_the_last_complete_result(tm
     assert process_log(task(tmp_path / "gone.mcap", out))["error"].startswith("no such file on this node")
 
 
+DEMO = Path(__file__).parent / "data" / "demo_short" / "demo.mcap"
+
+
+def test_every_job_runs_through_a_task_with_its_outputs_in_the_logs_folder(tmp_path) -> None:
+    sim = robot_log(tmp_path / "sim.mcap", "robot-a")
+    demo = tmp_path / "demo.mcap"
+    demo.write_bytes(DEMO.read_bytes())
+    out = tmp_path / "out"
+    cases = {  # job -> (log, options, the files its folder must hold besides report.json and fleet.json)
+        "info": (demo, {}, []),
+        "slam": (sim, {}, ["map.yaml", "map.pgm", "trajectory.csv", "slam.mcap"]),
+        "characterize": (demo, {"topic": "/scan"}, ["report.md"]),
+        "perceive": (demo, {"pipeline": "markers"}, ["perceive.mcap"]),
+    }
+    for job, (log, options, files) in cases.items():
+        row = process_log(Task(job, str(log), job, str(out), options, options_key(job, options)))
+        assert row["status"] == "ok", (job, row["error"])
+        for name in files + ["report.json", "fleet.json"]:
+            assert (out / job / name).is_file(), (job, name)
+    assert json.loads((out / "info" / "report.json").read_text())["topics"]["/scan"]["count"] == 880
+    options = {"map_path": str(out / "slam")}
+    row = process_log(Task("localize", str(sim), "localize", str(out), options, options_key("localize", options)))
+    assert row["status"] == "ok" and row["scans"] == 20 and (out / "localize" / "trajectory.csv").is_file()
+
+
 def test_a_worker_with_another_trundle_version_refuses(log, tmp_path) -> None:
     row = process_log(task(log, tmp_path, version="0.0.1"))
     assert row["status"] == "failed" and f"this worker has trundle {__version__}, the driver 0.0.1" in row["error"]

@@ -328,6 +328,15 @@ def test_command_errors_are_one_line(tmp_path, capsys, monkeypatch, log) -> None
     assert capsys.readouterr().err.startswith("trundle fleet: characterize needs topic=... in --job-options")
     assert main(["fleet", "info", str(log), "-o", str(tmp_path / "o"), "--retries", "-1"]) == 2
     assert capsys.readouterr().err == "trundle fleet: --retries must be 0 or more\n"
+    import socket
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]          # closed again: nothing listens there
+    assert main(["fleet", "info", str(log), "-o", str(tmp_path / "o"), "--address", f"127.0.0.1:{port}"]) == 2
+    assert capsys.readouterr().err.startswith(f"trundle fleet: cannot reach the Ray cluster at 127.0.0.1:{port}: ")
+    (tmp_path / "file").write_text("")
+    assert main(["fleet", "info", str(log), "-o", str(tmp_path / "file")]) == 2
+    assert capsys.readouterr().err == f"trundle fleet: Not a directory: {tmp_path / 'file' / '.fleet'}\n"
     import importlib.util
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real(name, *a))

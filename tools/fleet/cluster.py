@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import secrets
+import socket
 from collections.abc import Sequence
 from dataclasses import asdict
 from typing import Any
@@ -25,6 +26,7 @@ from trundle.tools.fleet.rows import one_line
 from trundle.tools.fleet.task import Task, process_log
 
 LOCAL = "local"
+CONNECT_TIMEOUT_S = 10.0
 
 
 def _run_on_worker(task: dict[str, Any]) -> dict[str, Any]:
@@ -32,6 +34,19 @@ def _run_on_worker(task: dict[str, Any]) -> dict[str, Any]:
     import ray
 
     return {**process_log(Task(**task)), "node": ray.util.get_node_ip_address()}
+
+
+def _check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """A UserError at once if nothing accepts TCP connections at a ``HOST:PORT`` address (Ray
+    itself would retry for minutes); other address forms (``auto``, ``ray://``) are left to Ray."""
+    host, sep, port = address.rpartition(":")
+    if not sep or "://" in address or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as error:
+        raise UserError(f"cannot reach the Ray cluster at {address}: {error.strerror or error} "
+                        "(is `ray start --head` running there?)") from None
 
 
 class Cluster:
@@ -47,6 +62,8 @@ class Cluster:
                 os.environ.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=secrets.token_hex(32))
         elif num_cpus is not None:
             raise UserError("--num-cpus sizes a local Ray only; an existing cluster has the CPUs its nodes offer")
+        else:
+            _check_reachable(self.address)
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
         import ray
 

@@ -37,6 +37,7 @@ COMMANDS = {
     "import": "convert a public dataset (CARMEN, BreezySLAM) to an MCAP log",
     "emulate": "start a device emulator",
     "characterize": "sensor characteristics (range, resolution, precision, ...) from a log",
+    "fleet": "run a one-log job over many logs on a Ray cluster -> results table and summary",
 }
 MODULES = {"import": "import_data"}
 

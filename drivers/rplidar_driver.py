@@ -28,7 +28,7 @@ from trundle.drivers import rplidar as rp
 from trundle.drivers import rplidar_capsules as rc
 from trundle.drivers.laser_mount import laser_transform
 from trundle.drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
-from trundle.drivers.serial_link import SerialLink, set_modem_line
+from trundle.drivers.serial_link import STREAM_BATCH_S, SerialLink, set_modem_line
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 
@@ -522,6 +522,8 @@ class RplidarDriver(Driver):
         self._limits = (self.config.range_min or spec.range_min,
                         self.config.range_max or mode.max_distance or spec.range_max)
         self._bad_in_row = 0
+        assert self.link is not None
+        self.link.batch_s = STREAM_BATCH_S
         if rest:
             self._process(rest, self.clock())
 

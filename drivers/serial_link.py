@@ -15,6 +15,7 @@ from __future__ import annotations
 import errno
 import os
 import select
+import termios
 import time
 from typing import Callable
 
@@ -50,20 +51,20 @@ class SerialLink:
         wait = self._last_read + self.batch_s - time.monotonic()
         if wait > 0:
             time.sleep(wait)
-        data = self._available()
-        if len(data) >= TTY_BUFFER:
-            data = self._rest_of_burst(data)
+        data = self._rest_of_burst(self._available())
         self._last_read = time.monotonic()
         if data:
             self.last_rx = self._last_read
         return data
 
     def _rest_of_burst(self, first: bytes) -> bytes:
-        """A read that filled the tty buffer left the rest of a burst behind (a 6.5 kB SCIP scan
-        comes in two): wait a little for it, so one read hands the driver the whole burst."""
+        """The tty layer hands a burst over in pieces (at most 4095 bytes, and a busy host's pty
+        less): take what is already behind the first, and after a full piece wait up to
+        ``batch_s`` for the rest (a 6.5 kB SCIP scan comes in two), so one read gets the burst."""
         parts = [first]
-        while len(parts[-1]) >= TTY_BUFFER and len(parts) < 16:
-            if not select.select([self.port.fileno()], [], [], self.batch_s or self.read_timeout_s)[0]:
+        while parts[-1] and len(parts) < 64:
+            wait = (self.batch_s or self.read_timeout_s) if len(parts[-1]) >= TTY_BUFFER else 0.0
+            if not select.select([self.port.fileno()], [], [], wait)[0]:
                 break
             parts.append(self._available())
         return b"".join(parts)
@@ -117,11 +118,11 @@ class SerialLink:
             if farewell is not None and self.port.is_open:
                 farewell(self.port)
                 self.port.flush()
-        except (OSError, serial.SerialException, ValueError):
+        except (OSError, serial.SerialException, ValueError, termios.error):  # tcdrain on a line that died: EIO
             pass
         try:
             self.port.close()
-        except (OSError, serial.SerialException):
+        except (OSError, serial.SerialException, termios.error):
             pass
 
 

@@ -61,3 +61,11 @@ def test_an_unplugged_device_is_seen_at_once(tmp_path):
         for _ in range(3):
             link.read()
     link.close()
+
+
+def test_close_never_raises_on_a_line_that_died(tmp_path):
+    pty = PtyLink(tmp_path / "tty")
+    link = SerialLink(str(tmp_path / "tty"), 115200)
+    pty.unplug()
+    link.close(lambda port: None)  # the flush after the last words: tcdrain fails with EIO (termios.error)
+    assert not link.port.is_open

@@ -2,7 +2,8 @@
 
 - ``scip2:///dev/ttyACM0`` Hokuyo SCIP 2.0 on a USB/serial port (also ``scip2:/dev/...``)
 - ``scip2+tcp://192.168.0.10:10940`` Hokuyo SCIP 2.0 over Ethernet (UST, UTM-EW)
-- ``rplidar:///dev/ttyUSB0?model=a2`` Slamtec RPLIDAR (model a1, a2, a3, s1; default a1)
+- ``rplidar:///dev/ttyUSB0?model=s2&mode=DenseBoost`` Slamtec RPLIDAR (model a1, a2, a2m12, a3, c1, s1,
+  s2, s3 sets the first baud rate tried; mode defaults to the device's typical scan mode)
 
 Query parameters and the ``config`` table (the ``[lrf]`` section of a robot TOML) set driver
 options; see ``ScipConfig`` and ``RplidarConfig`` for the keys. Use a stable path such as

@@ -14,6 +14,7 @@ from typing import Any, Callable
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from trundle.logs import cdr
 from trundle.logs import messages as m
 
 CAN_FRAME_MSG = """\
@@ -305,6 +306,8 @@ MAPPINGS: tuple[Mapping, ...] = (
 )
 _BY_PYTHON = {mp.python_type: mp for mp in MAPPINGS}
 _BY_ROS = {mp.ros_type: mp for mp in MAPPINGS}
+# the types a laser logs with every scan: the same bytes as the typestore, without its objects
+_DIRECT: dict[type, Callable[[Any], bytes]] = {m.LaserScan: cdr.laser_scan, m.DiagnosticArray: cdr.diagnostic_array}
 
 
 def ros_type(python_type: type) -> str:
@@ -324,6 +327,9 @@ def encode(msg: m.Message) -> tuple[str, bytes]:
     mp = _BY_PYTHON.get(type(msg))
     if mp is None:
         raise UnsupportedType(f"no ROS 2 mapping for {type(msg).__name__}")
+    direct = _DIRECT.get(type(msg))
+    if direct is not None:
+        return mp.ros_type, direct(msg)
     return mp.ros_type, bytes(TYPESTORE.serialize_cdr(mp.to_ros(msg), mp.ros_type))
 
 

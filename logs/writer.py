@@ -3,7 +3,9 @@
 Files are MCAP with the ``ros2`` profile, ``ros2msg`` schemas (full definition text) and CDR
 messages, so ``ros2 bag`` and Foxglove open them. While open a file is ``NAME.mcap.active``;
 a clean close renames it to ``NAME.mcap``. The open chunk is flushed at least every
-``flush_period_s`` (optionally fsynced), so a killed process loses at most that much. Files split
+``flush_period_s`` (optionally fsynced), so a killed process loses at most that much. The writer
+thread wakes once per ``batch_s`` at most while messages flow (a message wakes it, it lets the
+batch gather, then writes them all), not once per message. Files split
 by size and/or duration; latched topics (``/tf_static``, ``*/camera_info`` and any named) are
 repeated at the start of every split. Each topic counts messages written and dropped.
 """
@@ -29,6 +31,7 @@ from trundle.logs import ros2
 from trundle.logs.errors import UserError
 
 ACTIVE_SUFFIX = ".active"
+_SPLIT = object()  # queued by Logger.split: the writer starts a new file at the next message
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 _QOS_LATCHED = (
@@ -92,7 +95,7 @@ class Logger:
                  chunk_size: int = 1 << 20, flush_period_s: float = 0.5, fsync: bool = False,
                  split_bytes: int | None = None, split_duration_s: float | None = None,
                  queue_size: int = 10000, metadata: Mapping[str, str] | None = None,
-                 latched_topics: Iterable[str] = (), salvage: bool = True) -> None:
+                 latched_topics: Iterable[str] = (), salvage: bool = True, batch_s: float = 0.1) -> None:
         if compression not in COMPRESSION:
             raise UserError(f"unknown compression {compression!r} (choose zstd, lz4 or none)")
         self.base_path = Path(path)
@@ -108,6 +111,8 @@ class Logger:
         self.split_duration_ns = int(split_duration_s * 1e9) if split_duration_s else None
         self._splitting = bool(split_bytes or split_duration_s)
         self.queue_size = queue_size
+        self.batch_s = batch_s
+        self._urgent_at = max(1, min(queue_size // 4, 256))  # a batch this long is written at once
         self.metadata = {"trundle_version": __version__, "host": platform.node(), **(metadata or {})}
         self.latched_topics = frozenset(latched_topics)
         self.stats: dict[str, TopicStats] = collections.defaultdict(TopicStats)
@@ -116,8 +121,9 @@ class Logger:
         self.error: LoggerError | None = None
         self._latched: dict[str, _Item] = {}
         self._topic_latched: dict[str, bool] = {}
-        self._queue: collections.deque[_Item | None] = collections.deque()
+        self._queue: collections.deque = collections.deque()  # _Item, _SPLIT, or None to close
         self._wake = threading.Event()
+        self._urgent = threading.Event()
         self._split_requested = False
         self._closed = False
         self._split_index = 0
@@ -155,12 +161,16 @@ class Logger:
         self._queue.append(item)
         if not self._wake.is_set():
             self._wake.set()
+        elif len(self._queue) >= self._urgent_at and not self._urgent.is_set():
+            self._urgent.set()
         return True
 
     def split(self) -> None:
-        """Start a new file at the next message (as SIGHUP does in the daemon)."""
-        self._split_requested = True
+        """Start a new file at the next message (as SIGHUP does in the daemon); the messages
+        queued before the request still go to the current file."""
+        self._queue.append(_SPLIT)
         self._wake.set()
+        self._urgent.set()
 
     def close(self) -> None:
         """Write everything queued, finish the file and rename it; raises the first write error."""
@@ -168,6 +178,7 @@ class Logger:
             self._closed = True
             self._queue.append(None)
             self._wake.set()
+            self._urgent.set()
             self._thread.join()
         if self.error is not None:
             raise self.error
@@ -194,6 +205,9 @@ class Logger:
         running = True
         while running:
             self._wake.wait(max(0.0, next_flush - time.monotonic()))
+            if self._wake.is_set():  # let the batch gather: producers do not wake a woken writer
+                self._urgent.wait(max(0.0, min(self.batch_s, next_flush - time.monotonic())))
+            self._urgent.clear()
             self._wake.clear()
             running = self._drain()
             if time.monotonic() >= next_flush:
@@ -208,6 +222,9 @@ class Logger:
             item = queue.popleft()
             if item is None:
                 return False
+            if item is _SPLIT:
+                self._split_requested = True
+                continue
             if self.error is None:
                 try:
                     self._write_item(item)

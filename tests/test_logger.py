@@ -232,3 +232,14 @@ def test_static_transforms_of_every_publisher_repeat_in_each_split(tmp_path: Pat
     for path in logger.files:
         children = {t.child_frame_id for x in LogReader(path).messages(["/tf_static"]) for t in x.msg.transforms}
         assert children == {"laser", "camera"}
+
+
+def test_a_split_keeps_what_was_queued_before_it_in_the_old_file(tmp_path: Path) -> None:
+    """The writer takes messages in batches: a split request waits its turn in the queue."""
+    with Logger(tmp_path / "b.mcap", batch_s=5.0) as logger:  # nothing is written until the split or close
+        for i in range(3):
+            logger.write("/scan", scan(i), i)
+        logger.split()
+        for i in range(3, 5):
+            logger.write("/scan", scan(i), i)
+    assert [[x.log_time_ns for x in LogReader(p).messages()] for p in logger.files] == [[0, 1, 2], [3, 4]]

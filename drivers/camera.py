@@ -79,6 +79,8 @@ class CameraDriver(Driver):
     timing, ``overwritten`` frames replaced by newer ones before we read them, ``stalls``.
     """
 
+    usable = "frames"
+
     def __init__(self, config: CameraConfig, sink: Sink, source_factory: Callable[[], FrameSource], *,
                  camera_info: m.CameraInfo | None = None, clock: Callable[[], int] = wall_ns,
                  monotonic_ns: Callable[[], int] = time.monotonic_ns) -> None:
@@ -189,6 +191,11 @@ class CameraDriver(Driver):
             grabber.stop()
             self._overwritten_before += grabber.overwritten
 
+    def silence_reason(self) -> str:
+        if self.counters["corrupt"]:
+            return f"{self.counters['corrupt']} corrupt frames dropped (last: {self.last_corrupt})"
+        return "the camera sends no frames"
+
     def measured_fps(self) -> float:
         """Frame rate over the last (up to) 60 published frames, from their capture times."""
         recent = tuple(self._recent)  # one snapshot: the driver thread appends meanwhile
@@ -251,13 +258,9 @@ def _file_size(path: Path) -> tuple[int, int]:
 
 def _source_factory(config: CameraConfig, unsupported: set[str]) -> tuple[Callable[[], FrameSource], tuple[int, int]]:
     """How to open the source of ``config`` (checked now: a bad path is a ``UserError``) and its size."""
-    if config.scheme == "v4l2":
+    if config.scheme == "v4l2":  # a camera not plugged in yet is waited for (the source's open retries)
         path = device_path(config.target)
-        try:
-            mode = os.stat(path).st_mode
-        except FileNotFoundError:
-            raise UserError(f"no camera at {path} (see ls /dev/v4l/by-id/)") from None
-        if not stat.S_ISCHR(mode):
+        if os.path.exists(path) and not stat.S_ISCHR(os.stat(path).st_mode):
             raise UserError(f"{path} is not a video device (for a video file use file://{os.path.abspath(path)})")
         factory = partial(V4L2Source, path, width=config.width, height=config.height, fps=config.fps,
                           fourcc=config.fourcc, buffers=config.buffers, controls=config.controls,

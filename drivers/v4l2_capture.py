@@ -126,7 +126,7 @@ class V4L2Source(CaptureSource):
 
     def open(self) -> None:
         if not os.path.exists(self.path):
-            raise DeviceError(f"{self.path}: no such device (unplugged?)")
+            raise DeviceError(f"no camera at {self.path} (unplugged? see ls /dev/v4l/by-id/)")
         try:
             cap = cv2.VideoCapture(self.path, cv2.CAP_V4L2)
         except cv2.error as error:

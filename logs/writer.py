@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import collections
 import fcntl
-import json
 import os
 import platform
 import threading
@@ -25,6 +24,7 @@ from mcap.writer import CompressionType, Writer
 
 from trundle import __version__
 from trundle.logs import messages as m
+from trundle.logs import metadata as log_metadata
 from trundle.logs import ros2
 from trundle.logs.errors import UserError
 
@@ -86,12 +86,13 @@ class Logger:
 
     ``write`` returns False (and counts a drop for that topic) when the queue is full or the
     logger has failed. ``error`` holds the first write failure; ``close`` raises it.
+    ``metadata`` is the log's description, stored in every file (:mod:`trundle.logs.metadata`).
     """
 
     def __init__(self, path: str | os.PathLike[str], *, compression: str = "zstd",
                  chunk_size: int = 1 << 20, flush_period_s: float = 0.5, fsync: bool = False,
                  split_bytes: int | None = None, split_duration_s: float | None = None,
-                 queue_size: int = 10000, metadata: Mapping[str, str] | None = None,
+                 queue_size: int = 10000, metadata: Mapping[str, object] | None = None,
                  latched_topics: Iterable[str] = (), salvage: bool = True) -> None:
         if compression not in COMPRESSION:
             raise UserError(f"unknown compression {compression!r} (choose zstd, lz4 or none)")
@@ -108,7 +109,7 @@ class Logger:
         self.split_duration_ns = int(split_duration_s * 1e9) if split_duration_s else None
         self._splitting = bool(split_bytes or split_duration_s)
         self.queue_size = queue_size
-        self.metadata = {"trundle_version": __version__, "host": platform.node(), **(metadata or {})}
+        self.metadata = log_metadata.encode({"trundle_version": __version__, "host": platform.node(), **(metadata or {})})
         self.latched_topics = frozenset(latched_topics)
         self.stats: dict[str, TopicStats] = collections.defaultdict(TopicStats)
         self.files: list[Path] = []
@@ -294,7 +295,7 @@ class Logger:
         fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # marks the file live for salvage_folder
         writer = Writer(stream, chunk_size=self.chunk_size, compression=COMPRESSION[self.compression])
         writer.start(profile="ros2", library=f"trundle/{__version__}")
-        writer.add_metadata("trundle", {k: str(v) for k, v in self.metadata.items()})
+        writer.add_metadata(log_metadata.RECORD, self.metadata)
         stream.flush()  # the header is on disk from the start: even an early kill leaves MCAP
         self._file = _OpenFile(path, stream, writer)
 
@@ -314,11 +315,6 @@ class Logger:
     def stats_dict(self) -> dict[str, dict[str, int]]:
         """Per-topic ``{"written": n, "dropped": n}`` (for status and diagnostics)."""
         return {topic: {"written": s.written, "dropped": s.dropped} for topic, s in sorted(self.stats.items())}
-
-
-def metadata_json(config: Mapping[str, object]) -> str:
-    """A config mapping as the JSON string stored in the file's metadata record."""
-    return json.dumps(config, sort_keys=True, default=str)
 
 
 def salvage_folder(folder: Path) -> list[Path]:

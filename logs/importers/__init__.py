@@ -13,7 +13,7 @@ from typing import Iterable
 
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-from trundle.logs.writer import Logger, metadata_json
+from trundle.logs.writer import Logger
 
 Item = tuple[str, m.Message, int]  # topic, message, log time (ns)
 
@@ -23,14 +23,13 @@ def write_log(items: Iterable[Item], out: str | os.PathLike[str], *, metadata: d
     """Write ``(topic, message, log_time_ns)`` items to the MCAP file ``out``; returns messages per topic.
 
     Waits for the logger's queue instead of dropping, so an import is always complete.
-    ``metadata`` values that are not strings are stored as JSON.
+    ``metadata`` is the log's description (:mod:`trundle.logs.metadata`).
     """
     out = Path(out)
     if out.suffix != ".mcap":
         raise UserError(f"output must be an .mcap file, got {out}")
-    text = {k: v if isinstance(v, str) else metadata_json(v) for k, v in metadata.items()}  # type: ignore[arg-type]
     counts: dict[str, int] = {}
-    logger = Logger(out, compression=compression, metadata=text, latched_topics=("/tf_static",), salvage=False)
+    logger = Logger(out, compression=compression, metadata=metadata, latched_topics=("/tf_static",), salvage=False)
     try:
         for topic, msg, log_time_ns in items:
             while logger.queue_length >= logger.queue_size // 2:

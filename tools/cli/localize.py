@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from trundle.tools.cli.progress import Progress
-from trundle.tools.jobs.config import load_config
+from trundle.tools.config.robot import load_config
 from trundle.tools.jobs.localize import localize_log
 
 

@@ -10,7 +10,7 @@ import argparse
 from pathlib import Path
 
 from trundle.tools.cli.progress import Progress
-from trundle.tools.jobs.config import load_config
+from trundle.tools.config.robot import load_config
 from trundle.tools.jobs.slam import slam_log
 
 

@@ -44,7 +44,7 @@ from trundle.tools.demo.report import build_report, draw_detections, plot_run, w
 from trundle.tools.demo.scoring import score_markers, sensor_mount
 from trundle.tools.demo.slam import SLAM_OPTIONS, run_slam
 from trundle.tools.daemon.status import query_status
-from trundle.tools.daemon.config import format_config
+from trundle.tools.config.toml_text import format_config
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.emulators.sim_devices import SimDevices
 from trundle.tools.sim.world import DEFAULT_WORLD, load_world
@@ -86,7 +86,7 @@ class DemoSettings:
 # ---------------------------------------------------------------------------------- recording
 
 def daemon_config(devices: SimDevices, folder: Path, socket_path: Path, calibration: Path) -> dict[str, Any]:
-    """The daemon's configuration tables for the emulated robot (see ``tools/daemon/example.toml``)."""
+    """The daemon's configuration tables for the emulated robot (see ``tools/config/example.toml``)."""
     tables = devices.device_tables()
     tables["lrf"]["timeout_s"] = LRF_TIMEOUT_S
     tables["can"]["odrive"] = {"heartbeat_timeout_s": WHEEL_TIMEOUT_S, "data_timeout_s": WHEEL_TIMEOUT_S}

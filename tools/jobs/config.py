@@ -1,65 +1,47 @@
-"""The job config (a TOML file of tables) and the robot model it or the log gives: wheels, laser mount.
+"""The robot model a job uses: the wheel model and laser mount from the job's config (a robot
+config, :mod:`trundle.tools.config.robot`) or from the log's own description.
 
 ``[odometry]`` holds the wheel model (``wheel_radius_m``, ``track_m``, ``wheels = [left, right]``,
 ``wheel_variance_per_m``), ``[laser]`` the laser mount on the robot (``x_m``, ``y_m`` in metres,
-``yaw_rad``); ``trundle slam`` and ``trundle localize`` read the same tables.
+``yaw_rad``); ``trundle slam`` and ``trundle localize`` read the same file the daemon does.
 """
 
 from __future__ import annotations
 
-import json
-import tomllib
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 from trundle.fusion.odometry import DiffDriveOdometry, odometry_from_config
 from trundle.logs.errors import UserError
+from trundle.logs.metadata import read_metadata
 from trundle.logs.reader import LogInfo
+from trundle.tools.config.robot import RobotConfig, parse_config
 
-ODOMETRY_KEYS = {"wheel_radius_m", "track_m", "wheels", "wheel_variance_per_m"}
-LASER_KEYS = {"x_m", "y_m", "yaw_rad"}
-
-
-def load_config(path: Path | None) -> dict[str, Any]:
-    """The TOML config as a dict ({} without a path); unreadable or invalid files are a UserError."""
-    if path is None:
-        return {}
-    if not path.is_file():
-        raise UserError(f"no such config file: {path}")
-    try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
-    except tomllib.TOMLDecodeError as error:
-        raise UserError(f"{path}: invalid TOML ({error})") from None
+JobConfig = RobotConfig | Mapping[str, Any] | None
+"""What a job takes as its config: a checked robot config, a decoded TOML document (checked here), or none."""
 
 
-def config_table(config: Mapping[str, Any], name: str, keys: set[str]) -> dict[str, Any]:
-    """The ``[name]`` table of ``config`` ({} if absent); a non-table or an option not in ``keys``
-    is a UserError, so a misspelt option is said instead of silently ignored."""
-    table = config.get(name, {})
-    if not isinstance(table, dict):
-        raise UserError(f"[{name}] must be a table")
-    unknown = set(table) - keys
-    if unknown:
-        raise UserError(f"unknown [{name}] option(s) {sorted(unknown)} (known: {sorted(keys)})")
-    return table
+def robot_config(config: JobConfig) -> RobotConfig:
+    """``config`` as a checked :class:`RobotConfig` (a document goes through the one validator)."""
+    if config is None:
+        return RobotConfig()
+    if isinstance(config, RobotConfig):
+        return config
+    return parse_config(dict(config))
 
 
-def make_odometry(info: LogInfo, config: Mapping[str, Any]) -> DiffDriveOdometry | None:
+def make_odometry(info: LogInfo, config: JobConfig) -> DiffDriveOdometry | None:
     """Wheel odometry for a log with wheel joint states; None if it has none (or only ``Odometry``).
 
-    The wheel model comes from the first of: the config's ``[odometry]`` table, the log's
-    ``robot`` metadata (written by the importers), the ``[can]`` device table the recorder or
-    daemon ran with (``devices`` metadata).
+    The wheel model comes from the first of: the config's ``[odometry]`` table, its ``[can]``
+    table, the log's own description (:meth:`trundle.logs.metadata.LogMetadata.wheel_model`:
+    the robot model the importers, the recorder and the daemon store).
     """
     if not any(t.ros_type == "sensor_msgs/msg/JointState" for t in info.topics.values()):
         return None
-    metadata = info.metadata.get("trundle", {})
-    devices = json.loads(metadata.get("devices", "{}") or "{}")
-    sources = [config_table(config, "odometry", ODOMETRY_KEYS), json.loads(metadata.get("robot", "{}") or "{}"),
-               next((d for d in devices.values() if isinstance(d, dict) and d.get("family") == "can"), {})]
-    for source in sources:
+    config = robot_config(config)
+    can = config.options("can") if any(d.family == "can" for d in config.devices) else {}
+    for source in (config.odometry, can, read_metadata(info.metadata).wheel_model()):
         odometry = odometry_from_config(source) if source else None
         if odometry is not None:
             return odometry
@@ -69,14 +51,8 @@ def make_odometry(info: LogInfo, config: Mapping[str, Any]) -> DiffDriveOdometry
                     "in the [odometry] table of --config")
 
 
-def laser_pose(info: LogInfo, config: Mapping[str, Any]) -> tuple[float, float, float] | None:
+def laser_pose(info: LogInfo, config: JobConfig) -> tuple[float, float, float] | None:
     """The laser mount (x m, y m, yaw rad): the ``[laser]`` table, else the log's ``robot`` metadata
     (``laser_x_m``, ``laser_y_m``, ``laser_yaw_rad``), else None (then the log's /tf_static, or the identity)."""
-    table = config_table(config, "laser", LASER_KEYS)
-    if table:
-        return (float(table.get("x_m", 0.0)), float(table.get("y_m", 0.0)), float(table.get("yaw_rad", 0.0)))
-    robot = json.loads(info.metadata.get("trundle", {}).get("robot", "{}") or "{}")
-    if any(k in robot for k in ("laser_x_m", "laser_y_m", "laser_yaw_rad")):
-        return (float(robot.get("laser_x_m", 0.0)), float(robot.get("laser_y_m", 0.0)),
-                float(robot.get("laser_yaw_rad", 0.0)))
-    return None
+    config = robot_config(config)
+    return config.laser if config.laser is not None else read_metadata(info.metadata).laser_mount()

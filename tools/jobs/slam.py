@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +24,7 @@ from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.importers import write_log
 from trundle.logs.reader import LogReader
-from trundle.tools.jobs.config import config_table, laser_pose, make_odometry
+from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, robot_config
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 
 
@@ -39,19 +38,19 @@ def _stats(values: list[float]) -> dict[str, float]:
             "p05": float(np.percentile(a, 5)), "max": float(a.max())} if a.size else {}
 
 
-def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, local_only: bool = False,
+def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool = False,
              progress: ProgressFactory = NoProgress) -> dict[str, Any]:
     """Run SLAM over ``log`` and write its outputs into the folder ``output`` (created).
 
-    ``config`` is the parsed TOML (``[slam]``, ``[odometry]``, ``[laser]`` tables; none by default);
+    ``config`` is the robot config (``[slam]``, ``[odometry]``, ``[laser]`` tables; none by default);
     ``local_only`` turns loop closure off whatever the config says. ``progress`` shows the log
     seconds done. Returns the report (also written as ``report.json``): counts, timings (s),
     residuals (m), path length (m), map size and the SLAM options used.
     """
-    config = config or {}
+    config = robot_config(config)
     reader = LogReader(log)
     info = reader.info()
-    slam_config = SlamConfig.from_mapping(config_table(config, "slam", set(SlamConfig.__dataclass_fields__)))
+    slam_config = SlamConfig.from_mapping(config.slam)
     if local_only:
         slam_config.loop_closure = False
     scan_topic = info.topics.get(slam_config.scan_topic)

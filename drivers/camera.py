@@ -6,7 +6,9 @@ Topics (``NAME`` is the ``name`` option, default ``camera``):
                               bytes unchanged (MJPG pass-through), or raw frames encoded at
                               ``jpeg_quality`` when ``raw_output = "jpeg"``
   /NAME/image_raw             sensor_msgs/Image (bgr8 or mono8) when ``raw_output`` asks for it
-  /NAME/camera_info           sensor_msgs/CameraInfo, latched (calibration YAML or size only)
+  /NAME/camera_info           sensor_msgs/CameraInfo, latched (calibration YAML or size only; a source
+                              that does not give its size, such as MJPEG over HTTP, gets it from
+                              its first frame, and the CameraInfo is published then)
   /tf_static                  parent_frame -> frame_id (config) -> optical_frame_id (REP 103)
 
 Time: the message stamp is the capture time (V4L2 buffer timestamp or file media time, on
@@ -96,8 +98,10 @@ class CameraDriver(Driver):
         stamp = clock()
         self.camera_info = camera_info or uncalibrated_camera_info(config.width, config.height,
                                                                    config.optical_frame_id, stamp)
-        self._static = [(f"{config.topic_prefix}/camera_info", self.camera_info),
-                        ("/tf_static", static_transforms(config, stamp))]
+        self._info_topic = f"{config.topic_prefix}/camera_info"
+        self._static = [("/tf_static", static_transforms(config, stamp))]
+        if self.camera_info.width:  # else the first frame tells the size (never a 0x0 CameraInfo)
+            self._static.insert(0, (self._info_topic, self.camera_info))
         self._checker = JpegChecker(config.decode_check_every)
         self._grabber: FrameGrabber | None = None
         self._overwritten_before = 0
@@ -164,6 +168,8 @@ class CameraDriver(Driver):
         if msg is None:
             self.counters["corrupt"] += 1
             return
+        if not self.camera_info.width:
+            self._learn_size(msg, frame.recv_ns + self.offset_ns)
         topic = "image_raw/compressed" if isinstance(msg, m.CompressedImage) else "image_raw"
         self.publish(f"{self.config.topic_prefix}/{topic}", msg, frame.recv_ns + self.offset_ns)
         self.counters["frames"] += 1
@@ -184,6 +190,13 @@ class CameraDriver(Driver):
             self.last_corrupt = "the source could not decode the frame"
             return None
         return encode_raw(image, stamp_ns, frame_id, self.config.raw_output, self.config.jpeg_quality)
+
+    def _learn_size(self, msg: m.CompressedImage | m.Image, log_ns: int) -> None:
+        """The image size from the first good frame: the CameraInfo is made, latched and published."""
+        width, height = jpeg_header(msg.data) if isinstance(msg, m.CompressedImage) else (msg.width, msg.height)
+        self.camera_info = uncalibrated_camera_info(width, height, self.config.optical_frame_id, msg.stamp_ns)
+        self._static.insert(0, (self._info_topic, self.camera_info))
+        self.publish(self._info_topic, self.camera_info, log_ns)
 
     def close(self) -> None:
         grabber, self._grabber = self._grabber, None

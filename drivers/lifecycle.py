@@ -71,6 +71,30 @@ def wall_ns() -> int:
     return time.time_ns()
 
 
+class SignalFlag:
+    """A request (stop, split) raised by a signal handler and polled by the main loop.
+
+    Raising it takes no lock: ``threading.Event.set`` in a handler deadlocks when a second signal
+    lands while the first handler holds the event's lock (seen: SIGTERM twice froze the daemon).
+    ``wait`` sleeps in short steps of ``poll_s`` so the request is acted on at once.
+    """
+
+    def __init__(self, poll_s: float = 0.1) -> None:
+        self.raised = False
+        self.poll_s = poll_s
+
+    def raise_(self, *_: object) -> None:
+        """Raise the flag (the signature of a signal handler)."""
+        self.raised = True
+
+    def wait(self, timeout_s: float) -> bool:
+        """Sleep until the flag is raised or ``timeout_s`` passed; True if raised."""
+        deadline = time.monotonic() + timeout_s
+        while not self.raised and (left := deadline - time.monotonic()) > 0:
+            time.sleep(min(self.poll_s, left))
+        return self.raised
+
+
 class Backoff:
     """Capped exponential back-off: ``initial_s``, times ``factor`` per failure, at most ``max_s``."""
 
@@ -115,7 +139,7 @@ class Driver(ABC):
         self._connected_once = False
         self._connected_at: float | None = None  # monotonic s of the last successful open
         self._usable_count = 0
-        self._usable_at = 0.0  # monotonic s when the usable counter last moved (or the device opened)
+        self._usable_at = 0.0  # monotonic s when the usable counter last moved (or the device first opened)
 
     @abstractmethod
     def open(self) -> None:
@@ -148,8 +172,10 @@ class Driver(ABC):
                     self.counters["reconnects"] += 1
                 self._connected_once = True
                 self.open_error = ""
-                self._connected_at = self._usable_at = time.monotonic()
-                self._usable_count = self.counters[self.usable]
+                self._connected_at = time.monotonic()
+                if not self._usable_at:  # silence is counted from the first connection, across reconnects
+                    self._usable_at = self._connected_at
+                    self._usable_count = self.counters[self.usable]
                 self.backoff.reset()
                 self.state = "streaming"
                 while not self._stop.is_set():
@@ -191,6 +217,10 @@ class Driver(ABC):
         """Why a connected device gives no usable data, as far as the driver can tell ("" if it cannot)."""
         return ""
 
+    def counted(self, names: tuple[str, ...]) -> str:
+        """The counters ``names`` that are not zero, as ``"12 checksum errors, 3 truncated"``."""
+        return ", ".join(f"{self.counters[n]} {n.replace('_', ' ')}" for n in names if self.counters[n])
+
     def health_status(self, now: float | None = None) -> tuple[int, str]:
         """``(level, message)``: ERROR while the device cannot be opened, WARN while it is connected
         but silent for ``silence_s`` (or reconnecting), OK while streaming, STALE once stopped.
@@ -207,7 +237,7 @@ class Driver(ABC):
         count = self.counters[self.usable]
         if count != self._usable_count:
             self._usable_count, self._usable_at = count, now
-        silent_s = now - max(self._usable_at, connected_at)
+        silent_s = now - self._usable_at
         if silent_s >= self.silence_s:
             reason = self.silence_reason()
             return m.WARN, (f"connected, but no {self.usable.replace('_', ' ')} for {silent_s:.0f} s"

@@ -37,8 +37,11 @@ def _text(value: object) -> str:
 
 
 def encode(fields: Mapping[str, object]) -> dict[str, str]:
-    """The string map stored in the ``trundle`` record for ``fields`` (``robot`` and ``devices``
-    must be mappings; they are always stored as JSON objects)."""
+    """The string map stored in the ``trundle`` record for ``fields``; ``robot`` and ``devices``
+    are always stored as JSON objects (a ``robot`` given as a plain name becomes ``{"name": ...}``)."""
+    fields = dict(fields)
+    if isinstance(fields.get("robot"), str):
+        fields["robot"] = {"name": fields["robot"]}
     for key in STRUCTURED:
         if key in fields and not isinstance(fields[key], Mapping):
             raise TypeError(f"log metadata {key!r} must be a mapping, got {type(fields[key]).__name__}")

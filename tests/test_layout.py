@@ -15,7 +15,7 @@ MAY_IMPORT = {
     "perception": {"logs"},
     "fusion": {"logs"},
     "tools/sim": {"logs", "drivers", "perception", "fusion"},
-    "tools/emulators": {"logs", "drivers", "perception", "fusion", "tools/sim"},
+    "tools/emulators": {"logs", "drivers", "perception", "fusion", "tools/sim", "tools/config"},
     "tools/config": {"logs", "drivers", "perception", "fusion"},
     "tools/daemon": {"logs", "drivers", "perception", "fusion", "tools/config"},
     "tools/demo": {"logs", "drivers", "perception", "fusion", "tools/sim", "tools/emulators", "tools/daemon",

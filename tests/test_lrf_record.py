@@ -70,7 +70,7 @@ def test_emulate_lrf_command(tmp_path, capsys):
     assert main(["emulate", "lrf", "--link", str(tmp_path / "none" / "lrf")]) == 2
     assert main(["emulate", "lrf", "--protocol", "rplidar", "--model", "urg-04lx", "--tcp", "0"]) == 2
     assert main(["emulate", "lrf", "--scene", str(tmp_path / "missing.toml"), "--tcp", "0"]) == 2
-    assert "scene file not found" in capsys.readouterr().err
+    assert "no such scene file" in capsys.readouterr().err
     code = main(["emulate", "lrf", "--protocol", "rplidar", "--model", "a2", "--link", str(tmp_path / "lrf"),
                      "--faults", "checksum=0.1,seed=2", "--duration", "0.3"])
     assert code == 0 and "emulating rplidar a2" in capsys.readouterr().err

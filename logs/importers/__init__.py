@@ -6,13 +6,16 @@ Odometry, static transforms), so public data runs through exactly the code path 
 
 from __future__ import annotations
 
+import gzip
 import os
 import time
+import zlib
 from pathlib import Path
 from typing import Iterable
 
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.paths import input_file
 from trundle.logs.writer import Logger
 
 Item = tuple[str, m.Message, int]  # topic, message, log time (ns)
@@ -45,16 +48,17 @@ def write_log(items: Iterable[Item], out: str | os.PathLike[str], *, metadata: d
 
 
 def open_text(path: str | os.PathLike[str]) -> list[str]:
-    """Lines of a text dataset file (``.gz`` transparently); a missing or binary file is a UserError."""
-    path = Path(path)
-    if path.is_dir():
-        raise UserError(f"{path} is a folder, not a log file")
-    if not path.exists():
-        raise UserError(f"no such file: {path}")
-    raw = path.read_bytes()
-    if raw[:2] == b"\x1f\x8b":
-        import gzip
-        raw = gzip.decompress(raw)
-    if b"\x00" in raw[:4096]:
-        raise UserError(f"{path} is not a text log (binary data)")
+    """Lines of a text dataset file (``.gz`` transparently); a missing, binary or non-regular file
+    (a device such as /dev/zero would be read forever) is a UserError, said before it is read whole."""
+    path = input_file(path, "log file")
+    with open(path, "rb") as f:
+        gzipped = f.read(2) == b"\x1f\x8b"
+    try:
+        with (gzip.open(path, "rb") if gzipped else open(path, "rb")) as f:
+            head = f.read(65536)
+            if b"\x00" in head:
+                raise UserError(f"{path} is not a text log (binary data)")
+            raw = head + f.read()
+    except (OSError, EOFError, zlib.error) as error:
+        raise UserError(f"cannot read {path}: {error}") from None
     return raw.decode("utf-8", errors="replace").splitlines()

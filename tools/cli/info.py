@@ -37,7 +37,8 @@ def as_dict(info: LogInfo) -> dict:
         "start_ns": info.start_ns, "end_ns": info.end_ns, "messages": info.message_count,
         "chunks": info.chunks, "corrupt_chunks": info.corrupt_chunks, "complete": info.complete,
         "error": info.error, "metadata": info.metadata,
-        "topics": {name: {"type": t.ros_type, "count": t.count, "rate_hz": t.rate_hz, "latched": t.latched}
+        "topics": {name: {"type": t.ros_type, "encoding": t.encoding, "count": t.count, "rate_hz": t.rate_hz,
+                          "latched": t.latched}
                    for name, t in sorted(info.topics.items())},
     }
 
@@ -66,6 +67,6 @@ def run(args: argparse.Namespace) -> int:
         head = "Topic information: " if i == 0 else "                   "
         latched = " | latched" if t.latched else ""
         lines.append(f"{head}Topic: {name:<{width}} | Type: {t.ros_type:<{type_width}} | Count: {t.count:>7} | "
-                     f"Rate: {t.rate_hz:8.2f} Hz | Serialization Format: cdr{latched}")
+                     f"Rate: {t.rate_hz:8.2f} Hz | Serialization Format: {t.encoding}{latched}")
     print("\n".join(lines))
     return 0 if info.message_count or info.complete else 1

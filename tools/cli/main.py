@@ -69,7 +69,11 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser(argv).parse_args(argv)
+    """Run the command in ``argv`` (default: the process's arguments); returns the exit code."""
+    try:
+        args = build_parser(argv).parse_args(argv)
+    except SystemExit as done:  # --help, --version, or a usage mistake (said in one line by Parser)
+        return done.code if isinstance(done.code, int) else 0
     try:
         return int(args.func(args) or 0)
     except UserError as error:

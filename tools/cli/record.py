@@ -13,19 +13,18 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
 from trundle.drivers.devices import FAMILIES, make_driver
 from trundle.drivers.health import HealthReporter
-from trundle.drivers.lifecycle import Driver
+from trundle.drivers.lifecycle import Driver, SignalFlag
 from trundle.fusion.odometry import OdometrySink, odometry_from_config
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.writer import Logger
-from trundle.tools.cli.options import positive
+from trundle.tools.config.arguments import positive
 from trundle.tools.config.robot import Device, RobotConfig, load_config
 
 
@@ -77,18 +76,6 @@ def devices_to_record(args: argparse.Namespace, config: RobotConfig) -> list[Dev
     return devices
 
 
-def check_output(path: Path, splitting: bool) -> None:
-    """Refuse an output that would overwrite a recording (or a part of a split one)."""
-    if path.is_dir():
-        raise UserError(f"-o {path} is a folder: give a file name such as {path / 'run.mcap'}")
-    stem = path.name[: -len(".mcap")] if path.name.endswith(".mcap") else path.name
-    taken = [p for p in (path.with_name(stem + ".mcap"), path.with_name(stem + ".mcap.active")) if p.exists()]
-    if splitting:
-        taken += sorted(path.parent.glob(f"{stem}_[0-9]*.mcap*"))
-    if taken:
-        raise UserError(f"{taken[0]} exists: give another -o, or move it away (a recording is never overwritten)")
-
-
 def diagnostics(drivers: list[Driver]) -> m.DiagnosticArray:
     return m.DiagnosticArray(time.time_ns(), tuple(d.diagnostics() for d in drivers))
 
@@ -110,8 +97,8 @@ def say(text: str) -> None:
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     devices = devices_to_record(args, config)
-    splitting = bool(args.split_size or args.split_duration)
-    check_output(args.output, splitting)
+    if args.output.is_dir():
+        raise UserError(f"-o {args.output} is a folder: give a file name such as {args.output / 'run.mcap'}")
     sink = _Deferred()
     drivers: list[Driver] = []
     for device in devices:
@@ -123,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
             drivers.append(make_driver(device.family, device.url, target, device.options))
         except UserError as error:
             raise UserError(f"{device.family} {device.url}: {error}") from None
-    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.parent.mkdir(parents=True, exist_ok=True)  # the logger refuses to overwrite a recording
     compression = args.compression or ("lz4" if any(d.family == "camera" for d in devices) else "zstd")
     metadata = {"command": "record", "robot": {"name": config.robot},
                 "devices": {d.name: {"family": d.family, "url": d.url, **d.options} for d in devices}}
@@ -135,9 +122,9 @@ def run(args: argparse.Namespace) -> int:
     sink.target = logger
     health = HealthReporter(say)
     try:
-        stop = threading.Event()
+        stop = SignalFlag()
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+            signal.signal(sig, stop.raise_)
         for driver in drivers:
             for topic, msg in driver.static_messages():
                 logger.write(topic, msg)

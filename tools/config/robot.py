@@ -33,6 +33,7 @@ from typing import Any
 from trundle.drivers.devices import FAMILIES, make_driver
 from trundle.fusion.odometry import odometry_from_config
 from trundle.logs.errors import UserError
+from trundle.logs.paths import read_text
 
 ACTIONS = ("delete_oldest", "stop")
 COMPRESSIONS = ("zstd", "lz4", "none")
@@ -428,17 +429,10 @@ def check_daemon_config(config: RobotConfig) -> None:
 def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The TOML document at ``path``; a missing, unreadable or invalid file is one UserError line."""
     path = Path(path)
+    if not path.exists():
+        raise UserError(f"config file not found: {path}")
     try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
-    except FileNotFoundError:
-        raise UserError(f"config file not found: {path}") from None
-    except IsADirectoryError:
-        raise UserError(f"{path} is a folder, not a config file") from None
-    except OSError as error:
-        raise UserError(f"cannot read config {path}: {error.strerror or error}") from None
-    except UnicodeDecodeError:
-        raise UserError(f"{path}: not valid TOML (not UTF-8 text)") from None
+        return tomllib.loads(read_text(path, "TOML config file"))
     except tomllib.TOMLDecodeError as error:
         raise UserError(f"{path}: not valid TOML ({error})") from None
 

@@ -51,6 +51,7 @@ from trundle.tools.daemon.systemd import sd_notify, watchdog_period_s
 DriverFactory = Callable[[str, str, Any, dict[str, Any]], Driver]  # (family, url, sink, options) -> driver
 NO_SPLIT_BYTES = 1 << 62  # split only on request: the logger then numbers its files
 LOGGER_RETRY_S = 5.0  # after a logger failure, try a new log this much later
+SIGNAL_POLL_S = 0.1  # the supervision loop's longest sleep: how soon a signal's request is acted on
 
 
 def static_transform(stamp_ns: int, parent: str, child: str, xyz: tuple[float, float, float],
@@ -160,7 +161,8 @@ class Daemon:
             while not self._stop_requested:
                 now = time.monotonic()
                 deadlines = [next_diag, next_disk] + ([next_watchdog] if watchdog else [])
-                self._wake.wait(max(0.0, min(deadlines) - now))
+                # short waits: a signal handler only sets a flag (see _on_stop_signal), seen here at once
+                self._wake.wait(min(SIGNAL_POLL_S, max(0.0, min(deadlines) - now)))
                 self._wake.clear()
                 now = time.monotonic()
                 if self._split_requested:
@@ -197,12 +199,13 @@ class Daemon:
         self._wake.set()
 
     def _on_stop_signal(self, signum: int, frame: Any) -> None:
-        """SIGTERM, SIGINT: stop."""
-        self.stop()
+        """SIGTERM, SIGINT: stop. Only a flag: a handler that took the wake event's lock deadlocked
+        when a second signal came while it held it (SIGTERM twice froze the daemon)."""
+        self._stop_requested = True
 
     def _on_split_signal(self, signum: int, frame: Any) -> None:
-        """SIGHUP: a new log file."""
-        self.request_split()
+        """SIGHUP: a new log file (a flag, as for stop)."""
+        self._split_requested = True
 
     def shutdown(self) -> None:
         """Stop drivers and processing, write the last diagnostics, close the log, close the socket."""

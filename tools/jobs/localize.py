@@ -42,10 +42,7 @@ def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic
     grid = grid_from_map(load_map(yaml_path))
     reader = LogReader(log)
     info = reader.info()
-    topic = info.topics.get(scan_topic)
-    if topic is None or topic.ros_type != "sensor_msgs/msg/LaserScan":
-        raise UserError(f"{log} has no LaserScan topic {scan_topic} "
-                        f"(topics: {', '.join(sorted(info.topics)) or 'none'})")
+    info.require(scan_topic, "sensor_msgs/msg/LaserScan")
     wheels = make_odometry(info, config) if use_odometry else None
     configured_mount = laser_pose(info, config)
     mounts: dict[str, np.ndarray] = {}

@@ -35,6 +35,7 @@ def number_in(low: float | None = None, high: float | None = None, *, low_open: 
         return value
 
     parse.__name__ = "whole number" if whole else "number"  # what argparse names in its message
+    parse.bounds = (low, high, low_open, whole)  # type: ignore[attr-defined]  # for tests that probe the edges
     return parse
 
 

@@ -62,15 +62,18 @@ def new_file(path: str | os.PathLike[str], what: str = "output") -> Path:
     return path
 
 
-def output_folder(path: str | os.PathLike[str], *, empty: bool = True) -> Path:
-    """``path`` as a folder to write results into, created (with its parents); an existing file, or
-    (``empty``) a folder that already holds files, is a UserError: results are never overwritten."""
+def output_folder(path: str | os.PathLike[str], *, empty: bool = True, create: bool = True) -> Path:
+    """``path`` as a folder to write results into, created (with its parents) unless ``create`` is
+    False (check now, make it once the inputs are known good); an existing file, or (``empty``) a
+    folder that already holds files, is a UserError: results are never overwritten."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise UserError(f"output {path} is a file, not a folder")
     if empty and path.is_dir() and any(path.iterdir()):
         raise UserError(f"output folder {path} is not empty: give a new folder, or move its files away "
                         "(results are never overwritten)")
+    if not create:
+        return path
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as error:

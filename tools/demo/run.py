@@ -269,7 +269,7 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     """Record the simulated robot with the real daemon, then map, detect, score and write ``out``;
     return the report. ``say`` tells each stage, ``progress`` makes each long stage's display."""
     started = time.monotonic()
-    output_folder(out, empty=False)
+    output_folder(out, empty=False, create=False)  # made by record() once the world is read
     world = load_world(settings.world)
     sim = RobotSim(world, seed=settings.seed)
     say("[1/4] recording: world simulator -> device emulators -> trundle daemon -> log")

@@ -69,7 +69,7 @@ def characterize_log(log: str | Path, topic: str, output: Path | None = None, re
     """
     reader = LogReader(log)
     if output:
-        output_folder(output, empty=False)
+        output_folder(output, empty=False, create=False)  # checked before the work
     info = reader.info()
     if topic not in info.topics:
         raise UserError(f"topic {topic} is not in {log} (topics: {', '.join(sorted(info.topics))})")
@@ -92,6 +92,7 @@ def characterize_log(log: str | Path, topic: str, output: Path | None = None, re
         raise UserError(f"{topic} carries {info.topics[topic].ros_type}: not a laser, encoder or camera topic")
     figures = _jsonable(figures)
     if output:
+        output_folder(output, empty=False)
         names = write_plots(output, plots)
         (output / "report.json").write_text(json.dumps(figures, indent=2))
         (output / "report.md").write_text(markdown(figures, topic, names))

@@ -60,7 +60,7 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     wheels = make_odometry(info, config)
     odometry = odometry_source(info, config, wheels) or "none"
     slam = Slam(slam_config, wheels, laser_pose(info, config))
-    output_folder(output)
+    output_folder(output, create=False)  # checked before the work, made once there is a result
 
     bar = progress("slam", max(info.duration_s, 1e-9))
     t0 = info.start_ns or 0
@@ -80,6 +80,7 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
         raise UserError(f"{log}: no scans on {slam_config.scan_topic}")
 
     stamps, poses = slam.trajectory()
+    output_folder(output)
     end_ns = int(stamps.max())
     map_msg = grid.to_message(end_ns, "map")
     save_map(map_msg, output / "map")

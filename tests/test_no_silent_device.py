@@ -127,3 +127,20 @@ def test_the_daemon_waits_for_missing_devices_and_says_so(tmp_path):
     assert "bare/camera: ERROR: " in said and "no camera at /dev/trundle-camera-missing" in said
     assert daemon.returncode == 0 and "Traceback" not in said + rest
     assert '"state": "running"' in status.stdout
+
+
+def test_a_camera_whose_every_frame_is_corrupt_says_so():
+    from trundle.drivers.camera import driver_from_url as camera_from_url
+    from trundle.tools.emulators.camera_emulator import CameraEmulator
+
+    with CameraEmulator(fps=20, width=160, height=120, corrupt_every=1) as emulator:
+        driver = camera_from_url(emulator.url, lambda *a: None, {})
+        driver.silence_s = 1.0
+        driver.start()
+        deadline = time.monotonic() + 30
+        while "no frames" not in driver.diagnostics().message and time.monotonic() < deadline:
+            time.sleep(0.1)
+        status = driver.diagnostics()
+        driver.stop()
+    assert status.level == m.WARN and "corrupt frames dropped (last: " in status.message, status.message
+    assert driver.counters["frames"] == 0 and driver.counters["corrupt"] > 5

@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -28,13 +30,21 @@ def alive(pid: int) -> bool:
     return state != "Z"
 
 
-def start_demo(tmp_path: Path) -> tuple[subprocess.Popen[str], int, list[str]]:
+@pytest.fixture()
+def short_tmp():
+    """A temporary folder with a short path for the demo's TMPDIR: its status socket lives there,
+    and a UNIX socket path may not exceed 107 bytes (pytest's own folders under xdist can)."""
+    folder = Path(tempfile.mkdtemp(prefix="tds-", dir="/tmp"))
+    yield folder
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def start_demo(tmp_path: Path, short_tmp: Path) -> tuple[subprocess.Popen[str], int, list[str]]:
     """A demo in its own process, run as ``trundle demo -o .`` in a folder that holds packages of
     its own named ``tools`` and ``trundle`` (they must shadow nothing: the daemon once started as
-    ``python -m tools.cli``), temporary files under ``tmp_path/tmp``; once its robot drives,
+    ``python -m tools.cli``), temporary files under ``short_tmp``; once its robot drives,
     returns the process, its daemon's pid and the output lines so far."""
-    env = {**os.environ, "TMPDIR": str(tmp_path / "tmp")}
-    (tmp_path / "tmp").mkdir()
+    env = {**os.environ, "TMPDIR": str(short_tmp)}
     out = tmp_path / "out"
     for package in ("tools", "tools/cli", "trundle"):
         (out / package).mkdir(parents=True)
@@ -69,15 +79,16 @@ def wait_gone(pid: int, timeout_s: float = 60.0) -> bool:
 
 
 @pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGTERM])
-def test_a_signal_stops_the_daemon_and_keeps_the_partial_log(tmp_path: Path, sig: signal.Signals) -> None:
-    demo, daemon, lines = start_demo(tmp_path)
+def test_a_signal_stops_the_daemon_and_keeps_the_partial_log(tmp_path: Path, short_tmp: Path,
+                                                            sig: signal.Signals) -> None:
+    demo, daemon, lines = start_demo(tmp_path, short_tmp)
     assert alive(daemon)
     demo.send_signal(sig)
     rest, _ = demo.communicate(timeout=120)
     output = "".join(lines) + rest
     assert demo.returncode != 0 and "Traceback" not in output
     assert wait_gone(daemon), "the daemon outlived the demo"
-    assert not list((tmp_path / "tmp").glob("trundle-demo-*")), "temporary folder left behind"
+    assert not list(short_tmp.glob("trundle-demo-*")), "temporary folder left behind"
     out = tmp_path / "out"
     assert not list(out.glob(".daemon-logs-*"))
     partial = out.resolve() / "demo.partial.mcap"
@@ -86,8 +97,8 @@ def test_a_signal_stops_the_daemon_and_keeps_the_partial_log(tmp_path: Path, sig
     assert info.complete and info.topics["/scan"].count > 10  # closed cleanly by the daemon's SIGTERM
 
 
-def test_a_killed_demo_takes_its_daemon_with_it(tmp_path: Path) -> None:
-    demo, daemon, _ = start_demo(tmp_path)
+def test_a_killed_demo_takes_its_daemon_with_it(tmp_path: Path, short_tmp: Path) -> None:
+    demo, daemon, _ = start_demo(tmp_path, short_tmp)
     demo.kill()
     demo.communicate(timeout=30)
     assert wait_gone(daemon), "the daemon outlived a killed demo"

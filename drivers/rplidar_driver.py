@@ -586,6 +586,11 @@ class RplidarDriver(Driver):
                 self.counters["sink_drops"] += 1
         self._bad_in_row += self.counters["corrupt_revolutions"] + self.counters["incomplete_revolutions"] - bad_before
 
+    def silence_reason(self) -> str:
+        bad = self.counted(("corrupt_revolutions", "incomplete_revolutions", "bad_capsules", "bad_nodes",
+                            "skipped_bytes", "timeouts"))
+        return f"data, but no whole revolution ({bad})" if bad else "no scan data arrives"
+
     def diagnostics(self) -> m.DiagnosticStatus:
         base = super().diagnostics()
         mode = self.scan_mode

@@ -452,6 +452,11 @@ class ScipDriver(Driver):
             ("drift_ppm", f"{t.drift_ppm:.3f}")))
         self.sink(self.config.timing_topic, m.DiagnosticArray(stamp_ns, (status,)), t.host_rx_ns)
 
+    def silence_reason(self) -> str:
+        bad = self.counted(("checksum_errors", "truncated", "format_errors", "status_errors", "unstable", "abnormal",
+                            "timeouts", "garbage_bytes"))
+        return f"replies, but no valid scans ({bad})" if bad else "no scan data arrives"
+
     def diagnostics(self) -> m.DiagnosticStatus:
         base = super().diagnostics()
         extra = [("model", self.params.model if self.params else ""), ("serial", self.version.get("SERI", "")),

@@ -24,6 +24,7 @@ import numpy as np
 from trundle.fusion.geometry import compose, relative, wrap_angle
 from trundle.fusion.map_io import read_trajectory_csv
 from trundle.logs.errors import UserError
+from trundle.logs.paths import input_file
 
 DEFAULT_TOLERANCE_NS = 1_000_000  # 1 ms: scans are tens of milliseconds apart
 
@@ -154,9 +155,7 @@ def read_carmen_trajectory(path: str | Path) -> Trajectory:
 
 def read_reference(path: str | Path) -> Trajectory | Relations:
     """A reference for evaluation: ``.relations`` file, ``t_ns,x,y,theta`` CSV, or CARMEN log."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: no such file")
+    path = input_file(path, "reference or trajectory file")
     if path.suffix == ".relations":
         return read_relations(path)
     with path.open("rb") as handle:

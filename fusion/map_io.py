@@ -11,14 +11,15 @@ from __future__ import annotations
 import csv
 import math
 import os
-import re
 from pathlib import Path
 
 import cv2
 import numpy as np
+from ruamel.yaml import YAML, YAMLError
 
 from trundle.logs.errors import UserError
 from trundle.logs.messages import OccupancyGrid
+from trundle.logs.paths import input_file, read_text
 
 OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.25
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205
@@ -46,41 +47,55 @@ def save_map(grid: OccupancyGrid, base: str | os.PathLike[str]) -> tuple[Path, P
     return pgm, yaml, png
 
 
-def _yaml_value(text: str, key: str) -> str:
-    found = re.search(rf"^\s*{key}\s*:\s*(.+?)\s*$", text, re.MULTILINE)
-    if not found:
-        raise UserError(f"map YAML has no {key!r}")
-    return found.group(1).strip().strip("'\"")
+def _map_number(data: dict, key: str, where: Path, low: float, high: float, default: float | None = None) -> float:
+    """The map YAML's number ``key``, finite and within [low, high]; otherwise a UserError naming it."""
+    value = data.get(key, default)
+    if value is None:
+        raise UserError(f"{where}: map YAML has no {key!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (low <= value <= high):
+        raise UserError(f"{where}: {key} = {value!r} must be a number in [{low:g}, {high:g}]")
+    return float(value)
 
 
 def load_map(yaml_path: str | os.PathLike[str], stamp_ns: int = 0, frame_id: str = "map") -> OccupancyGrid:
     """Read a map_server YAML + image as an OccupancyGrid (trinary: 100 occupied, 0 free, -1 unknown).
 
     Follows map_server: ``p = (255 - v) / 255`` (or ``v / 255`` with ``negate: 1``), occupied
-    above ``occupied_thresh``, free below ``free_thresh``, unknown between.
+    above ``occupied_thresh``, free below ``free_thresh``, unknown between. A missing, binary or
+    inconsistent file (resolution <= 0, thresholds outside [0, 1], an unreadable image) is a
+    UserError naming what is wrong.
     """
     yaml_path = Path(yaml_path)
-    if not yaml_path.is_file():
-        raise UserError(f"no such map file: {yaml_path}")
-    text = yaml_path.read_text()
+    if yaml_path.suffix.lower() in (".pgm", ".png", ".bmp", ".jpg", ".tif", ".tiff"):
+        raise UserError(f"{yaml_path} is a map image: give its YAML (map.yaml) or the folder holding both")
     try:
-        resolution = float(_yaml_value(text, "resolution"))
-        origin = [float(v) for v in _yaml_value(text, "origin").strip("[]").split(",")]
-        negate = int(_yaml_value(text, "negate")) if re.search(r"^\s*negate\s*:", text, re.MULTILINE) else 0
-        occupied = float(_yaml_value(text, "occupied_thresh"))
-        free = float(_yaml_value(text, "free_thresh"))
-    except ValueError as error:
-        raise UserError(f"{yaml_path}: bad value ({error})") from None
-    image_path = yaml_path.parent / _yaml_value(text, "image")
+        data = YAML(typ="safe", pure=True).load(read_text(yaml_path, "map YAML"))
+    except YAMLError as error:
+        raise UserError(f"{yaml_path} is not valid YAML: {str(error).splitlines()[0]}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("image"), str):
+        raise UserError(f"{yaml_path} is not a map_server map YAML (no image: line)")
+    resolution = _map_number(data, "resolution", yaml_path, 1e-6, 1e3)  # metres per cell
+    origin = data.get("origin")
+    if not (isinstance(origin, list) and len(origin) in (2, 3)
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in origin)):
+        raise UserError(f"{yaml_path}: origin = {origin!r} must be [x, y, yaw] (metres, radians)")
+    negate = data.get("negate", 0)
+    if negate not in (0, 1):
+        raise UserError(f"{yaml_path}: negate = {negate!r} must be 0 or 1")
+    occupied = _map_number(data, "occupied_thresh", yaml_path, 0.0, 1.0, OCCUPIED_THRESH)
+    free = _map_number(data, "free_thresh", yaml_path, 0.0, 1.0, FREE_THRESH)
+    if free > occupied:
+        raise UserError(f"{yaml_path}: free_thresh {free} is above occupied_thresh {occupied}")
+    image_path = input_file(yaml_path.parent / data["image"], "map image")
     image = cv2.imread(str(image_path), cv2.IMREAD_GRAYSCALE)
     if image is None:
         raise UserError(f"cannot read map image {image_path}")
     p = image.astype(np.float64) / 255.0 if negate else (255.0 - image) / 255.0
-    data = np.full(image.shape, -1, np.int8)
-    data[p > occupied] = 100
-    data[p < free] = 0
-    return OccupancyGrid(stamp_ns, frame_id, resolution, origin[0], origin[1], origin[2] if len(origin) > 2 else 0.0,
-                         data[::-1])
+    values = np.full(image.shape, -1, np.int8)
+    values[p > occupied] = 100
+    values[p < free] = 0
+    return OccupancyGrid(stamp_ns, frame_id, resolution, float(origin[0]), float(origin[1]),
+                         float(origin[2]) if len(origin) > 2 else 0.0, values[::-1])
 
 
 def write_trajectory_csv(path: str | os.PathLike[str], stamps_ns: np.ndarray, poses: np.ndarray) -> None:

@@ -102,9 +102,12 @@ class SlamConfig:
     optimize_every_keyframes: int = 10
     robust_kernel: str = "cauchy"
 
+    POSITIVE = frozenset({"resolution", "scans_per_submap", "optimize_every_keyframes", "loop_every_keyframes"})
+
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> SlamConfig:
-        """A config from a TOML table; unknown keys or wrong types are a UserError."""
+        """A config from a TOML table; unknown keys, wrong types and impossible values (negative,
+        non-finite, a zero resolution) are a UserError."""
         known = {f.name: f for f in fields(cls)}
         config = cls()
         for key, value in values.items():
@@ -124,7 +127,14 @@ class SlamConfig:
                     converted = type(default)(value)
             except (TypeError, ValueError):
                 raise UserError(f"[slam] {key} = {value!r}: expected {type(default).__name__}") from None
+            numbers = converted if isinstance(converted, tuple) else (converted,)
+            if not isinstance(converted, (bool, str)) and not all(math.isfinite(v) and v >= 0 for v in numbers):
+                raise UserError(f"[slam] {key} = {value!r}: expected finite numbers >= 0")
+            if key in cls.POSITIVE and not converted > 0:
+                raise UserError(f"[slam] {key} = {value!r}: expected a number > 0")
             setattr(config, key, converted)
+        if config.max_range_m <= config.min_range_m:
+            raise UserError(f"[slam] max_range_m {config.max_range_m} must be above min_range_m {config.min_range_m}")
         return config
 
 

@@ -15,6 +15,7 @@ from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from trundle.logs.errors import UserError
+from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader
 
 
@@ -29,13 +30,34 @@ class RecoverResult:
 def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> RecoverResult:
     """Copy every readable record of ``src`` into a complete MCAP at ``dst``.
 
-    Raises ``UserError`` when ``src`` is not MCAP or nothing at all could be read.
+    A folder ``dst`` gets the file under the input's name (without ``.active``). Raises
+    ``UserError`` when ``src`` is not MCAP, nothing at all could be read, or ``dst`` exists (a
+    file is never overwritten); nothing is left behind then.
     """
     reader = LogReader(src)
     dst = Path(dst)
+    if dst.is_dir():
+        name = reader.path.name.removesuffix(".active")
+        dst = dst / (name if name.endswith(".mcap") else name + ".mcap")
     if dst.resolve() == reader.path.resolve():
         raise UserError("recover needs an output path different from its input")
-    tmp = dst.with_name(dst.name + ".tmp")
+    new_file(dst, "recover output")
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
+    try:
+        count, channel_ids = _copy(reader, tmp)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    if count == 0 and not channel_ids:
+        tmp.unlink()
+        raise UserError(f"nothing could be recovered from {src}: {reader.last_scan_error or 'no messages'}")
+    os.replace(tmp, dst)
+    return RecoverResult(dst, count, reader.last_scan_corrupt_chunks, reader.last_scan_error)
+
+
+def _copy(reader: LogReader, tmp: Path) -> tuple[int, dict[int, int]]:
+    """Copy every readable record of ``reader``'s file into a complete MCAP at ``tmp``; the
+    messages copied and the channel ids used."""
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
     pending_channels: dict[int, Channel] = {}
@@ -73,11 +95,7 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recover
         if not header_written:
             writer.start(profile="ros2", library="trundle recover")
         writer.finish()
-    if count == 0 and not channel_ids:
-        tmp.unlink()
-        raise UserError(f"nothing could be recovered from {src}: {reader.last_scan_error or 'no messages'}")
-    os.replace(tmp, dst)
-    return RecoverResult(dst, count, reader.last_scan_corrupt_chunks, reader.last_scan_error)
+    return count, channel_ids
 
 
 def _register(writer: Writer, channel: Channel, schemas: dict[int, Schema], schema_ids: dict[int, int]) -> int:

@@ -16,7 +16,7 @@ from trundle.fusion.geometry import compose, inverse
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
 from trundle.tools.sim.camera_render import optical_rotation
-from trundle.tools.daemon.config import parse_config
+from trundle.tools.config.robot import parse_config
 from trundle.tools.daemon.service import Daemon
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
@@ -74,7 +74,7 @@ def sim():
 @pytest.mark.flaky(reruns=1)
 def test_online_slam_and_markers_follow_the_ground_truth(tmp_path, sim):
     config = parse_config({
-        "robot": {"name": "proc"}, "lrf": {"url": "sim://robot"},
+        "robot": {"name": "proc"}, "lrf": {"url": "scip2:///dev/sim-robot"},
         "logger": {"folder": str(tmp_path / "logs")}, "status": {"socket": str(tmp_path / "s.sock")},
         "disk": {"min_free_mb": 1.0},
         "processing": {"slam": True, "markers": True, "map_period_s": 1.0, "markers_hz": 5.0,

@@ -59,7 +59,7 @@ def test_job_options_are_converted_by_the_job_functions_type_hints(tmp_path) -> 
 
 
 @pytest.mark.parametrize("job, items, message", [
-    ("slam", ["loops=1"], "slam has no option 'loops' (options: config=None (table), local_only=False (bool))"),
+    ("slam", ["loops=1"], "slam has no option 'loops' (options: config=None (config), local_only=False (bool))"),
     ("characterize", [], "characterize needs topic=... in --job-options"),
     ("localize", ["config={}"], "localize needs map_path=..."),
     ("slam", ["local_only=maybe"], "slam option local_only: needs true or false, got 'maybe'"),
@@ -68,9 +68,10 @@ def test_job_options_are_converted_by_the_job_functions_type_hints(tmp_path) -> 
     ("slam", ["local_only=1", "local_only=0"], "slam option local_only given twice"),
     ("slam", ["local_only"], "--job-options needs KEY=VALUE, got 'local_only'"),
     ("localize", ["map_path=/no/such/map"], "localize option map_path: no such file or folder: /no/such/map"),
-    ("slam", ["config=/no/such.toml"], "no such config file: /no/such.toml"),
+    ("slam", ["config=/no/such.toml"], "config file not found: /no/such.toml"),
+    ("slam", ['config={"slam": {"resolution": 0}}'], "slam option config: [slam] resolution = 0: expected a number > 0"),
     ("slam", ["config={1: 2}"], "slam option config: invalid JSON"),
-    ("perceive", ["pipeline=color", "options=[1]"], "no such config file: [1]"),
+    ("perceive", ["pipeline=color", "options=[1]"], "config file not found: [1]"),
     ("walk", [], "unknown job 'walk'"),
 ])
 def test_bad_job_options_are_one_clear_error(job, items, message) -> None:
@@ -185,6 +186,7 @@ def test_a_log_is_computed_once_then_skipped_while_input_and_options_are_the_sam
     assert read_marker(out / "run1")["identity"].endswith(str(log.stat().st_mtime_ns))
     assert process_log(task(log, out, options={"local_only": True}))["status"] == "ok"   # other options
     assert process_log(task(log, out, options={"local_only": True}, force=True))["status"] == "ok"
+    log.unlink()
     robot_log(log, "robot-a", noise_m=0.02)                                              # other bytes
     again = process_log(task(log, out, options={"local_only": True}))
     assert again["status"] == "ok" and again["sha256"] != first["sha256"]
@@ -198,7 +200,7 @@ def test_a_failing_log_fails_its_row_alone_and_keeps_the_last_complete_result(tm
     before = sorted(p.name for p in (out / "run1").iterdir())
     corrupt_log(log, log)
     row = process_log(task(log, out))
-    assert row["status"] == "failed" and row["error"] == f"{log} has no LaserScan topic /scan (topics: none)"
+    assert row["status"] == "failed" and row["error"] == f"{log} has no topic /scan (sensor_msgs/msg/LaserScan; topics: none)"
     assert sorted(p.name for p in (out / "run1").iterdir()) == before       # the old result is still whole
     assert f"{log}\n" in (out / ".fleet" / "errors" / "run1.txt").read_text()
 
@@ -318,7 +320,7 @@ def test_trundle_help_imports_no_ray_and_fleet_help_lists_every_jobs_options() -
     fleet = subprocess.run([sys.executable, "-c", code, "fleet", "--help"], capture_output=True, text=True, check=True)
     assert fleet.stdout.strip().endswith("False")
     assert "characterize  topic=... (text), reference=None (path), beam='all' (int-or-text)" in fleet.stdout
-    assert "slam          config=None (table), local_only=False (bool)" in fleet.stdout
+    assert "slam          config=None (config), local_only=False (bool)" in fleet.stdout
 
 
 def test_command_errors_are_one_line(tmp_path, capsys, monkeypatch, log) -> None:
@@ -327,7 +329,7 @@ def test_command_errors_are_one_line(tmp_path, capsys, monkeypatch, log) -> None
     assert main(["fleet", "characterize", str(log), "-o", str(tmp_path / "o")]) == 2
     assert capsys.readouterr().err.startswith("trundle fleet: characterize needs topic=... in --job-options")
     assert main(["fleet", "info", str(log), "-o", str(tmp_path / "o"), "--retries", "-1"]) == 2
-    assert capsys.readouterr().err == "trundle fleet: --retries must be 0 or more\n"
+    assert capsys.readouterr().err == "trundle fleet: argument --retries: -1 must be at least 0 (see trundle fleet --help)\n"
     import socket
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

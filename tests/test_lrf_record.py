@@ -154,7 +154,7 @@ def test_emulate_lrf_command(tmp_path, capsys):
     assert main(["emulate", "lrf", "--link", str(tmp_path / "none" / "lrf")]) == 2
     assert main(["emulate", "lrf", "--protocol", "rplidar", "--model", "urg-04lx", "--tcp", "0"]) == 2
     assert main(["emulate", "lrf", "--scene", str(tmp_path / "missing.toml"), "--tcp", "0"]) == 2
-    assert "scene file not found" in capsys.readouterr().err
+    assert "no such scene file" in capsys.readouterr().err
     for model in ("a2", "s2", "c1", "a3"):
         code = main(["emulate", "lrf", "--protocol", "rplidar", "--model", model, "--link", str(tmp_path / "lrf"),
                      "--faults", "checksum=0.1,seed=2", "--duration", "0.3"])

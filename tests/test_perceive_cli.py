@@ -160,9 +160,9 @@ def test_text_summary(log: Path, tmp_path: Path, capsys) -> None:
     (["--pipeline", "color", "--lower", "1,2"], "three comma-separated numbers"),
     (["--pipeline", "color", "--lower", "1,2,3"], "--lower and --upper go together"),
     (["--pipeline", "markers", "--dictionary", "DICT_99"], "unknown ArUco dictionary"),
-    (["--pipeline", "markers", "--marker-size", "-1"], "--marker-size must be positive"),
+    (["--pipeline", "markers", "--marker-size", "-1"], "--marker-size: -1 must be above 0"),
     (["--pipeline", "markers", "--topics", "/camera/camera_info"], "not an image topic"),
-    (["--pipeline", "color", "--template", "/no/such.png"], "cannot read image"),
+    (["--pipeline", "color", "--template", "/no/such.png"], "no such image: /no/such.png"),
 ])
 def test_user_errors_are_one_line(log: Path, tmp_path: Path, capsys, extra: list[str], message: str) -> None:
     assert main(["perceive", str(log), "-o", str(tmp_path / "e.mcap"), *extra]) == 2

@@ -20,6 +20,7 @@ from typing import Any
 
 from trundle.logs.errors import UserError
 from trundle.tools.cli.progress import Progress
+from trundle.tools.config.arguments import non_negative_int, positive, positive_int
 
 JOBS = ("info", "slam", "perceive", "characterize", "localize")
 
@@ -41,10 +42,10 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("logs", nargs="+", metavar="LOG_OR_GLOB", help="log files, folders, quoted globs or URLs")
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder (created)")
     p.add_argument("--address", help="Ray cluster HOST:PORT (default: RAY_ADDRESS, else a local Ray)")
-    p.add_argument("--retries", type=int, default=3, help="runs again of a task lost with its worker (default 3)")
+    p.add_argument("--retries", type=non_negative_int, default=3, help="runs again of a task lost with its worker (default 3)")
     p.add_argument("--job-options", nargs="+", default=[], metavar="KEY=VALUE", help="the job's options (below)")
-    p.add_argument("--num-cpus", type=int, help="CPUs of the local Ray (default: all of this machine)")
-    p.add_argument("--cpus-per-log", type=float, default=1.0, help="CPUs each log's task reserves (default 1)")
+    p.add_argument("--num-cpus", type=positive_int, help="CPUs of the local Ray (default: all of this machine)")
+    p.add_argument("--cpus-per-log", type=positive, default=1.0, help="CPUs each log's task reserves (default 1)")
     p.add_argument("--force", action="store_true", help="recompute logs whose result is complete")
     p.set_defaults(func=run)
 
@@ -59,12 +60,6 @@ def _line(row: dict[str, Any], fleet: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the fleet; exit code 0 if every log is ok or skipped, 1 if any failed, 130 if interrupted."""
-    if args.retries < 0:
-        raise UserError("--retries must be 0 or more")
-    if args.cpus_per_log <= 0:
-        raise UserError("--cpus-per-log must be more than 0")
-    if args.num_cpus is not None and args.num_cpus < 1:
-        raise UserError("--num-cpus must be 1 or more")
     if importlib.util.find_spec("ray") is None:   # found, not imported: a local Ray is set up before its import
         raise UserError("trundle fleet needs Ray: pip install 'trundle[fleet]'")
     from trundle.tools.fleet.jobs import parse_options

@@ -11,12 +11,15 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 
 from trundle.fusion.map_io import write_trajectory_csv
 from trundle.fusion.odometry_drift import drifting_odometry
 from trundle.logs.importers.breezyslam import import_breezyslam
-from trundle.logs.importers.carmen import import_carmen, read_carmen, scan_poses
+from trundle.logs.importers.carmen import ODOMETRY_SOURCES, choose_odometry, import_carmen, read_carmen, scan_poses
+from trundle.logs.paths import new_file
+from trundle.tools.config.arguments import finite, non_negative_int, number_in, positive
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -24,20 +27,22 @@ def register(p: argparse.ArgumentParser) -> None:
     formats.required = True
     c = formats.add_parser("carmen", help="CARMEN log (.clf, .log, .gfs.log; .gz too)")
     c.add_argument("input", type=Path)
-    c.add_argument("-o", "--output", type=Path, required=True, help="output .mcap")
-    c.add_argument("--odometry", choices=("odom", "laser", "none"), default="odom",
-                   help="odometry source: ODOM lines, the laser lines' odometry fields, or none")
-    c.add_argument("--max-range", type=float, help="no-return range of FLASER/RLASER (default: inferred)")
+    c.add_argument("-o", "--output", type=Path, required=True, help="output .mcap (must not exist)")
+    c.add_argument("--odometry", choices=ODOMETRY_SOURCES, default="auto",
+                   help="odometry source: ODOM lines, the laser lines' odometry fields, or none; auto (default): "
+                        "the ODOM lines if there are any, else the laser lines' fields")
+    c.add_argument("--max-range", type=positive, help="no-return range of FLASER/RLASER, m (default: inferred)")
     c.add_argument("--drift", action="store_true",
                    help="odometry = laser poses with drift (implies --odometry laser)")
-    c.add_argument("--drift-scale", type=float, default=0.05, help="systematic translation scale error")
-    c.add_argument("--drift-heading", type=float, default=2.0, help="systematic heading drift, deg per metre")
-    c.add_argument("--seed", type=int, default=0, help="seed of the random part of the drift")
+    c.add_argument("--drift-scale", type=number_in(-0.5, 0.5), default=0.05,
+                   help="systematic translation scale error (-0.5 .. 0.5; default 0.05)")
+    c.add_argument("--drift-heading", type=finite, default=2.0, help="systematic heading drift, deg per metre")
+    c.add_argument("--seed", type=non_negative_int, default=0, help="seed of the random part of the drift")
     c.add_argument("--reference", type=Path, help="write the laser poses as t_ns,x,y,theta CSV")
     c.set_defaults(func=run_carmen)
     b = formats.add_parser("breezyslam", help="BreezySLAM / CoreSLAM .dat log")
     b.add_argument("input", type=Path)
-    b.add_argument("-o", "--output", type=Path, required=True, help="output .mcap")
+    b.add_argument("-o", "--output", type=Path, required=True, help="output .mcap (must not exist)")
     b.set_defaults(func=run_breezyslam)
 
 
@@ -47,23 +52,34 @@ def _summary(counts: dict[str, int], output: Path) -> None:
 
 
 def run_carmen(args: argparse.Namespace) -> int:
+    new_file(args.output, "-o")
+    if args.reference:
+        new_file(args.reference, "--reference")
     log = read_carmen(args.input)
-    odometry, laser_odometry = args.odometry, None
     stamps, poses = scan_poses(log)
     if args.drift:
         odometry = "laser"
         laser_odometry = drifting_odometry(poses, scale_error=args.drift_scale,
                                            heading_drift_rad_per_m=math.radians(args.drift_heading), seed=args.seed)
+        description = (f"the laser lines' poses with drift (scale {args.drift_scale:g}, "
+                       f"heading {args.drift_heading:g} deg/m, seed {args.seed})")
+    else:
+        odometry, description = choose_odometry(log, args.odometry)
+        laser_odometry = None
     counts = import_carmen(args.input, args.output, odometry=odometry, laser_odometry=laser_odometry,
-                           max_range_m=args.max_range, log=log)
+                           max_range_m=args.max_range, log=log, description=description)
     if args.reference:
         write_trajectory_csv(args.reference, stamps, poses)
     _summary(counts, args.output)
+    print(f"odometry: {description}")
+    if odometry == "none":
+        print("warning: the log has no odometry: trundle slam will match the scans alone", file=sys.stderr)
     if log.malformed:
         print(f"skipped {log.malformed} malformed lines")
     return 0
 
 
 def run_breezyslam(args: argparse.Namespace) -> int:
+    new_file(args.output, "-o")
     _summary(import_breezyslam(args.input, args.output), args.output)
     return 0

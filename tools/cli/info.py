@@ -55,6 +55,6 @@ def run(args: argparse.Namespace) -> int:
         head = "Topic information: " if i == 0 else "                   "
         latched = " | latched" if t.latched else ""
         lines.append(f"{head}Topic: {name:<{width}} | Type: {t.ros_type:<{type_width}} | Count: {t.count:>7} | "
-                     f"Rate: {t.rate_hz:8.2f} Hz | Serialization Format: cdr{latched}")
+                     f"Rate: {t.rate_hz:8.2f} Hz | Serialization Format: {t.encoding}{latched}")
     print("\n".join(lines))
     return 0 if info.message_count or info.complete else 1

@@ -16,8 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from trundle.logs.paths import new_file
 from trundle.tools.cli.progress import Progress
-from trundle.tools.jobs.config import load_config
+from trundle.tools.config.arguments import positive
+from trundle.tools.config.robot import load_config
 from trundle.tools.jobs.localize import localize_log
 
 
@@ -28,15 +30,17 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--map", type=Path, required=True, help="folder with map.yaml + map.pgm, or the map YAML itself")
     p.add_argument("--config", type=Path, help="TOML with [odometry] and [laser] tables (as for trundle slam)")
     p.add_argument("--scan-topic", default="/scan", help="LaserScan topic (default /scan)")
-    p.add_argument("--max-range", type=float, default=30.0, help="ignore returns farther than this (m, default 30)")
+    p.add_argument("--max-range", type=positive, default=30.0, help="ignore returns farther than this (m, default 30)")
     p.add_argument("--no-odometry", action="store_true", help="ignore the log's odometry (scans alone)")
-    p.add_argument("-o", "--output", type=Path, help="write the tracked poses as t_ns,x,y,theta CSV")
+    p.add_argument("-o", "--output", type=Path, help="write the tracked poses as t_ns,x,y,theta CSV (must not exist)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the localize job and print its report; exit code 1 if the pose never converged (text mode)."""
+    if args.output is not None:
+        new_file(args.output, "-o")
     report = localize_log(args.log, args.map, load_config(args.config), scan_topic=args.scan_topic,
                           max_range_m=args.max_range, use_odometry=not args.no_odometry,
                           trajectory_csv=args.output, progress=Progress)

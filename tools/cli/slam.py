@@ -7,10 +7,11 @@ turns the command line into its parameters and prints its summary.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from trundle.tools.cli.progress import Progress
-from trundle.tools.jobs.config import load_config
+from trundle.tools.config.robot import load_config
 from trundle.tools.jobs.slam import slam_log
 
 
@@ -26,6 +27,10 @@ def run(args: argparse.Namespace) -> int:
     """Run the slam job on the command's log and print its summary; exit code 0."""
     report = slam_log(args.log, args.output, load_config(args.config), local_only=args.no_loop_closure,
                       progress=Progress)
+    print(f"odometry: {report['odometry_source']}")
+    if report["odometry_source"] == "none":
+        print(f"warning: {args.log} has no odometry (no wheel states, no odometry messages): the map was made "
+              "by matching the scans alone", file=sys.stderr)
     print(f"{report['scans']} scans ({report['keyframes']} keyframes) of {report['duration_s']:.1f} s in "
           f"{report['processing_s']:.1f} s ({report['real_time_factor']:.1f}x real time); "
           f"{report['loop_closures']} loop closures; mean scan-to-map residual "

@@ -16,6 +16,7 @@ from dataclasses import asdict
 from trundle.fusion.evaluation import (Trajectory, absolute_trajectory_error, read_reference, relation_error,
                                        relative_pose_error, trajectory_relations)
 from trundle.logs.errors import UserError
+from trundle.tools.config.arguments import non_negative, positive_int
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -23,9 +24,9 @@ def register(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("result", help="trajectory.csv from `trundle slam` (t_ns,x,y,theta)")
     p.add_argument("reference", help=".relations file, t_ns,x,y,theta CSV or CARMEN log")
-    p.add_argument("--step", type=int, default=1,
+    p.add_argument("--step", type=positive_int, default=1,
                    help="relations and RPE between reference poses this many scans apart (default 1: consecutive)")
-    p.add_argument("--tolerance-ms", type=float, default=1.0,
+    p.add_argument("--tolerance-ms", type=non_negative, default=1.0,
                    help="largest time difference when pairing poses (default 1 ms)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.set_defaults(func=run)

@@ -24,7 +24,7 @@ from trundle.logs import messages as m
 if TYPE_CHECKING:
     from trundle.fusion.slam import Slam
     from trundle.perception.markers import MarkerDetector
-    from trundle.tools.daemon.config import FramesConfig, ProcessingConfig
+    from trundle.tools.config.robot import FramesConfig, ProcessingConfig
 
 Publish = Callable[[str, m.Message], None]  # (topic, message): log a result as the daemon's own
 
@@ -150,6 +150,15 @@ class Processing:
                 pose = marker_pose(marker, info, self.config.marker_size_m)
                 self.publish(f"{base}/marker_poses", m.TFMessage((m.TransformStamped(
                     msg.stamp_ns, msg.frame_id, f"aruco_{marker.id}", pose.translation, pose.quaternion()),)))
+
+    def diagnostics(self, robot: str) -> m.DiagnosticStatus:
+        """The ``robot/processing`` entry of ``/diagnostics``: ERROR once a message failed to process
+        (SLAM or marker detection raised), with the last error; OK otherwise."""
+        values = (("errors", str(self.errors)), ("dropped", str(self.dropped)), ("skipped_scans", str(self.skipped_scans)))
+        if self.errors:
+            return m.DiagnosticStatus(m.ERROR, f"{robot}/processing",
+                                      f"{self.errors} message(s) failed to process: {self.last_error}", "", values)
+        return m.DiagnosticStatus(m.OK, f"{robot}/processing", "ok", "", values)
 
     def status(self) -> dict[str, Any]:
         """The ``processing`` entry of the status answer: queue, drops, errors, SLAM and marker counts."""

@@ -24,9 +24,9 @@ Long stages show their progress on the display a ``progress`` factory makes (non
 from __future__ import annotations
 
 import resource
+import shutil
 import signal
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -38,13 +38,15 @@ import numpy as np
 from trundle.fusion.geometry import compose, inverse
 from trundle.fusion.map_io import save_map, write_trajectory_csv
 from trundle.logs.errors import UserError
+from trundle.logs.paths import output_folder
+from trundle.tools.demo import daemon_process
 from trundle.tools.demo.ground_truth import FrameTimes, Recording, frame_ground_truth, scan_ground_truth
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 from trundle.tools.demo.report import build_report, draw_detections, plot_run, write_report
 from trundle.tools.demo.scoring import score_markers, sensor_mount
 from trundle.tools.demo.slam import SLAM_OPTIONS, run_slam
 from trundle.tools.daemon.status import query_status
-from trundle.tools.daemon.config import format_config
+from trundle.tools.config.toml_text import format_config
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.emulators.sim_devices import SimDevices
 from trundle.tools.sim.world import DEFAULT_WORLD, load_world
@@ -86,7 +88,7 @@ class DemoSettings:
 # ---------------------------------------------------------------------------------- recording
 
 def daemon_config(devices: SimDevices, folder: Path, socket_path: Path, calibration: Path) -> dict[str, Any]:
-    """The daemon's configuration tables for the emulated robot (see ``tools/daemon/example.toml``)."""
+    """The daemon's configuration tables for the emulated robot (see ``tools/config/example.toml``)."""
     tables = devices.device_tables()
     tables["lrf"]["timeout_s"] = LRF_TIMEOUT_S
     tables["can"]["odrive"] = {"heartbeat_timeout_s": WHEEL_TIMEOUT_S, "data_timeout_s": WHEEL_TIMEOUT_S}
@@ -160,9 +162,10 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
                 f"camera {devices.urls['camera']}")
             daemon_log = out / "daemon.log"
             with open(daemon_log, "w") as log_file:
-                # -P: the output folder (the daemon's cwd) is not put on sys.path, so nothing in it shadows trundle
-                proc = subprocess.Popen([sys.executable, "-P", "-m", "trundle.tools.cli", "daemon", "--config",
-                                         str(config)], stdout=log_file, stderr=subprocess.STDOUT, cwd=out)
+                # -P: the output folder (the daemon's cwd) is not put on sys.path, so nothing in it shadows
+                # trundle; a session of its own: the terminal's signals are the demo's, which stops it cleanly
+                proc = subprocess.Popen(daemon_process.command(["daemon", "--config", str(config)]),
+                                        stdout=log_file, stderr=subprocess.STDOUT, cwd=out, start_new_session=True)
             try:
                 say(f"daemon started (pid {proc.pid}): trundle daemon --config {config}")
                 deadline = time.monotonic() + STREAM_TIMEOUT_S
@@ -199,6 +202,10 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
                                          f"did not stop within {STOP_TIMEOUT_S:.0f} s of SIGTERM") from None
                 if code != 0:
                     raise _daemon_failed(proc, daemon_log, "did not stop cleanly")
+            except BaseException:  # Ctrl-C, SIGTERM, SIGHUP (see cli/demo.py) or a failure: keep what was logged
+                _stop(proc)
+                _keep_partial_log(folder, out, say)
+                raise
             finally:
                 _stop(proc)
         cpu = {"emulators": time.process_time() - cpu_before, "daemon": _children_cpu_s() - daemon_cpu_before}
@@ -217,6 +224,19 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
     frames, frame_ns, unmatched_frames = frame_ground_truth(log, sim, devices, frame_times)
     return Recording(log, scans, frames, scan_ns, frame_ns, {"scans": unmatched_scans, "frames": unmatched_frames},
                      robot_time, cpu, late)
+
+
+def _keep_partial_log(folder: Path, out: Path, say: Say) -> None:
+    """After an interrupted recording: the daemon's (closed) log moved out of its hidden folder to
+    ``out/demo.partial.mcap`` (numbered if several), said to the user; the folder removed."""
+    logs = sorted(folder.glob("*.mcap")) + sorted(folder.glob("*.mcap.active"))
+    for i, path in enumerate(logs):
+        suffix = ".mcap.active" if path.name.endswith(".active") else ".mcap"
+        target = out / (f"demo.partial{'' if i == 0 else f'-{i}'}{suffix}")
+        path.replace(target)
+        say(f"the recording was interrupted; its log so far is {target}"
+            + (" (trundle recover it)" if suffix.endswith(".active") else ""))
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 def _longest_pause_ms(times_ns: np.ndarray, since_ns: int, period_s: float) -> float | None:
@@ -249,6 +269,7 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     """Record the simulated robot with the real daemon, then map, detect, score and write ``out``;
     return the report. ``say`` tells each stage, ``progress`` makes each long stage's display."""
     started = time.monotonic()
+    output_folder(out, empty=False, create=False)  # made by record() once the world is read
     world = load_world(settings.world)
     sim = RobotSim(world, seed=settings.seed)
     say("[1/4] recording: world simulator -> device emulators -> trundle daemon -> log")

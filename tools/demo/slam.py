@@ -5,7 +5,6 @@ and the laser mount from ``/tf_static``, with the demo's SLAM options.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +17,7 @@ from trundle.fusion.odometry import DiffDriveOdometry, odometry_from_config
 from trundle.fusion.slam import Slam, SlamConfig
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.metadata import read_metadata
 from trundle.logs.reader import LogInfo, LogReader
 from trundle.logs.replay import replay
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
@@ -47,10 +47,9 @@ class SlamRun:
 
 
 def wheel_odometry(info: LogInfo) -> DiffDriveOdometry:
-    """Wheel odometry with the wheel model of the ``[can]`` table the daemon ran with (log metadata)."""
-    devices = json.loads(info.metadata.get("trundle", {}).get("devices", "{}"))
-    can = next((d for d in devices.values() if d.get("family") == "can"), None)
-    odometry = odometry_from_config(can) if can is not None else None
+    """Wheel odometry with the wheel model the log's metadata holds (the daemon's ``[can]`` table)."""
+    model = read_metadata(info.metadata).wheel_model()
+    odometry = odometry_from_config(model) if model is not None else None
     if odometry is None:
         raise UserError(f"{info.path}: no wheel model (wheel_radius_m, track_m) in the log's device metadata")
     return odometry

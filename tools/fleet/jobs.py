@@ -5,7 +5,8 @@ The fleet sets the log, the outputs (in the log's own folder) and the progress; 
 parameter is a job option, given as ``KEY=VALUE`` and converted by the parameter's type hint, so
 a parameter a job gains is a fleet option with no change here. Values: paths (made absolute;
 they must exist and be visible to every node), numbers, ``true``/``false``, comma-separated
-lists, and tables (a TOML file, e.g. ``config=robot.toml``, or inline JSON ``{...}``).
+lists, and tables (a TOML file, e.g. ``config=robot.toml``, or inline JSON ``{...}``; a robot config is
+checked by the one validator, :func:`trundle.tools.config.robot.parse_config`, before any task starts).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from typing import Any
 
 from trundle import __version__
 from trundle.logs.errors import UserError
-from trundle.tools.jobs.config import load_config
+from trundle.tools.config.robot import RobotConfig, parse_config, read_toml
 
 
 @dataclass(frozen=True)
@@ -61,6 +62,8 @@ def _kind(hint: Any) -> str | None:
     origins = [typing.get_origin(a) or a for a in members]
     if any(o is Path for o in origins):
         return "path"
+    if RobotConfig in origins:
+        return "config"
     if any(isinstance(o, type) and issubclass(o, Mapping) for o in origins):
         return "table"
     if any(o in (list, tuple) or (isinstance(o, type) and o is not str and issubclass(o, Sequence))
@@ -100,7 +103,7 @@ def _convert(job: str, name: str, kind: str, text: str) -> Any:
         if not path.exists():
             raise UserError(f"{where}: no such file or folder: {text}")
         return str(path)
-    if kind == "table":
+    if kind in ("table", "config"):
         if text.lstrip().startswith("{"):
             try:
                 value = json.loads(text)
@@ -108,8 +111,11 @@ def _convert(job: str, name: str, kind: str, text: str) -> Any:
                 raise UserError(f"{where}: invalid JSON ({error})") from None
             if not isinstance(value, dict):
                 raise UserError(f"{where}: needs a JSON object")
-            return value
-        return load_config(Path(text).expanduser())
+        else:
+            value = read_toml(Path(text).expanduser())
+        if kind == "config":
+            parse_config(value, where)  # a robot config is refused here, in one line, not on every worker
+        return value
     if kind == "list":
         return [item for item in text.split(",") if item]
     if kind == "bool":

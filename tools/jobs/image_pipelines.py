@@ -24,6 +24,7 @@ import numpy as np
 
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.paths import input_file
 from trundle.perception.color import ColorSegmentation, HsvTemplate, segment_color, template_histograms
 from trundle.perception.markers import MarkerDetector, marker_pose
 from trundle.tools.jobs.image_markers import CYAN, GREEN, MAGENTA, YELLOW, closed_line_list, ellipse_outline, image_marker
@@ -34,7 +35,7 @@ Triple = tuple[float, float, float]
 
 def _read_image(path: str | Path, flags: int) -> np.ndarray:
     """The image file at ``path`` read with OpenCV ``flags``; an unreadable one is a UserError."""
-    image = cv2.imread(str(path), flags)
+    image = cv2.imread(str(input_file(path, "image")), flags)
     if image is None:
         raise UserError(f"cannot read image {path}")
     return image

@@ -20,7 +20,8 @@ def as_dict(info: LogInfo) -> dict[str, Any]:
         "start_ns": info.start_ns, "end_ns": info.end_ns, "messages": info.message_count,
         "chunks": info.chunks, "corrupt_chunks": info.corrupt_chunks, "complete": info.complete,
         "error": info.error, "metadata": info.metadata,
-        "topics": {name: {"type": t.ros_type, "count": t.count, "rate_hz": t.rate_hz, "latched": t.latched}
+        "topics": {name: {"type": t.ros_type, "encoding": t.encoding, "count": t.count, "rate_hz": t.rate_hz,
+                          "latched": t.latched}
                    for name, t in sorted(info.topics.items())},
     }
 

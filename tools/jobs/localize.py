@@ -10,7 +10,6 @@ or the config's ``[laser]`` table.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -22,31 +21,28 @@ from trundle.fusion.map_io import load_map, write_trajectory_csv
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
-from trundle.tools.jobs.config import laser_pose, make_odometry
+from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, robot_config
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 
 
-def localize_log(log: Path, map_path: Path, config: Mapping[str, Any] | None = None, scan_topic: str = "/scan",
+def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic: str = "/scan",
                  max_range_m: float = 30.0, use_odometry: bool = True, trajectory_csv: Path | None = None,
                  progress: ProgressFactory = NoProgress) -> dict[str, Any]:
     """Localise the scans of ``log`` on the map at ``map_path`` (a folder with ``map.yaml``, or the YAML).
 
-    ``config`` is the parsed TOML (``[odometry]``, ``[laser]`` tables); returns farther than
+    ``config`` is the robot config (``[odometry]``, ``[laser]`` tables); returns farther than
     ``max_range_m`` (m) are ignored; ``use_odometry=False`` ignores the log's odometry (scans
     alone). The tracked poses go to ``trajectory_csv`` (``t_ns,x,y,theta``) if given; ``progress``
     shows the log seconds done. Returns the report: scans at which the pose converged and
     kidnappings were detected (0-based), searches, false alarms, final pose (m, m, rad), match
     scores and timings (s).
     """
-    config = config or {}
+    config = robot_config(config)
     yaml_path = map_path / "map.yaml" if map_path.is_dir() else map_path
     grid = grid_from_map(load_map(yaml_path))
     reader = LogReader(log)
     info = reader.info()
-    topic = info.topics.get(scan_topic)
-    if topic is None or topic.ros_type != "sensor_msgs/msg/LaserScan":
-        raise UserError(f"{log} has no LaserScan topic {scan_topic} "
-                        f"(topics: {', '.join(sorted(info.topics)) or 'none'})")
+    info.require(scan_topic, "sensor_msgs/msg/LaserScan")
     wheels = make_odometry(info, config) if use_odometry else None
     configured_mount = laser_pose(info, config)
     mounts: dict[str, np.ndarray] = {}

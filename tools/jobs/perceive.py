@@ -21,6 +21,7 @@ import numpy as np
 from trundle.logs import messages as m
 from trundle.logs import ros2
 from trundle.logs.errors import UserError
+from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader
 from trundle.logs.writer import Logger
 from trundle.perception.images import decode_image
@@ -65,6 +66,7 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
     if output.exists() and log.exists() and output.resolve() == log.resolve():
         raise UserError("the output must not be the input log")
     reader = LogReader(log)
+    new_file(output, "output")
     info = reader.info()
     image_topics = sorted(t for t, i in info.topics.items() if i.ros_type in IMAGE_TYPES)
     topics = list(topics or image_topics)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -24,8 +23,9 @@ from trundle.fusion.slam import Slam, SlamConfig
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.importers import write_log
+from trundle.logs.paths import output_folder
 from trundle.logs.reader import LogReader
-from trundle.tools.jobs.config import config_table, laser_pose, make_odometry
+from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, odometry_source, robot_config
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 
 
@@ -39,27 +39,28 @@ def _stats(values: list[float]) -> dict[str, float]:
             "p05": float(np.percentile(a, 5)), "max": float(a.max())} if a.size else {}
 
 
-def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, local_only: bool = False,
+def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool = False,
              progress: ProgressFactory = NoProgress) -> dict[str, Any]:
-    """Run SLAM over ``log`` and write its outputs into the folder ``output`` (created).
+    """Run SLAM over ``log`` and write its outputs into the folder ``output`` (created; an existing
+    one must be empty, so a result is never overwritten).
 
-    ``config`` is the parsed TOML (``[slam]``, ``[odometry]``, ``[laser]`` tables; none by default);
+    ``config`` is the robot config (``[slam]``, ``[odometry]``, ``[laser]`` tables; none by default);
     ``local_only`` turns loop closure off whatever the config says. ``progress`` shows the log
-    seconds done. Returns the report (also written as ``report.json``): counts, timings (s),
+    seconds done. Returns the report (also written as ``report.json``): the odometry it used
+    (``odometry_source``: wheel encoders, odometry messages or ``none``), counts, timings (s),
     residuals (m), path length (m), map size and the SLAM options used.
     """
-    config = config or {}
+    config = robot_config(config)
     reader = LogReader(log)
     info = reader.info()
-    slam_config = SlamConfig.from_mapping(config_table(config, "slam", set(SlamConfig.__dataclass_fields__)))
+    slam_config = SlamConfig.from_mapping(config.slam)
     if local_only:
         slam_config.loop_closure = False
-    scan_topic = info.topics.get(slam_config.scan_topic)
-    if scan_topic is None or scan_topic.ros_type != "sensor_msgs/msg/LaserScan":
-        raise UserError(f"{log} has no LaserScan topic {slam_config.scan_topic} "
-                        f"(topics: {', '.join(sorted(info.topics)) or 'none'})")
-    slam = Slam(slam_config, make_odometry(info, config), laser_pose(info, config))
-    output.mkdir(parents=True, exist_ok=True)
+    info.require(slam_config.scan_topic, "sensor_msgs/msg/LaserScan")
+    wheels = make_odometry(info, config)
+    odometry = odometry_source(info, config, wheels) or "none"
+    slam = Slam(slam_config, wheels, laser_pose(info, config))
+    output_folder(output, create=False)  # checked before the work, made once there is a result
 
     bar = progress("slam", max(info.duration_s, 1e-9))
     t0 = info.start_ns or 0
@@ -79,6 +80,7 @@ def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, l
         raise UserError(f"{log}: no scans on {slam_config.scan_topic}")
 
     stamps, poses = slam.trajectory()
+    output_folder(output)
     end_ns = int(stamps.max())
     map_msg = grid.to_message(end_ns, "map")
     save_map(map_msg, output / "map")
@@ -93,7 +95,8 @@ def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, l
     st = slam.stats
     duration = info.duration_s
     report = {
-        "log": str(log), "scans": st.scans, "keyframes": st.keyframes, "duration_s": duration,
+        "log": str(log), "odometry_source": odometry, "scans": st.scans, "keyframes": st.keyframes,
+        "duration_s": duration,
         "processing_s": processing_s, "cpu_s": cpu_s,
         "real_time_factor": duration / processing_s if processing_s > 0 else None,
         "loop_closures": st.loop_closures, "loop_attempts": st.loop_attempts, "loop_rejected": st.loop_rejected,

@@ -143,3 +143,35 @@ def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajector
     if not cv2.imwrite(str(path), image):
         raise UserError(f"cannot write {path}")
     return path
+
+
+LANDMARKS_HEADER = ["id", "x", "y", "sx", "sy"]
+
+
+def write_landmarks_csv(path: str | os.PathLike[str], ids: list[str], positions: np.ndarray,
+                        sigmas: np.ndarray) -> None:
+    """``id,x,y,sx,sy`` per landmark: map-frame position (m) and its standard deviations in x and y (m)."""
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(LANDMARKS_HEADER)
+        for name, (x, y), (sx, sy) in zip(ids, np.asarray(positions, np.float64).reshape(-1, 2),
+                                          np.asarray(sigmas, np.float64).reshape(-1, 2)):
+            writer.writerow([name, f"{x:.6f}", f"{y:.6f}", f"{sx:.6f}", f"{sy:.6f}"])
+
+
+def read_landmarks_csv(path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Ids, positions (M, 2) and standard deviations (M, 2) from an ``id,x,y,sx,sy`` file."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"no such landmark file: {path}")
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows or [c.strip() for c in rows[0]] != LANDMARKS_HEADER:
+        raise UserError(f"{path}: not an {','.join(LANDMARKS_HEADER)} landmark file")
+    try:
+        values = np.array([[float(v) for v in row[1:5]] for row in rows[1:] if row], np.float64).reshape(-1, 4)
+    except (ValueError, IndexError):
+        raise UserError(f"{path}: a row is not id,x,y,sx,sy") from None
+    if not np.all(np.isfinite(values[:, :2])):
+        raise UserError(f"{path}: non-finite landmark position")
+    return [row[0] for row in rows[1:] if row], values[:, :2], values[:, 2:]

@@ -55,12 +55,3 @@ def point_from_range_bearing(poses: np.ndarray, z: np.ndarray) -> tuple[np.ndarr
     d_pose[:, 1, 2] = z[:, 0] * c
     d_z = np.stack([np.stack([c, -z[:, 0] * s], 1), np.stack([s, z[:, 0] * c], 1)], 1)
     return points, d_pose, d_z
-
-
-def range_bearing_of_position(xy: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(range, bearing)`` (2,) of a point ``xy`` in the robot frame and its 2x2 covariance, first order."""
-    x, y = (float(v) for v in np.asarray(xy, np.float64).reshape(2))
-    q = max(x * x + y * y, 1e-18)
-    r = q ** 0.5
-    jac = np.array([[x / r, y / r], [-y / q, x / q]])
-    return np.array([r, np.arctan2(y, x)]), jac @ np.asarray(covariance, np.float64).reshape(2, 2) @ jac.T

@@ -416,6 +416,25 @@ class LandmarkObservation(Message):
         """Whether the landmark's orientation was observed (a marker's full pose)."""
         return self.yaw_variance > 0.0
 
+    @classmethod
+    def from_position(cls, landmark_id: str, xy, covariance_xy, translation=None, rotation=(0.0, 0.0, 0.0, 1.0),
+                      yaw_variance: float = 0.0) -> LandmarkObservation:
+        """An observation from a position ``xy`` (m, tracking frame) and its 2x2 covariance, which
+        becomes the (range, bearing) covariance to first order; ``translation`` defaults to ``(x, y, 0)``."""
+        x, y = (float(v) for v in np.asarray(xy, np.float64).reshape(2))
+        q = max(x * x + y * y, 1e-18)
+        r = math.sqrt(q)
+        jac = np.array([[x / r, y / r], [-y / q, x / q]])
+        covariance = jac @ np.asarray(covariance_xy, np.float64).reshape(2, 2) @ jac.T
+        return cls(landmark_id, r, math.atan2(y, x), 0.5 * (covariance + covariance.T),
+                   (x, y, 0.0) if translation is None else translation, rotation, yaw_variance)
+
+    def position_covariance(self) -> np.ndarray:
+        """The 2x2 covariance (m^2) of the range-bearing point in the tracking frame (first order)."""
+        c, s = math.cos(self.bearing), math.sin(self.bearing)
+        jac = np.array([[c, -self.range * s], [s, self.range * c]])
+        return jac @ self.covariance @ jac.T
+
     @property
     def yaw(self) -> float:
         """The landmark's yaw in the tracking frame (rad)."""

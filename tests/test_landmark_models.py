@@ -13,8 +13,7 @@ from hypothesis import strategies as st
 from trundle.fusion.error_correlation import ar1_weights, correlation_time, previous_gaps
 from trundle.fusion.geometry import compose
 from trundle.fusion.motion_model import IncrementAccumulator, MotionNoise, OdometryIncrements, compose_jacobians
-from trundle.fusion.observation_models import (point_from_range_bearing, range_bearing, range_bearing_of_position,
-                                               relative_position)
+from trundle.fusion.observation_models import point_from_range_bearing, range_bearing, relative_position
 from trundle.logs import messages as m
 
 coordinates = st.floats(-20, 20)
@@ -68,11 +67,11 @@ def test_inverse_model_round_trip_and_jacobians(x, y, theta, r, b):
 
 def test_position_to_range_bearing_covariance():
     """A point 2 m straight ahead with 1 cm along and 4 cm across: range sigma 1 cm, bearing 0.02 rad."""
-    z, cov = range_bearing_of_position([2.0, 0.0], np.diag([0.01 ** 2, 0.04 ** 2]))
-    np.testing.assert_allclose(z, [2.0, 0.0])
-    np.testing.assert_allclose(cov, np.diag([0.01 ** 2, 0.02 ** 2]), atol=1e-15)
-    o = m.LandmarkObservation("", 2.0, 0.0, cov)
+    o = m.LandmarkObservation.from_position("", [2.0, 0.0], np.diag([0.01 ** 2, 0.04 ** 2]))
+    assert (o.range, o.bearing) == (2.0, 0.0)
+    np.testing.assert_allclose(o.covariance, np.diag([0.01 ** 2, 0.02 ** 2]), atol=1e-15)
     np.testing.assert_allclose(o.position_covariance(), np.diag([0.01 ** 2, 0.04 ** 2]), atol=1e-15)
+    np.testing.assert_allclose(o.translation, [2.0, 0.0, 0.0])
 
 
 def test_increments_compose_with_covariance_as_matrices_do():

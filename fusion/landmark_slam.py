@@ -30,7 +30,7 @@ import numpy as np
 from trundle.fusion.ekf_slam import EkfSlam, EkfSlamConfig
 from trundle.fusion.error_correlation import ar1_weights, correlation_time, previous_gaps
 from trundle.fusion.factor_graph import BETWEEN, RANGE_BEARING, FactorGraph
-from trundle.fusion.geometry import compose, relative
+from trundle.fusion.geometry import compose
 from trundle.fusion.motion_model import Increment, OdometryIncrements
 from trundle.logs import messages as m
 
@@ -172,9 +172,9 @@ class GraphLandmarkSlam:
                 self._add_node(msg.stamp_ns)
                 self._last_node_odometry = here
                 return
-            step = relative(self._last_node_odometry, here)
-            if (math.hypot(step[0], step[1]) >= self.config.node_distance_m
-                    or abs(step[2]) >= self.config.node_angle_rad
+            last = self._last_node_odometry
+            if (math.hypot(msg.x - last[0], msg.y - last[1]) >= self.config.node_distance_m
+                    or abs(math.remainder(msg.theta - last[2], 2.0 * math.pi)) >= self.config.node_angle_rad
                     or (msg.stamp_ns - self._node_stamps[-1]) * 1e-9 >= self.config.node_time_s):
                 self._add_node(msg.stamp_ns)
                 self._last_node_odometry = here

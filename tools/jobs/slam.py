@@ -26,6 +26,7 @@ from trundle.logs.errors import UserError
 from trundle.logs.importers import write_log
 from trundle.logs.reader import LogReader
 from trundle.tools.jobs.config import config_table, laser_pose, make_odometry
+from trundle.tools.jobs.landmark_slam import ESTIMATORS, landmark_slam_log, landmark_topic
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 
 
@@ -40,17 +41,27 @@ def _stats(values: list[float]) -> dict[str, float]:
 
 
 def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, local_only: bool = False,
-             progress: ProgressFactory = NoProgress) -> dict[str, Any]:
+             progress: ProgressFactory = NoProgress, estimator: str | None = None) -> dict[str, Any]:
     """Run SLAM over ``log`` and write its outputs into the folder ``output`` (created).
 
-    ``config`` is the parsed TOML (``[slam]``, ``[odometry]``, ``[laser]`` tables; none by default);
-    ``local_only`` turns loop closure off whatever the config says. ``progress`` shows the log
-    seconds done. Returns the report (also written as ``report.json``): counts, timings (s),
-    residuals (m), path length (m), map size and the SLAM options used.
+    ``config`` is the parsed TOML (``[slam]``, ``[odometry]``, ``[laser]``, ``[landmarks]`` tables;
+    none by default); ``local_only`` turns loop closure off whatever the config says. ``progress``
+    shows the log seconds done. ``estimator``: ``graph`` (the grid SLAM's pose graph, with the log's
+    landmark sightings as constraints; a log with sightings but no scans gets the landmark graph)
+    or ``ekf`` (EKF-SLAM of :mod:`trundle.tools.jobs.landmark_slam`); None chooses ``graph``.
+    Returns the report (also written as ``report.json``): counts, timings (s), residuals (m), path
+    length (m), map size and the SLAM options used.
     """
     config = config or {}
     reader = LogReader(log)
     info = reader.info()
+    if estimator not in (None, *ESTIMATORS):
+        raise UserError(f"unknown estimator {estimator!r} (choose {' or '.join(ESTIMATORS)})")
+    scan_info = info.topics.get(config_table(config, "slam", set(SlamConfig.__dataclass_fields__)).get("scan_topic",
+                                                                                                        "/scan"))
+    has_scans = scan_info is not None and scan_info.ros_type == "sensor_msgs/msg/LaserScan"
+    if estimator == "ekf" or (not has_scans and landmark_topic(info, config) is not None):
+        return landmark_slam_log(log, output, config, estimator or "graph", progress)
     slam_config = SlamConfig.from_mapping(config_table(config, "slam", set(SlamConfig.__dataclass_fields__)))
     if local_only:
         slam_config.loop_closure = False

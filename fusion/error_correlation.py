@@ -81,3 +81,14 @@ def ar1_weights(gaps_s: np.ndarray, tau_s: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = np.where(tau > 0, np.exp(-gaps / np.where(tau > 0, tau, 1.0)), 0.0)
     return (1.0 - rho) / (1.0 + rho)
+
+
+def decorrelated_information(information: np.ndarray, errors: np.ndarray, groups: np.ndarray,
+                             stamps_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sightings' nominal information matrices (F, d, d) reweighted for their correlated errors, and
+    the correlation time (d,) read from the ``errors`` (F, d) of a first fit, per component."""
+    info = np.asarray(information, np.float64)
+    sigma = np.sqrt(np.diagonal(np.linalg.inv(info), axis1=1, axis2=2))
+    tau = correlation_time(np.asarray(errors, np.float64) / sigma, groups, stamps_s)
+    weights = np.sqrt(ar1_weights(previous_gaps(groups, stamps_s)[0], tau))
+    return info * weights[:, :, None] * weights[:, None, :], tau

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from trundle.fusion.ekf_slam import EkfSlam, EkfSlamConfig
-from trundle.fusion.error_correlation import ar1_weights, correlation_time, previous_gaps
+from trundle.fusion.error_correlation import decorrelated_information
 from trundle.fusion.factor_graph import BETWEEN, RANGE_BEARING, FactorGraph
 from trundle.fusion.geometry import compose
 from trundle.fusion.motion_model import Increment, OdometryIncrements
@@ -267,14 +267,10 @@ class GraphLandmarkSlam:
                 chosen = np.ones(len(variables), bool) if select is None else select
                 if chosen.sum() == 0:
                     continue
-                info = nominal[kind][chosen]
-                sigma = np.sqrt(np.diagonal(np.linalg.inv(info), axis1=1, axis2=2))
-                whitened = self.graph.factor_errors(kind)[chosen] / sigma
-                groups, when = variables[chosen, group_column], stamps[variables[chosen, 0]]
-                tau[kind] = correlation_time(whitened, groups, when)
-                weights = np.sqrt(ar1_weights(previous_gaps(groups, when)[0], tau[kind]))
                 reweighted = nominal[kind].copy()
-                reweighted[chosen] = info * weights[:, :, None] * weights[:, None, :]
+                reweighted[chosen], tau[kind] = decorrelated_information(
+                    nominal[kind][chosen], self.graph.factor_errors(kind)[chosen], variables[chosen, group_column],
+                    stamps[variables[chosen, 0]])
                 self.graph.set_information(kind, reweighted)
             self.stats.correlation_time_s = {("range_bearing" if k == RANGE_BEARING else "marker"): [float(v) for v in t]
                                              for k, t in tau.items()}

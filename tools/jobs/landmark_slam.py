@@ -149,9 +149,7 @@ def landmark_slam_log(log: Path, output: Path, config: Mapping[str, Any] | None 
     map_msg = grid.to_message(end_ns, "map")
     save_map(map_msg, output / "map")
     write_trajectory_csv(output / "trajectory.csv", stamps, poses)
-    sigmas = np.sqrt(np.maximum(np.diagonal(landmarks.covariances, axis1=1, axis2=2), 0.0)) if len(landmarks.ids) \
-        else np.zeros((0, 2))
-    write_landmarks_csv(output / "landmarks.csv", landmarks.ids, landmarks.positions, sigmas)
+    write_landmarks(output / "landmarks.csv", landmarks)
     plot_trajectory(map_msg, output / "trajectory.png", [poses],
                     landmarks=(landmarks.ids, landmarks.positions, landmarks.covariances))
     items = [("/tf", tf, t) for tf, t in _map_to_odom(stamps, poses, odometry, sighting_stamps)]
@@ -220,6 +218,12 @@ def _map_to_odom(stamps: np.ndarray, poses: np.ndarray, odometry: list[tuple[int
         x, y, yaw = (float(v) for v in compose(poses[k], inverse(odom_poses[j])))
         out.append((m.TFMessage((m.TransformStamped.planar(int(t), "map", "odom", x, y, yaw),)), int(t)))
     return out
+
+
+def write_landmarks(path: Path, landmarks: LandmarkMap) -> None:
+    """``landmarks.csv``: id, map position and the standard deviations of x and y (m)."""
+    sigmas = np.sqrt(np.maximum(np.nan_to_num(np.diagonal(landmarks.covariances, axis1=1, axis2=2)), 0.0))
+    write_landmarks_csv(path, landmarks.ids, landmarks.positions, sigmas.reshape(-1, 2))
 
 
 def landmark_markers(landmarks: LandmarkMap, stamp_ns: int) -> m.SceneMarkers:

@@ -3,7 +3,9 @@
 Outputs: ``map.pgm`` + ``map.yaml`` (map_server), ``map.png``, ``trajectory.png`` (the path and
 loop closures over the map), ``trajectory.csv`` (``t_ns,x,y,theta`` of every scan in the map
 frame), ``report.json`` and ``slam.mcap`` with ``/map``, ``/tf`` (map -> odom per scan) and
-``/path``. The wheel model comes from the config's ``[odometry]`` table or the log's metadata (see
+``/path``. A log with landmark sightings (``/landmarks``) puts them into the pose graph
+(:class:`trundle.fusion.landmark_grid_slam.LandmarkGridSlam`) and adds ``landmarks.csv``
+(``id,x,y,sx,sy``), the landmarks on ``trajectory.png`` and ``/landmarks/map`` in ``slam.mcap``. The wheel model comes from the config's ``[odometry]`` table or the log's metadata (see
 :func:`trundle.tools.jobs.config.make_odometry`); ``[slam]`` holds
 :class:`trundle.fusion.slam.SlamConfig`; ``[laser]`` (``x_m``, ``y_m``, ``yaw_rad``) overrides the
 laser mount of the log's ``/tf_static``.
@@ -14,11 +16,13 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Mapping
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from trundle.fusion.landmark_grid_slam import LandmarkGridSlam
 from trundle.fusion.map_io import plot_trajectory, save_map, write_trajectory_csv
 from trundle.fusion.slam import Slam, SlamConfig
 from trundle.logs import messages as m
@@ -26,7 +30,8 @@ from trundle.logs.errors import UserError
 from trundle.logs.importers import write_log
 from trundle.logs.reader import LogReader
 from trundle.tools.jobs.config import config_table, laser_pose, make_odometry
-from trundle.tools.jobs.landmark_slam import ESTIMATORS, landmark_slam_log, landmark_topic
+from trundle.tools.jobs.landmark_slam import (ESTIMATORS, landmark_markers, landmark_slam_log, landmark_topic,
+                                              write_landmarks)
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 
 
@@ -69,7 +74,9 @@ def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, l
     if scan_topic is None or scan_topic.ros_type != "sensor_msgs/msg/LaserScan":
         raise UserError(f"{log} has no LaserScan topic {slam_config.scan_topic} "
                         f"(topics: {', '.join(sorted(info.topics)) or 'none'})")
-    slam = Slam(slam_config, make_odometry(info, config), laser_pose(info, config))
+    topic = landmark_topic(info, config)
+    slam = (Slam(slam_config, make_odometry(info, config), laser_pose(info, config)) if topic is None else
+            LandmarkGridSlam(slam_config, make_odometry(info, config), laser_pose(info, config), topic))
     output.mkdir(parents=True, exist_ok=True)
 
     bar = progress("slam", max(info.duration_s, 1e-9))
@@ -96,10 +103,15 @@ def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, l
     write_trajectory_csv(output / "trajectory.csv", stamps, poses)
     keyframes = slam.keyframe_poses()
     loops = [(keyframes[i], keyframes[j]) for i, j in slam.loop_edges()]
-    plot_trajectory(map_msg, output / "trajectory.png", [poses], loops=loops)
+    landmarks = slam.landmarks() if isinstance(slam, LandmarkGridSlam) else None
+    drawn = None if landmarks is None else (landmarks.ids, landmarks.positions, landmarks.covariances)
+    plot_trajectory(map_msg, output / "trajectory.png", [poses], loops=loops, landmarks=drawn)
     path_msg = m.Path(end_ns, "map", stamps, poses)
-    write_log(transforms + [("/map", map_msg, end_ns), ("/path", path_msg, end_ns)], output / "slam.mcap",
+    extra = [] if landmarks is None else [("/landmarks/map", landmark_markers(landmarks, end_ns), end_ns)]
+    write_log(transforms + [("/map", map_msg, end_ns), ("/path", path_msg, end_ns)] + extra, output / "slam.mcap",
               metadata={"command": "slam", "source": str(log)})
+    if landmarks is not None:
+        write_landmarks(output / "landmarks.csv", landmarks)
 
     st = slam.stats
     duration = info.duration_s
@@ -117,5 +129,7 @@ def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, l
         "map": {"resolution": float(map_msg.resolution), "width": map_msg.width, "height": map_msg.height},
         "config": {k: v for k, v in vars(slam_config).items()},
     }
+    if isinstance(slam, LandmarkGridSlam):
+        report["landmarks"] = {"topic": topic, "mapped": len(landmarks.ids), **asdict(slam.landmark_stats)}
     (output / "report.json").write_text(json.dumps(report, indent=2, default=float))
     return report

@@ -349,6 +349,29 @@ class FactorGraph:
         self.poses, self.points = x, p
         return OptimizeResult(cost, initial, iterations, converged)
 
+    def redundancy(self, kind: str, select: np.ndarray | None = None, kernels: dict[str, Kernel] | None = None,
+                   samples: int = 32, seed: int = 0) -> float:
+        """Redundancy of a kind's factors (those in ``select``): their error dimensions less their share
+        of the fit, ``sum_i (d_i - tr(A_i (J^T J)^-1 A_i^T))`` for the whitened Jacobian ``J`` and its
+        rows ``A_i``: what their chi2 sums to when their noise model is right (Foerstner's variance
+        component estimation). The trace is Hutchinson's estimate over ``samples`` random sign
+        vectors, one solve each with one factorisation."""
+        columns = self._columns()
+        dim = KINDS[kind][1]
+        chosen = np.ones(len(self._factors[kind].variables), bool) if select is None else np.asarray(select, bool)
+        start = sum(KINDS[k][1] * len(self._factors[k].variables) for k in list(KINDS)[:list(KINDS).index(kind)])
+        rows = (start + dim * np.flatnonzero(chosen)[:, None] + np.arange(dim)).reshape(-1)
+        if columns[2] == 0 or len(rows) == 0:
+            return float(len(rows))
+        jac, _ = self._system(self.poses, self.points, dict(kernels or {}), columns)
+        probes = np.zeros((jac.shape[0], samples))
+        probes[rows] = np.random.default_rng(seed).choice([-1.0, 1.0], size=(len(rows), samples))
+        solution = _solve_spd((jac.T @ jac).tocsc(), np.asarray(jac.T @ probes))
+        if solution.ndim != 2:
+            return float(len(rows))
+        fitted = jac @ solution
+        return float(len(rows) - np.mean(np.einsum("rs,rs->s", probes[rows], fitted[rows])))
+
     def marginal_covariances(self, poses=(), points=(), kernels: dict[str, Kernel] | None = None
                              ) -> tuple[np.ndarray, np.ndarray]:
         """Marginal covariances at the current estimate of the chosen poses (P, 3, 3) and points (Q, 2, 2),

@@ -11,36 +11,74 @@ weights; a point landmark has a relative-position factor. Whenever the pose grap
 (loop closures, the end of the run, or a landmark seen again from a keyframe far from where it
 was first seen) the keyframes and the landmarks are optimised together as one
 :class:`trundle.fusion.factor_graph.FactorGraph`, the landmark factors under a Cauchy kernel, so
-one bad sighting pulls with a bounded force. As in the landmark graph, sightings of one landmark
-in quick succession share their error: after a first fit their correlation time is read from the
-residuals and each weighs what it adds (:mod:`trundle.fusion.error_correlation`).
+one bad sighting pulls with a bounded force.
+
+Three things are read from the data rather than assumed:
+
+- the relative weight of the laser edges and the sightings: the pose graph's edge covariances
+  are deliberately conservative (a floor per keyframe), which would let a sighting bend the
+  laser's locally exact path; variance component estimation (``vce_rounds``, by
+  :meth:`trundle.fusion.factor_graph.FactorGraph.redundancy`) rescales each group to its
+  residuals;
+- the error correlation of successive sightings (:mod:`trundle.fusion.error_correlation`);
+- the sightings' time offset: a camera stamped on arrival lags the capture, and while the robot
+  turns, a few tens of milliseconds move a marker metres away by centimetres. At the end of the
+  run the offset that makes each landmark's sightings agree best (their information-weighted
+  scatter, over +-``max_time_offset_s``) is found, and the landmarks are placed with it.
 """
 
 from __future__ import annotations
 
+import copy
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from trundle.fusion.error_correlation import decorrelated_information
 from trundle.fusion.factor_graph import BETWEEN, POSITION, FactorGraph
-from trundle.fusion.geometry import compose, relative, rotation
-from trundle.fusion.landmark_slam import LANDMARK_TOPIC, LandmarkMap
+from trundle.fusion.geometry import compose, relative, rotation, wrap_angle
+from trundle.fusion.landmark_slam import LANDMARK_TOPIC, LandmarkMap, between_covariance
 from trundle.fusion.odometry import DiffDriveOdometry
 from trundle.fusion.slam import ScanResult, Slam, SlamConfig
 from trundle.logs import messages as m
 
 LANDMARK_KERNEL_WIDTH = 3.0
-POSITION_FLOOR_M2 = 1e-6   # variance added to a sighting's position: the motion since the scan
+POSITION_FLOOR_M2 = 1e-6       # variance added to a sighting's position: the motion since the scan
+TIME_OFFSET_STEP_S = 0.002
+MIN_SIGHTINGS_FOR_OFFSET = 20  # fewer cannot tell a time offset from noise
 
 
 @dataclass(frozen=True)
 class _Sighting:
+    """One sighting: its keyframe, landmark, stamp (s), the robot at the stamp in the keyframe's frame
+    (``here``), the robot's velocity then (vx, vy, wz, robot frame) and what was seen (robot frame)."""
+
     node: int
     landmark: str
     stamp_s: float
-    measurement: np.ndarray    # (x, y) or (x, y, yaw) in the keyframe's frame
-    covariance: np.ndarray
+    here: np.ndarray
+    velocity: np.ndarray
+    position: np.ndarray
+    position_covariance: np.ndarray
+    yaw: float
+    yaw_variance: float
+
+    @property
+    def oriented(self) -> bool:
+        return self.yaw_variance > 0
+
+    def measurement(self, time_offset_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """The landmark in the keyframe's frame, (x, y) or (x, y, yaw), and its covariance, with the
+        stamp moved by ``time_offset_s``."""
+        here = compose(self.here, self.velocity * time_offset_s)
+        turn = rotation(float(here[2]))
+        position = here[:2] + turn @ self.position
+        xy_cov = turn @ self.position_covariance @ turn.T + np.eye(2) * POSITION_FLOOR_M2
+        if not self.oriented:
+            return position, xy_cov
+        yaw = float(here[2]) + self.yaw
+        return np.array([*position, yaw]), between_covariance(xy_cov, self.yaw_variance, yaw)
 
 
 @dataclass
@@ -50,6 +88,8 @@ class LandmarkGridStats:
     anonymous: int = 0
     before_first_scan: int = 0
     joint_optimizations: int = 0
+    time_offset_s: float = 0.0
+    noise_scales: dict[str, float] = field(default_factory=dict)
     correlation_time_s: dict[str, list[float]] = field(default_factory=dict)
 
 
@@ -58,10 +98,12 @@ class LandmarkGridSlam(Slam):
 
     def __init__(self, config: SlamConfig | None = None, odometry: DiffDriveOdometry | None = None,
                  laser_pose: tuple[float, float, float] | None = None, landmark_topic: str = LANDMARK_TOPIC,
-                 correlation_rounds: int = 1) -> None:
+                 correlation_rounds: int = 1, vce_rounds: int = 3, max_time_offset_s: float = 0.2) -> None:
         super().__init__(config, odometry, laser_pose)
         self.landmark_topic = landmark_topic
         self.correlation_rounds = correlation_rounds
+        self.vce_rounds = vce_rounds
+        self.max_time_offset_s = max_time_offset_s
         self.landmark_stats = LandmarkGridStats()
         self._sightings: list[_Sighting] = []
         self._first_node: dict[str, int] = {}
@@ -93,16 +135,9 @@ class LandmarkGridSlam(Slam):
             if not o.id:
                 st.anonymous += 1
                 continue
-            turn = rotation(float(here[2]))
-            position = here[:2] + turn @ o.translation[:2]
-            xy_cov = turn @ o.position_covariance() @ turn.T + np.eye(2) * POSITION_FLOOR_M2
-            if o.oriented:
-                measurement = np.array([*position, float(here[2]) + o.yaw])
-                covariance = np.zeros((3, 3))
-                covariance[:2, :2], covariance[2, 2] = xy_cov, o.yaw_variance
-            else:
-                measurement, covariance = position, xy_cov
-            self._sightings.append(_Sighting(node, o.id, msg.stamp_ns * 1e-9, measurement, covariance))
+            self._sightings.append(_Sighting(node, o.id, msg.stamp_ns * 1e-9, here, self._velocity.copy(),
+                                             o.translation[:2].copy(), o.position_covariance(), o.yaw,
+                                             o.yaw_variance))
             st.sightings += 1
             first = self._first_node.setdefault(o.id, node)
             closes_loop |= node - first >= self.config.loop_min_node_gap
@@ -112,33 +147,29 @@ class LandmarkGridSlam(Slam):
 
     # --- optimisation ------------------------------------------------------------------------
     def _optimize_graph(self, max_iterations: int, kernel: str | None) -> None:
-        """Keyframes and landmarks in one factor graph; the keyframes' optimised poses go back to the pose graph."""
+        """Keyframes and the landmarks seen on more than one visit in one factor graph (the keyframes'
+        optimised poses go back to the pose graph); then the landmarks of a single visit, which close no
+        loop and would only bend the laser's locally better path, placed on the keyframes held fixed."""
         if not self._sightings:
             super()._optimize_graph(max_iterations, kernel)
             return
         graph = FactorGraph.from_pose_graph(self.graph)
-        variables: dict[str, tuple[bool, int]] = {}
-        kinds = {True: BETWEEN, False: POSITION}
-        rows: dict[bool, list[int]] = {True: [], False: []}
-        poses = graph.poses
-        for s in self._sightings:
-            oriented = len(s.measurement) == 3
-            if s.landmark not in variables:
-                guess = self._estimates.get(s.landmark)
-                if guess is None or len(guess) != len(s.measurement):
-                    guess = compose(poses[s.node], s.measurement) if oriented else \
-                        poses[s.node, :2] + rotation(float(poses[s.node, 2])) @ s.measurement
-                variables[s.landmark] = (oriented, graph.add_pose(guess) if oriented else graph.add_point(guess))
-            _, index = variables[s.landmark]
-            info = np.linalg.inv(s.covariance)
-            if oriented:
-                rows[True].append(graph.add_between(s.node, index, s.measurement, info))
-            else:
-                rows[False].append(graph.add_position(s.node, index, s.measurement, info))
+        edges = graph.factors(BETWEEN)[0].shape[0]
         kernels = {BETWEEN: (kernel, LANDMARK_KERNEL_WIDTH), POSITION: ("cauchy", LANDMARK_KERNEL_WIDTH)}
+        revisited = self._revisited()
+        variables: dict[str, tuple[bool, int]] = {}
+        joint = self._add_sightings(graph, [s for s in self._sightings if s.landmark in revisited], variables)
         graph.optimize(max_iterations, kernels)
-        for _ in range(self.correlation_rounds):
-            self._reweight(graph, rows, kinds)
+        if joint[True] or joint[False]:
+            for _ in range(self.correlation_rounds):
+                self._decorrelate(graph, joint)
+                graph.optimize(max_iterations, kernels)
+            self._estimate_noise(graph, edges, joint, kernels, max_iterations)
+        single = [s for s in self._sightings if s.landmark not in revisited]
+        if single:
+            graph.fixed_poses = set(range(len(graph.poses)))
+            graph.fixed_points = set(range(len(graph.points)))
+            self._add_sightings(graph, single, variables)
             graph.optimize(max_iterations, kernels)
         self.graph.poses = graph.poses[: len(self.graph)]
         self._graph, self._variables = graph, variables
@@ -148,31 +179,124 @@ class LandmarkGridSlam(Slam):
         self._nodes_at_landmark_optimization = len(self.graph)
         self.landmark_stats.joint_optimizations += 1
 
-    def _reweight(self, graph: FactorGraph, rows: dict[bool, list[int]], kinds: dict[bool, str]) -> None:
-        """Reweight each kind's landmark factors by the correlation time of their residuals."""
-        stamps = {True: [], False: []}
-        names = {True: [], False: []}
+    def _add_sightings(self, graph: FactorGraph, sightings: list[_Sighting], variables: dict[str, tuple[bool, int]]
+                       ) -> dict[bool, list[tuple[int, _Sighting]]]:
+        """Landmark variables (first sight: the last estimate, else placed by its keyframe) and a factor
+        per sighting; the factors' rows by kind (oriented or not), with their sightings."""
+        rows: dict[bool, list[tuple[int, _Sighting]]] = {True: [], False: []}
+        offset = self.landmark_stats.time_offset_s
+        for s in sightings:
+            z, covariance = s.measurement(offset)
+            if s.landmark not in variables:
+                keyframe = graph.pose(s.node)
+                guess = self._estimates.get(s.landmark)
+                if guess is None or len(guess) != len(z):
+                    guess = compose(keyframe, z) if s.oriented else keyframe[:2] + rotation(float(keyframe[2])) @ z
+                variables[s.landmark] = (s.oriented, graph.add_pose(guess) if s.oriented else graph.add_point(guess))
+            index = variables[s.landmark][1]
+            info = np.linalg.inv(covariance)
+            row = graph.add_between(s.node, index, z, info) if s.oriented else graph.add_position(s.node, index, z, info)
+            rows[s.oriented].append((row, s))
+        return rows
+
+    def _revisited(self) -> set[str]:
+        """The landmarks seen from keyframes at least ``loop_min_node_gap`` apart: only they close loops."""
+        nodes: dict[str, list[int]] = {}
         for s in self._sightings:
-            oriented = len(s.measurement) == 3
-            stamps[oriented].append(s.stamp_s)
-            names[oriented].append(s.landmark)
+            nodes.setdefault(s.landmark, []).append(s.node)
+        return {name for name, seen in nodes.items() if max(seen) - min(seen) >= self.config.loop_min_node_gap}
+
+    def _groups(self, graph: FactorGraph, edges: int, rows: dict[bool, list[tuple[int, _Sighting]]]
+                ) -> dict[str, tuple[str, np.ndarray]]:
+        """The factor groups of the variance components: laser edges, marker and point sightings."""
+        between = np.zeros(len(graph.factors(BETWEEN)[0]), bool)
+        between[:edges] = True
+        markers = np.zeros_like(between)
+        markers[[row for row, _ in rows[True]]] = True
+        points = np.zeros(len(graph.factors(POSITION)[0]), bool)
+        points[[row for row, _ in rows[False]]] = True
+        return {"edges": (BETWEEN, between), "markers": (BETWEEN, markers), "points": (POSITION, points)}
+
+    def _estimate_noise(self, graph: FactorGraph, edges: int, rows: dict[bool, list[tuple[int, _Sighting]]], kernels,
+                        max_iterations: int) -> None:
+        """Variance component estimation: each group's information divided by its chi2 over its redundancy."""
+        groups = self._groups(graph, edges, rows)
+        totals = {name: 1.0 for name in groups}
+        for _ in range(self.vce_rounds):
+            scales = {}
+            for name, (kind, select) in groups.items():
+                if select.sum() < 10:
+                    continue
+                redundancy = graph.redundancy(kind, select, kernels)
+                if redundancy > 1.0:
+                    scales[name] = float(graph.factor_chi2(kind)[select].sum()) / redundancy
+            if not scales or all(abs(math.log(max(v, 1e-12))) < math.log(1.1) for v in scales.values()):
+                break
+            for name, scale in scales.items():
+                kind, select = groups[name]
+                info = graph.factors(kind)[2]
+                info[select] /= scale
+                graph.set_information(kind, info)
+                totals[name] *= scale
+            graph.optimize(max_iterations, kernels)
+        self.landmark_stats.noise_scales = {name: float(math.sqrt(v)) for name, v in totals.items()}
+
+    def _decorrelate(self, graph: FactorGraph, rows: dict[bool, list[tuple[int, _Sighting]]]) -> None:
+        """Reweight each kind's sightings by the correlation time of their residuals."""
         for oriented, chosen in rows.items():
             if not chosen:
                 continue
-            kind = kinds[oriented]
-            _, _, info = graph.factors(kind)
-            nominal = np.array([np.linalg.inv(s.covariance) for s in self._sightings
-                                if (len(s.measurement) == 3) == oriented])
-            groups = np.unique(names[oriented], return_inverse=True)[1]
-            info[chosen], tau = decorrelated_information(nominal, graph.factor_errors(kind)[chosen], groups,
-                                                         np.array(stamps[oriented]))
+            kind = BETWEEN if oriented else POSITION
+            index = np.array([row for row, _ in chosen])
+            mine = [s for _, s in chosen]
+            info = graph.factors(kind)[2]
+            nominal = np.array([np.linalg.inv(s.measurement(self.landmark_stats.time_offset_s)[1]) for s in mine])
+            groups = np.unique([s.landmark for s in mine], return_inverse=True)[1]
+            info[index], tau = decorrelated_information(nominal, graph.factor_errors(kind)[index], groups,
+                                                        np.array([s.stamp_s for s in mine]))
             self.landmark_stats.correlation_time_s["marker" if oriented else "point"] = [float(v) for v in tau]
             graph.set_information(kind, info)
 
+    def estimate_time_offset(self) -> float:
+        """The sightings' time offset (s) that makes each landmark's sightings, placed by the keyframes
+        as the laser alone has them, agree best (least robust information-weighted scatter), searched
+        over +-``max_time_offset_s``; 0 with fewer than ``MIN_SIGHTINGS_FOR_OFFSET`` sightings."""
+        if len(self._sightings) < MIN_SIGHTINGS_FOR_OFFSET or self.max_time_offset_s <= 0:
+            return 0.0
+        laser = copy.deepcopy(self.graph)   # the keyframes by the laser alone: the sightings have not bent them
+        laser.optimize(max_iterations=100, robust_kernel=self.config.robust_kernel
+                       if self.config.robust_kernel in ("huber", "cauchy") else None, kernel_width=3.0)
+        poses = laser.poses
+        names = np.unique([s.landmark for s in self._sightings], return_inverse=True)[1]
+        best = (math.inf, 0.0)
+        for offset in np.arange(-self.max_time_offset_s, self.max_time_offset_s + 1e-12, TIME_OFFSET_STEP_S):
+            where, information = [], []
+            for s in self._sightings:
+                z, covariance = s.measurement(float(offset))
+                turn = rotation(float(poses[s.node, 2]))
+                where.append(poses[s.node, :2] + turn @ z[:2])
+                information.append(np.linalg.inv(turn @ (covariance[:2, :2] if not s.oriented else
+                                                         _position_block(z, covariance)) @ turn.T))
+            where, information = np.array(where), np.array(information)
+            cost = 0.0
+            for k in range(names.max() + 1):
+                mine = names == k
+                total = information[mine].sum(axis=0)
+                mean = np.linalg.solve(total, np.einsum("nij,nj->i", information[mine], where[mine]))
+                d = where[mine] - mean
+                s2 = np.einsum("ni,nij,nj->n", d, information[mine], d)
+                cost += float(np.sum(LANDMARK_KERNEL_WIDTH ** 2 * np.log1p(s2 / LANDMARK_KERNEL_WIDTH ** 2)))
+            best = min(best, (cost, float(offset)))
+        return best[1]
+
     def finish(self) -> None:
-        """The final optimisation, also when only landmarks arrived since the last one."""
+        """The final optimisation, then the sightings' time offset and a last optimisation with it."""
         super().finish()
         if len(self._sightings) != self._sightings_at_optimization:
+            self.optimize(max_iterations=100)
+        offset = self.estimate_time_offset()
+        if offset != self.landmark_stats.time_offset_s:
+            self.landmark_stats.time_offset_s = offset
             self.optimize(max_iterations=100)
 
     # --- output ------------------------------------------------------------------------------
@@ -191,4 +315,11 @@ class LandmarkGridSlam(Slam):
             counts[s.landmark] = counts.get(s.landmark, 0) + 1
         return LandmarkMap(names, np.array([self._estimates[n][:2] for n in names]),
                            np.array([covariance[n] for n in names]), np.array([counts.get(n, 0) for n in names]),
-                           np.array([self._estimates[n][2] if len(self._estimates[n]) == 3 else np.nan for n in names]))
+                           np.array([wrap_angle(float(self._estimates[n][2])) if len(self._estimates[n]) == 3
+                                     else np.nan for n in names]))
+
+
+def _position_block(z: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """A marker factor's position covariance back in the keyframe's frame (the factor keeps it in the marker's)."""
+    turn = rotation(float(z[2]))
+    return turn @ covariance[:2, :2] @ turn.T

@@ -30,7 +30,7 @@ import numpy as np
 from trundle.fusion.ekf_slam import EkfSlam, EkfSlamConfig
 from trundle.fusion.error_correlation import decorrelated_information
 from trundle.fusion.factor_graph import BETWEEN, RANGE_BEARING, FactorGraph
-from trundle.fusion.geometry import compose
+from trundle.fusion.geometry import compose, rotation
 from trundle.fusion.motion_model import Increment, OdometryIncrements
 from trundle.logs import messages as m
 
@@ -60,6 +60,17 @@ class LandmarkSlamStats:
     optimizations: int = 0
     iterations: int = 0
     correlation_time_s: dict[str, list[float]] = field(default_factory=dict)
+
+
+def between_covariance(position_covariance: np.ndarray, yaw_variance: float, yaw: float) -> np.ndarray:
+    """3x3 covariance of a between factor's error for a landmark pose seen at ``yaw`` (rad) with a
+    position covariance in the observer's frame: the factor's translation error is expressed in the
+    measured pose's own frame (``t2v(z^-1 (x_i^-1 x_j))``), so the ellipse turns by ``-yaw``."""
+    turn = rotation(yaw)
+    covariance = np.zeros((3, 3))
+    covariance[:2, :2] = turn.T @ np.asarray(position_covariance, np.float64).reshape(2, 2) @ turn
+    covariance[2, 2] = yaw_variance
+    return covariance
 
 
 class EkfLandmarkSlam:
@@ -227,9 +238,7 @@ class GraphLandmarkSlam:
         landmark = self._oriented.get(name)
         if landmark is None:
             landmark = self._oriented[name] = self.graph.add_pose(compose(self.graph.pose(node), seen))
-        covariance = np.zeros((3, 3))
-        covariance[:2, :2] = observation.position_covariance()
-        covariance[2, 2] = observation.yaw_variance
+        covariance = between_covariance(observation.position_covariance(), observation.yaw_variance, float(seen[2]))
         self._marker_factors.append(self.graph.add_between(node, landmark, seen, np.linalg.inv(covariance)))
 
     # --- optimisation ------------------------------------------------------------------------

@@ -26,6 +26,7 @@ from trundle.logs.messages import CameraInfo, LandmarkObservation, TFMessage, Tr
 from trundle.perception.markers import Marker, MarkerPose, marker_object_points
 
 PIXEL_SIGMA = 1.0  # px: corner noise of a detected marker seen face-on (sub-pixel refinement, JPEG, blur)
+MIN_SIDE_PX = 30.0  # px: a smaller marker's pose is too rough for its first-order covariance (ambiguity, bias)
 MIN_VIEWING_COSINE = 0.25  # beyond 75 deg off the normal the noise stops growing (detection fails first)
 
 
@@ -85,10 +86,15 @@ def pose_covariance(marker: Marker, pose: MarkerPose, camera: CameraInfo, size: 
 
 
 def marker_observation(marker: Marker, pose: MarkerPose, camera: CameraInfo, size: float, camera_in_base: np.ndarray,
-                       pixel_sigma: float = PIXEL_SIGMA) -> LandmarkObservation:
+                       pixel_sigma: float = PIXEL_SIGMA, min_side_px: float = MIN_SIDE_PX) -> LandmarkObservation | None:
     """The marker as a landmark seen from the robot: id, planar position, range, bearing and their
     covariance, its full pose and the variance of the yaw it faces, all in the frame of
-    ``camera_in_base`` (4x4 pose of the image's optical frame in the robot frame)."""
+    ``camera_in_base`` (4x4 pose of the image's optical frame in the robot frame). None when the
+    marker's shortest side in the image is under ``min_side_px``: the pose of a marker that small
+    (measured in the demo: 0.25 m markers beyond about 4.5 m) is off by more than its first-order
+    covariance admits (the two IPPE solutions come close, the corners' quantisation biases it)."""
+    if float(np.hypot(*(np.roll(marker.corners, -1, axis=0) - marker.corners).T).min()) < min_side_px:
+        return None
     covariance = pose_covariance(marker, pose, camera, size, pixel_sigma)
     rotation, shift = camera_in_base[:3, :3], camera_in_base[:3, 3]
     position = rotation @ pose.translation + shift

@@ -107,7 +107,7 @@ def test_covariance_grows_with_distance_and_viewing_angle():
     def observed(distance, facing):
         rotation, translation = _marker_in_camera(distance, facing)
         marker = _detected(rotation, translation)
-        return marker_observation(marker, marker_pose(marker, CAMERA, SIZE), CAMERA, SIZE, base)
+        return marker_observation(marker, marker_pose(marker, CAMERA, SIZE), CAMERA, SIZE, base, min_side_px=0.0)
 
     near, middle, far = (observed(d, 20.0) for d in (1.0, 2.0, 4.0))
     assert np.trace(near.position_covariance()) < np.trace(middle.position_covariance()) < np.trace(far.position_covariance())
@@ -115,6 +115,15 @@ def test_covariance_grows_with_distance_and_viewing_angle():
     straight, slanted, steep = (observed(3.0, f) for f in (20.0, 45.0, 70.0))
     assert np.trace(straight.position_covariance()) < np.trace(slanted.position_covariance()) \
         < np.trace(steep.position_covariance())
+
+
+def test_a_marker_too_small_in_the_image_is_no_landmark():
+    """0.25 m at 5 m is 25 px with this camera: detected, but its pose too rough to place a landmark."""
+    base = _frames().pose_in("camera_optical")
+    rotation, translation = _marker_in_camera(5.0, 0.0)
+    marker = _detected(rotation, translation)
+    assert marker_observation(marker, marker_pose(marker, CAMERA, SIZE), CAMERA, SIZE, base) is None
+    assert marker_observation(marker, marker_pose(marker, CAMERA, SIZE), CAMERA, SIZE, base, min_side_px=20) is not None
 
 
 def test_corners_are_where_walls_meet():

@@ -166,9 +166,10 @@ class Processing:
                 pose = marker_pose(marker, info, self.config.marker_size_m)
                 self.publish(f"{base}/marker_poses", m.TFMessage((m.TransformStamped(
                     msg.stamp_ns, msg.frame_id, f"aruco_{marker.id}", pose.translation, pose.quaternion()),)))
-                if camera_in_base is not None:
-                    observations.append(marker_observation(marker, pose, info, self.config.marker_size_m,
-                                                           camera_in_base))
+                landmark = None if camera_in_base is None else marker_observation(
+                    marker, pose, info, self.config.marker_size_m, camera_in_base)
+                if landmark is not None:
+                    observations.append(landmark)
         if observations:
             landmarks = m.LandmarkList(msg.stamp_ns, self.frames.base, tuple(observations))
             self.publish("/landmarks", landmarks)

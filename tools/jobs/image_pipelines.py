@@ -124,6 +124,7 @@ class MarkerPipeline(Pipeline):
         self.poses = 0
         self.landmark_messages = 0
         self.poses_without_mount = 0
+        self.too_small = 0
         self.poses_missing_camera_info = 0
         self.poses_failed = 0
 
@@ -150,10 +151,15 @@ class MarkerPipeline(Pipeline):
                 continue
             transforms.append(m.TransformStamped(msg.stamp_ns, frame, f"aruco_{marker.id}",
                                                  pose.translation, pose.quaternion()))
-            if camera_in_base is not None:
-                observations.append(marker_observation(marker, pose, camera, self.size, camera_in_base))
+            landmark = None if camera_in_base is None else marker_observation(marker, pose, camera, self.size,
+                                                                               camera_in_base)
+            if landmark is not None:
+                observations.append(landmark)
+            elif camera_in_base is not None:
+                self.too_small += 1
         self.poses += len(transforms)
-        self.poses_without_mount += len(transforms) - len(observations)
+        if camera_in_base is None:
+            self.poses_without_mount += len(transforms)
         if transforms:
             out.append(("/tf", m.TFMessage(tuple(transforms))))
         if observations:
@@ -167,11 +173,12 @@ class MarkerPipeline(Pipeline):
 
     def summary(self) -> dict[str, Any]:
         """Markers seen per id, poses found, failed and lacking a CameraInfo, and landmark messages
-        written (and poses without them for want of the camera's mount on ``/tf_static``)."""
+        written (and poses without them for want of the camera's mount on ``/tf_static``, or for
+        markers too small in the image to place)."""
         return {"marker_ids": {str(k): v for k, v in sorted(self.ids.items())}, "markers": sum(self.ids.values()),
                 "poses": self.poses, "poses_missing_camera_info": self.poses_missing_camera_info,
                 "poses_failed": self.poses_failed, "landmark_messages": self.landmark_messages,
-                "poses_without_camera_mount": self.poses_without_mount}
+                "poses_without_camera_mount": self.poses_without_mount, "too_small_for_landmarks": self.too_small}
 
 
 class FeaturePipeline(Pipeline):

@@ -306,7 +306,7 @@ def _marker_from(r: Any) -> m.ImageMarker:
 
 
 def _landmark_entry_to(o: m.LandmarkObservation) -> Any:
-    planar = np.linalg.eigvalsh(_position_covariance(o))
+    planar = np.linalg.eigvalsh(o.position_covariance())
     sigma = float(np.sqrt(max(planar.max(), 0.0)))
     qx, qy, qz, qw = (float(v) for v in o.rotation)
     tx, ty, tz = (float(v) for v in o.translation)
@@ -316,13 +316,6 @@ def _landmark_entry_to(o: m.LandmarkObservation) -> Any:
         rotation_weight=1.0 / float(np.sqrt(o.yaw_variance)) if o.yaw_variance > 0 else 0.0,
         range=o.range, bearing=o.bearing, range_bearing_covariance=o.covariance.reshape(-1),
         yaw_variance=o.yaw_variance)
-
-
-def _position_covariance(o: m.LandmarkObservation) -> np.ndarray:
-    """The x-y covariance of an observation's range-bearing point (first-order propagation)."""
-    c, s = np.cos(o.bearing), np.sin(o.bearing)
-    jac = np.array([[c, -o.range * s], [s, o.range * c]])
-    return jac @ o.covariance @ jac.T
 
 
 def _landmarks_to(msg: m.LandmarkList) -> Any:

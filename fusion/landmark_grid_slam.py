@@ -89,6 +89,7 @@ class LandmarkGridStats:
     before_first_scan: int = 0
     joint_optimizations: int = 0
     time_offset_s: float = 0.0
+    revisited: list[str] = field(default_factory=list)
     noise_scales: dict[str, float] = field(default_factory=dict)
     correlation_time_s: dict[str, list[float]] = field(default_factory=dict)
 
@@ -157,6 +158,7 @@ class LandmarkGridSlam(Slam):
         edges = graph.factors(BETWEEN)[0].shape[0]
         kernels = {BETWEEN: (kernel, LANDMARK_KERNEL_WIDTH), POSITION: ("cauchy", LANDMARK_KERNEL_WIDTH)}
         revisited = self._revisited()
+        self.landmark_stats.revisited = sorted(revisited)
         variables: dict[str, tuple[bool, int]] = {}
         joint = self._add_sightings(graph, [s for s in self._sightings if s.landmark in revisited], variables)
         graph.optimize(max_iterations, kernels)

@@ -92,10 +92,18 @@ def marker_observation(marker: Marker, pose: MarkerPose, camera: CameraInfo, siz
     ``camera_in_base`` (4x4 pose of the image's optical frame in the robot frame). None when the
     marker's shortest side in the image is under ``min_side_px``: the pose of a marker that small
     (measured in the demo: 0.25 m markers beyond about 4.5 m) is off by more than its first-order
-    covariance admits (the two IPPE solutions come close, the corners' quantisation biases it)."""
+    covariance admits (the two IPPE solutions come close, the corners' quantisation biases it); None
+    too for a pose or covariance that is not finite."""
     if float(np.hypot(*(np.roll(marker.corners, -1, axis=0) - marker.corners).T).min()) < min_side_px:
         return None
-    covariance = pose_covariance(marker, pose, camera, size, pixel_sigma)
+    if not (np.all(np.isfinite(pose.rotation)) and np.all(np.isfinite(pose.translation))):
+        return None   # a solver that failed gives no landmark, never NaN data
+    try:
+        covariance = pose_covariance(marker, pose, camera, size, pixel_sigma)
+    except np.linalg.LinAlgError:   # corners that do not fix the pose (degenerate)
+        return None
+    if not np.all(np.isfinite(covariance)):
+        return None
     rotation, shift = camera_in_base[:3, :3], camera_in_base[:3, 3]
     position = rotation @ pose.translation + shift
     position_cov = (rotation @ covariance[3:, 3:] @ rotation.T)[:2, :2]

@@ -4,6 +4,7 @@ laser walls where two lines meet."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -124,6 +125,14 @@ def test_a_marker_too_small_in_the_image_is_no_landmark():
     marker = _detected(rotation, translation)
     assert marker_observation(marker, marker_pose(marker, CAMERA, SIZE), CAMERA, SIZE, base) is None
     assert marker_observation(marker, marker_pose(marker, CAMERA, SIZE), CAMERA, SIZE, base, min_side_px=20) is not None
+
+
+def test_a_failed_pose_gives_no_landmark_not_nan():
+    rotation, translation = _marker_in_camera(2.0, 10.0)
+    marker = _detected(rotation, translation)
+    good = marker_pose(marker, CAMERA, SIZE)
+    broken = dataclasses.replace(good, translation=np.full(3, np.nan))
+    assert marker_observation(marker, broken, CAMERA, SIZE, _frames().pose_in("camera_optical")) is None
 
 
 def test_corners_are_where_walls_meet():

@@ -87,7 +87,9 @@ def marker_map(run: SlamRun, world: World, map_to_world) -> dict[str, Any]:
     sightings = dict(zip(mapped.ids, mapped.sightings.tolist()))
     return {"mapped": len(mapped.ids), "errors_m": error.per_landmark_m, "mean_error_m": error.mean_m,
             "max_error_m": error.max_m, "not_in_world": error.extra,
-            "sightings": {k: int(v) for k, v in sorted(sightings.items())}}
+            "sightings": {k: int(v) for k, v in sorted(sightings.items())},
+            "sighting_time_offset_s": run.slam.landmark_stats.time_offset_s,
+            "revisited": run.slam.landmark_stats.revisited}
 
 
 def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, score: MarkerScore, world: World,

@@ -78,3 +78,15 @@ def test_user_errors_are_one_line(room_log, tmp_path, capsys):
         assert main(argv) == 2
         stderr = capsys.readouterr().err
         assert message in stderr and len(stderr.strip().splitlines()) == 1, stderr
+
+
+def test_a_robot_name_in_the_metadata_is_no_robot_model(tmp_path):
+    """The daemon writes ``robot`` metadata as the robot's name, importers as a JSON model: both read."""
+    from trundle.logs.reader import LogReader
+    from trundle.tools.jobs.config import robot_model
+
+    for value, expected in (("trundle-demo", {}), ('{"wheel_radius_m": 0.1, "track_m": 0.4}',
+                                                   {"wheel_radius_m": 0.1, "track_m": 0.4}), ("{broken", {})):
+        path = tmp_path / f"log{len(value)}.mcap"
+        write_log([("/odom", m.Odometry(1, "odom", "base_link", 0.0, 0.0, 0.0), 1)], path, metadata={"robot": value})
+        assert robot_model(LogReader(path).info()) == expected

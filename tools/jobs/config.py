@@ -46,6 +46,17 @@ def config_table(config: Mapping[str, Any], name: str, keys: set[str]) -> dict[s
     return table
 
 
+def robot_model(info: LogInfo) -> dict[str, Any]:
+    """The robot model an importer stores as ``robot`` metadata (JSON); {} when there is none, or when
+    ``robot`` is just the robot's name (as the daemon writes it)."""
+    text = info.metadata.get("trundle", {}).get("robot", "") or ""
+    try:
+        model = json.loads(text) if text.strip().startswith("{") else {}
+    except json.JSONDecodeError:
+        return {}
+    return model if isinstance(model, dict) else {}
+
+
 def make_odometry(info: LogInfo, config: Mapping[str, Any]) -> DiffDriveOdometry | None:
     """Wheel odometry for a log with wheel joint states; None if it has none (or only ``Odometry``).
 
@@ -57,7 +68,7 @@ def make_odometry(info: LogInfo, config: Mapping[str, Any]) -> DiffDriveOdometry
         return None
     metadata = info.metadata.get("trundle", {})
     devices = json.loads(metadata.get("devices", "{}") or "{}")
-    sources = [config_table(config, "odometry", ODOMETRY_KEYS), json.loads(metadata.get("robot", "{}") or "{}"),
+    sources = [config_table(config, "odometry", ODOMETRY_KEYS), robot_model(info),
                next((d for d in devices.values() if isinstance(d, dict) and d.get("family") == "can"), {})]
     for source in sources:
         odometry = odometry_from_config(source) if source else None
@@ -75,7 +86,7 @@ def laser_pose(info: LogInfo, config: Mapping[str, Any]) -> tuple[float, float, 
     table = config_table(config, "laser", LASER_KEYS)
     if table:
         return (float(table.get("x_m", 0.0)), float(table.get("y_m", 0.0)), float(table.get("yaw_rad", 0.0)))
-    robot = json.loads(info.metadata.get("trundle", {}).get("robot", "{}") or "{}")
+    robot = robot_model(info)
     if any(k in robot for k in ("laser_x_m", "laser_y_m", "laser_yaw_rad")):
         return (float(robot.get("laser_x_m", 0.0)), float(robot.get("laser_y_m", 0.0)),
                 float(robot.get("laser_yaw_rad", 0.0)))

@@ -41,5 +41,10 @@ def run(args: argparse.Namespace) -> int:
           f"{report['processing_s']:.1f} s ({report['real_time_factor']:.1f}x real time); "
           f"{report['loop_closures']} loop closures; mean scan-to-map residual "
           f"{report['scan_to_map_residual_m'].get('mean', float('nan')) * 100:.1f} cm")
-    print(f"wrote {args.output}/map.pgm, map.yaml, map.png, trajectory.png, trajectory.csv, report.json, slam.mcap")
+    landmarks = report.get("landmarks")
+    if landmarks:
+        print(f"{landmarks['mapped']} landmarks from {landmarks['sightings']} sightings on {landmarks['topic']} in the "
+              f"pose graph")
+    print(f"wrote {args.output}/map.pgm, map.yaml, map.png, trajectory.png, trajectory.csv, "
+          f"{'landmarks.csv, ' if landmarks else ''}report.json, slam.mcap")
     return 0

@@ -123,11 +123,13 @@ def read_trajectory_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.nd
 
 def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajectories: list[np.ndarray],
                     colours: list[tuple[int, int, int]] | None = None, loops: list[tuple[np.ndarray, np.ndarray]] = (),
-                    min_size: int = 1000) -> Path:
+                    min_size: int = 1000, landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Path:
     """PNG of the map with trajectories (each (N, 3), map frame) drawn over it, scaled up to ``min_size`` px.
 
     ``colours`` are BGR per trajectory (default red, then blue, green); ``loops`` are pairs of
     positions drawn as thin lines (loop-closure constraints). Start is a circle, end a square.
+    ``landmarks`` (ids, positions (M, 2), covariances (M, 2, 2)) are drawn as a cross with its
+    3-sigma ellipse (at least a few pixels) and the id beside it, in magenta.
     """
     base = map_image(grid)
     scale = max(1, int(math.ceil(min_size / max(base.shape))))
@@ -154,7 +156,52 @@ def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajector
         cv2.circle(image, tuple(pts[0]), 4 * scale << shift, colour, 2, cv2.LINE_AA, shift)
         end = pts[-1] >> shift
         cv2.rectangle(image, tuple(end - 3 * scale), tuple(end + 3 * scale), colour, 2)
+    if landmarks is not None:
+        magenta = (200, 0, 200)
+        for name, xy, cov in zip(*landmarks):
+            centre = pixels(np.asarray(xy, np.float64).reshape(1, 2))[0]
+            values, vectors = np.linalg.eigh(np.nan_to_num(np.asarray(cov, np.float64).reshape(2, 2)))
+            axes = np.maximum(3.0 * np.sqrt(np.maximum(values, 0.0)) / grid.resolution * scale, 3.0)
+            angle = -math.degrees(math.atan2(vectors[1, 1], vectors[0, 1]))
+            cv2.ellipse(image, tuple(int(v) for v in centre), (int(axes[1] * (1 << shift)), int(axes[0] * (1 << shift))),
+                        angle, 0, 360, magenta, 1, cv2.LINE_AA, shift)
+            c = centre >> shift
+            cv2.drawMarker(image, (int(c[0]), int(c[1])), magenta, cv2.MARKER_CROSS, 4 * scale + 6, 1)
+            cv2.putText(image, str(name), (int(c[0]) + 6, int(c[1]) - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4, magenta, 1,
+                        cv2.LINE_AA)
     path = Path(path)
     if not cv2.imwrite(str(path), image):
         raise UserError(f"cannot write {path}")
     return path
+
+
+LANDMARKS_HEADER = ["id", "x", "y", "sx", "sy"]
+
+
+def write_landmarks_csv(path: str | os.PathLike[str], ids: list[str], positions: np.ndarray,
+                        sigmas: np.ndarray) -> None:
+    """``id,x,y,sx,sy`` per landmark: map-frame position (m) and its standard deviations in x and y (m)."""
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(LANDMARKS_HEADER)
+        for name, (x, y), (sx, sy) in zip(ids, np.asarray(positions, np.float64).reshape(-1, 2),
+                                          np.asarray(sigmas, np.float64).reshape(-1, 2)):
+            writer.writerow([name, f"{x:.6f}", f"{y:.6f}", f"{sx:.6f}", f"{sy:.6f}"])
+
+
+def read_landmarks_csv(path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Ids, positions (M, 2) and standard deviations (M, 2) from an ``id,x,y,sx,sy`` file."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"no such landmark file: {path}")
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows or [c.strip() for c in rows[0]] != LANDMARKS_HEADER:
+        raise UserError(f"{path}: not an {','.join(LANDMARKS_HEADER)} landmark file")
+    try:
+        values = np.array([[float(v) for v in row[1:5]] for row in rows[1:] if row], np.float64).reshape(-1, 4)
+    except (ValueError, IndexError):
+        raise UserError(f"{path}: a row is not id,x,y,sx,sy") from None
+    if not np.all(np.isfinite(values[:, :2])):
+        raise UserError(f"{path}: non-finite landmark position")
+    return [row[0] for row in rows[1:] if row], values[:, :2], values[:, 2:]

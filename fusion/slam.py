@@ -455,7 +455,7 @@ class Slam:
             return
         cfg = self.config
         kernel = cfg.robust_kernel if cfg.robust_kernel in ("huber", "cauchy") else None
-        self.graph.optimize(max_iterations=max_iterations, robust_kernel=kernel, kernel_width=3.0)
+        self._optimize_graph(max_iterations, kernel)
         chi2 = self.graph.edge_chi2()
         ij = self.graph.edges[0]
         loops = np.flatnonzero(np.abs(ij[:, 1] - ij[:, 0]) > 1)
@@ -464,13 +464,17 @@ class Slam:
             self.graph.remove_edges(bad)
             self.stats.loop_closures -= len(bad)
             self.stats.loop_rejected += len(bad)
-            self.graph.optimize(max_iterations=max_iterations, robust_kernel=kernel, kernel_width=3.0)
+            self._optimize_graph(max_iterations, kernel)
         self._loop_edges = list(np.flatnonzero(np.abs(self.graph.edges[0][:, 1] - self.graph.edges[0][:, 0]) > 1))
         self._nodes_at_last_optimization = len(self.graph)
         self._loops_at_last_optimization = len(self._loop_edges)
         self.stats.optimizations += 1
         last = len(self._kf_local) - 1
         self.map_from_local = compose(self.graph.poses[last], inverse(self._kf_local[last]))
+
+    def _optimize_graph(self, max_iterations: int, kernel: str | None) -> None:
+        """One robust optimisation of the pose graph (a subclass may optimise its own constraints with it)."""
+        self.graph.optimize(max_iterations=max_iterations, robust_kernel=kernel, kernel_width=3.0)
 
     def finish(self) -> None:
         """End of the run: a final optimisation when loops were added since the last one."""

@@ -92,6 +92,13 @@ def files(tmp_path_factory):
     (root / "carmen.log").write_text("ODOM 0 0 0 0 0 0 1.0 host 1.0\nODOM 1 0 0 0 0 0 2.0 host 2.0\n")
     (root / "exp.dat").write_text(" ".join(["1000", "0", "0", "0"] + ["0"] * 20 + ["100"] * 683) + "\n")
     (root / "robot.toml").write_text("")
+    mrclam = root / "mrclam"  # one robot of a UTIAS MRCLAM folder: a metre straight ahead, one landmark seen
+    mrclam.mkdir()
+    (mrclam / "Barcodes.dat").write_text("# Subject # Barcode #\n1 5\n6 18\n")
+    (mrclam / "Landmark_Groundtruth.dat").write_text("# Subject # x y sx sy\n6 2.0 0.0 0.001 0.001\n")
+    (mrclam / "Robot1_Odometry.dat").write_text("# Time [s] v w\n100.0 1.0 0.0\n101.0 0.0 0.0\n")
+    (mrclam / "Robot1_Measurement.dat").write_text("# Time [s] Subject # range bearing\n100.5 18 1.5 0.0\n")
+    (mrclam / "Robot1_Groundtruth.dat").write_text("# Time x y theta\n100.0 0 0 0\n101.0 1 0 0\n")
     (root / "binary.bin").write_bytes(bytes(range(256)) * 16)
     (root / "empty.txt").write_text("")
     (root / "full").mkdir()
@@ -128,6 +135,8 @@ PATH_OPTIONS: dict[tuple[str, ...], tuple[dict[str, str | None], dict[str, str]]
     ("import", "carmen"): ({"input": "{carmen}", "-o": "{out}.mcap"},
                            {"input": "in", "-o": "out", "--reference": "out"}),
     ("import", "breezyslam"): ({"input": "{dat}", "-o": "{out}.mcap"}, {"input": "in", "-o": "out"}),
+    ("import", "mrclam"): ({"input": "{mrclam}", "--robot": "1", "-o": "{out}.mcap"},
+                           {"input": "dataset", "-o": "out", "--reference": "out", "--landmarks-reference": "out"}),
     ("emulate", "lrf"): ({"--tcp": "0", "--duration": "0.1"}, {"--link": "link", "--scene": "in"}),
     ("emulate", "can"): ({"--protocol": "odrive", "--link": "{out}", "--duration": "0.1"}, {"--link": "link"}),
     ("emulate", "camera"): ({"--port": "0", "--duration": "0.1"}, {"--source": "in"}),
@@ -139,6 +148,7 @@ PATH_OPTIONS: dict[tuple[str, ...], tuple[dict[str, str | None], dict[str, str]]
 BAD = {  # kind of path -> the wrong things to give it
     "in": ["{missing}", "{folder}", "/dev/zero", "{binary}", "{empty}"],
     "config": ["{missing}", "{folder}", "/dev/zero", "{binary}"],
+    "dataset": ["{missing}", "{folder}", "/dev/zero", "{binary}"],
     "map": ["{missing}", "{folder}", "/dev/zero", "{binary}", "{map}/map.pgm"],
     "out": ["{folder}", "{existing}"],
     "out or folder": ["{existing}"],
@@ -149,7 +159,7 @@ BAD = {  # kind of path -> the wrong things to give it
 }
 PATHLIKE = {"file", "input", "output", "log", "result", "reference", "image1", "image2"}
 SHARED = ["binary.bin", "carmen.log", "dir", "empty.txt", "existing.mcap", "exp.dat", "full", "image.png", "map",
-          "robot.toml", "trajectory.csv"]
+          "mrclam", "robot.toml", "trajectory.csv"]
 
 
 def test_every_path_option_is_fuzzed():
@@ -182,7 +192,7 @@ def test_bad_paths_are_one_line_errors(path, option, bad, files, tmp_path, capfd
             "carmen": files / "carmen.log", "dat": files / "exp.dat", "robot": files / "robot.toml",
             "binary": files / "binary.bin", "empty": files / "empty.txt", "full": files / "full",
             "existing": files / "existing.mcap", "folder": files / "dir", "missing": tmp_path / "missing.file",
-            "out": tmp_path / "out"}
+            "out": tmp_path / "out", "mrclam": files / "mrclam"}
     good, _ = PATH_OPTIONS[path]
     argv = [a.format(**fill) for a in command_line(path, good, option, bad)]
     handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}

@@ -59,7 +59,7 @@ def test_job_options_are_converted_by_the_job_functions_type_hints(tmp_path) -> 
 
 
 @pytest.mark.parametrize("job, items, message", [
-    ("slam", ["loops=1"], "slam has no option 'loops' (options: config=None (config), local_only=False (bool))"),
+    ("slam", ["loops=1"], "slam has no option 'loops' (options: config=None (config), local_only=False (bool), estimator=None (text))"),
     ("characterize", [], "characterize needs topic=... in --job-options"),
     ("localize", ["config={}"], "localize needs map_path=..."),
     ("slam", ["local_only=maybe"], "slam option local_only: needs true or false, got 'maybe'"),
@@ -320,7 +320,7 @@ def test_trundle_help_imports_no_ray_and_fleet_help_lists_every_jobs_options() -
     fleet = subprocess.run([sys.executable, "-c", code, "fleet", "--help"], capture_output=True, text=True, check=True)
     assert fleet.stdout.strip().endswith("False")
     assert "characterize  topic=... (text), reference=None (path), beam='all' (int-or-text)" in fleet.stdout
-    assert "slam          config=None (config), local_only=False (bool)" in fleet.stdout
+    assert "slam          config=None (config), local_only=False (bool), estimator=None (text)" in fleet.stdout
 
 
 def test_command_errors_are_one_line(tmp_path, capsys, monkeypatch, log) -> None:

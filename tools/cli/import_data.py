@@ -1,10 +1,14 @@
-"""`trundle import carmen|breezyslam IN -o OUT.mcap`: public dataset formats -> trundle MCAP logs.
+"""`trundle import carmen|breezyslam|mrclam IN -o OUT.mcap`: public dataset formats -> trundle MCAP logs.
 
 ``carmen``: CARMEN ``.clf``/``.log``/``.gfs.log`` (ODOM, FLASER, RLASER, ROBOTLASER1). With
 ``--drift`` the odometry is made from the laser lines' poses (in GMapping output: the corrected
 path) with systematic and random drift (:mod:`trundle.fusion.odometry_drift`), for evaluating SLAM
 against those poses; ``--reference`` writes those poses as ``t_ns,x,y,theta`` CSV.
 ``breezyslam``: BreezySLAM ``.dat`` (wheel ticks -> JointState, URG-04LX ranges -> LaserScan).
+``mrclam``: one robot of a UTIAS MRCLAM dataset folder (speeds -> Odometry, barcode sightings ->
+LandmarkList on /landmarks); ``--reference`` writes its Vicon ground truth as ``t_ns,x,y,theta`` CSV,
+``--landmarks-reference`` the surveyed landmarks as ``id,x,y,sx,sy`` CSV (the files ``trundle slam``
+writes, for ``trundle slam-eval``).
 """
 
 from __future__ import annotations
@@ -14,10 +18,12 @@ import math
 import sys
 from pathlib import Path
 
-from trundle.fusion.map_io import write_trajectory_csv
+from trundle.fusion.map_io import write_landmarks_csv, write_trajectory_csv
 from trundle.fusion.odometry_drift import drifting_odometry
 from trundle.logs.importers.breezyslam import import_breezyslam
+from trundle.logs.errors import UserError
 from trundle.logs.importers.carmen import ODOMETRY_SOURCES, choose_odometry, import_carmen, read_carmen, scan_poses
+from trundle.logs.importers.mrclam import ROBOT_SUBJECTS, import_mrclam
 from trundle.logs.paths import new_file
 from trundle.tools.config.arguments import finite, non_negative_int, number_in, positive
 
@@ -44,6 +50,14 @@ def register(p: argparse.ArgumentParser) -> None:
     b.add_argument("input", type=Path)
     b.add_argument("-o", "--output", type=Path, required=True, help="output .mcap (must not exist)")
     b.set_defaults(func=run_breezyslam)
+    r = formats.add_parser("mrclam", help="UTIAS MRCLAM dataset folder (RobotN_Odometry.dat, RobotN_Measurement.dat, ...)")
+    r.add_argument("input", type=Path, help="dataset folder")
+    r.add_argument("--robot", type=number_in(min(ROBOT_SUBJECTS), max(ROBOT_SUBJECTS), whole=True), required=True,
+                   help=f"robot number ({min(ROBOT_SUBJECTS)}-{max(ROBOT_SUBJECTS)})")
+    r.add_argument("-o", "--output", type=Path, required=True, help="output .mcap (must not exist)")
+    r.add_argument("--reference", type=Path, help="write RobotN_Groundtruth.dat as t_ns,x,y,theta CSV")
+    r.add_argument("--landmarks-reference", type=Path, help="write Landmark_Groundtruth.dat as id,x,y,sx,sy CSV")
+    r.set_defaults(func=run_mrclam)
 
 
 def _summary(counts: dict[str, int], output: Path) -> None:
@@ -82,4 +96,26 @@ def run_carmen(args: argparse.Namespace) -> int:
 def run_breezyslam(args: argparse.Namespace) -> int:
     new_file(args.output, "-o")
     _summary(import_breezyslam(args.input, args.output), args.output)
+    return 0
+
+
+def run_mrclam(args: argparse.Namespace) -> int:
+    new_file(args.output, "-o")
+    for option, path in (("--reference", args.reference), ("--landmarks-reference", args.landmarks_reference)):
+        if path:
+            new_file(path, option)
+    counts, run, dropped = import_mrclam(args.input, args.robot, args.output)
+    if args.reference:
+        if run.groundtruth is None:
+            raise UserError(f"--reference: no Robot{args.robot}_Groundtruth.dat in {args.input}")
+        write_trajectory_csv(args.reference, run.groundtruth_ns, run.groundtruth)
+    if args.landmarks_reference:
+        surveyed = sorted(s for s in run.landmarks if s not in ROBOT_SUBJECTS)
+        write_landmarks_csv(args.landmarks_reference, [str(s) for s in surveyed],
+                            [run.landmarks[s][:2] for s in surveyed], [run.landmarks[s][2:] for s in surveyed])
+    _summary(counts, args.output)
+    print(f"dropped {dropped['robot_sightings']} sightings of other robots and {dropped['unknown_barcodes']} of "
+          f"barcodes not in Barcodes.dat")
+    for name, count in sorted(run.malformed.items()):
+        print(f"skipped {count} malformed rows of {name}")
     return 0

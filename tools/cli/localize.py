@@ -5,7 +5,9 @@ is only read. Odometry comes from the log's ``Odometry`` messages or its wheel `
 (wheel model from the log's ``robot`` metadata or the config's ``[odometry]`` table, as for
 ``trundle slam``); without either, the localizer runs on the scans alone. The laser mount comes
 from ``/tf_static`` or the config's ``[laser]`` table. Prints when the pose converged, each
-kidnapping detected (and the recovery), and writes the tracked poses with ``-o``.
+kidnapping detected (and the recovery), and writes the tracked poses with ``-o``. A map folder with
+``landmarks.csv`` and a log with marker sightings (``/landmarks``) add landmark fixes: global
+localisation from two mapped landmarks, and kidnap recovery.
 """
 
 from __future__ import annotations
@@ -54,7 +56,9 @@ def run(args: argparse.Namespace) -> int:
           f"{len(converged) - 1 if converged else 0} recovery(ies); {report['global_searches']} global search(es), "
           f"{report['false_alarms']} false alarm(s); {report['tracked_scans']} scans tracked"
           + (f", mean match score {report['match_score_tracking']['mean']:.2f}"
-             if report["match_score_tracking"] else ""))
+             if report["match_score_tracking"] else "")
+          + (f"; {report['landmark_fixes']} landmark fix(es) from {report['landmarks_in_map']} mapped landmarks "
+             f"({report['landmark_fixes_rejected']} disagreeing)" if report["landmarks_in_map"] else ""))
     if report["final_pose"]:
         x, y, theta = report["final_pose"]
         print(f"final pose x {x:.3f} m, y {y:.3f} m, theta {np.degrees(theta):.1f} deg; "

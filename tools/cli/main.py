@@ -35,7 +35,7 @@ COMMANDS = {
     "localize": "localise a log on a saved map (unknown start, kidnap recovery)",
     "perceive": "run an image-feature pipeline over a log's images",
     "match": "match local features between two images (keypoints, matches, RANSAC model)",
-    "import": "convert a public dataset (CARMEN, BreezySLAM) to an MCAP log",
+    "import": "convert a public dataset (CARMEN, BreezySLAM, UTIAS MRCLAM) to an MCAP log",
     "emulate": "start a device emulator",
     "characterize": "sensor characteristics (range, resolution, precision, ...) from a log",
     "fleet": "run a one-log job over many logs on a Ray cluster -> results table and summary",

@@ -160,6 +160,7 @@ class RobotConfig:
     laser: tuple[float, float, float] | None = None
     live: LiveConfig = LiveConfig()
     source: str = ""
+    landmarks: dict[str, Any] = field(default_factory=dict)
 
     def options(self, family: str) -> dict[str, Any]:
         """The driver options of the one device of ``family`` (without its name), {} if there is
@@ -341,7 +342,7 @@ def _laser(data: dict[str, Any], source: str) -> tuple[float, float, float] | No
 
 
 TOP_LEVEL = {"robot", "frames", "transforms", "logger", "disk", "processing", "status", "supervision", "slam",
-             "odometry", "laser", "live", *FAMILIES}
+             "odometry", "laser", "landmarks", "live", *FAMILIES}
 
 
 def parse_config(data: dict[str, Any], source: str = "") -> RobotConfig:
@@ -382,11 +383,19 @@ def parse_config(data: dict[str, Any], source: str = "") -> RobotConfig:
         SlamConfig.from_mapping(slam)  # checked even while SLAM is off, so a typo shows at once
     except UserError as error:
         raise UserError(f"{_where(source, str(error))}") from None
+    landmarks = _table(data, "landmarks", source)
+    from trundle.fusion.landmark_slam import landmark_configs
+
+    try:
+        landmark_configs(landmarks)
+    except UserError as error:
+        raise UserError(f"{_where(source, str(error))}") from None
     live = _build(LiveConfig, _table(data, "live", source), "live", source)
     if not 0 <= live.port <= 65535:
         raise UserError(f"{_where(source, 'live.port')} = {live.port}: expected a TCP port 0-65535")
     return RobotConfig(robot, devices, frames, _transforms(data, source), logger, disk, processing, status,
-                       supervision, dict(slam), _odometry(data, source), _laser(data, source), live, source)
+                       supervision, dict(slam), _odometry(data, source), _laser(data, source), live, source,
+                       dict(landmarks))
 
 
 def _check_folder(folder: Path, where: str) -> None:

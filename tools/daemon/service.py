@@ -135,6 +135,9 @@ class Daemon:
         processing = Processing(cfg.processing, cfg.slam, cfg.frames, self.publish)
         if processing.active:
             self.processing = processing
+            for topic, msg in list(self._latched.items()):  # the drivers' static transforms and calibrations
+                if processing.wants(topic, msg):
+                    processing.put(topic, msg)
             processing.thread.start()
         self.disk_guard.check()
         if cfg.logger.record and not self.recording_paused:

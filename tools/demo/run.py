@@ -10,8 +10,9 @@ Stages (what ``trundle demo`` runs, one function each so tests can run them alon
    stands at its start until every device streams. Each logged scan and frame then gets its ground
    truth from what the emulators made (``trundle.tools.demo.ground_truth``).
 2. ``trundle.tools.demo.slam.run_slam``: the log replayed through SLAM with wheel odometry from
-   ``/wheels`` (the wheel model of the daemon's config, stored in the log) and the laser mount
-   from ``/tf_static``.
+   ``/wheels`` (the wheel model of the daemon's config, stored in the log), the laser mount
+   from ``/tf_static`` and the markers the daemon saw (``/landmarks``) as landmarks; and again
+   without the markers, for the report to compare.
 3. ``trundle.tools.demo.scoring.score_markers``: ArUco detection and pose on every logged frame,
    against the markers the simulator had in view and their known poses in the world file.
 4. :func:`run_demo`: all of it, writing the log, map, plots and ``report.md`` / ``report.json``
@@ -47,9 +48,10 @@ from trundle.tools.demo.scoring import score_markers, sensor_mount
 from trundle.tools.demo.slam import SLAM_OPTIONS, run_slam
 from trundle.tools.daemon.status import query_status
 from trundle.tools.config.toml_text import format_config
+from trundle.tools.jobs.landmark_slam import write_landmarks
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.emulators.sim_devices import SimDevices
-from trundle.tools.sim.world import DEFAULT_WORLD, load_world
+from trundle.tools.sim.world import DEFAULT_WORLD, World, load_world
 
 LOG_NAME = "demo.mcap"
 STREAM_TIMEOUT_S = 90.0     # daemon start-up to every device streaming, on a loaded machine
@@ -57,6 +59,7 @@ STOP_TIMEOUT_S = 60.0       # SIGTERM to a closed log
 LEAD_S = 1.0                # the robot stands this long in the log before it drives
 LRF_TIMEOUT_S = 2.0         # laser silence before the driver reconnects: a busy machine delays the emulators ...
 WHEEL_TIMEOUT_S = 1.5       # ... and wheel silence before a wheel counts as stale (its motion is then lost)
+MARKERS_HZ = 10.0           # camera frames a second the daemon looks for markers in (every frame: landmarks for SLAM)
 
 
 Say = Callable[[str], None]
@@ -96,8 +99,18 @@ def daemon_config(devices: SimDevices, folder: Path, socket_path: Path, calibrat
     return {"robot": {"name": "trundle-demo"}, **tables,
             "logger": {"folder": str(folder), "compression": "zstd", "flush_period_s": 0.5},
             "disk": {"min_free_mb": 100.0, "action": "stop"},
-            "processing": {"odometry": True, "slam": False, "markers": False}, "slam": SLAM_OPTIONS,
+            "processing": {"odometry": True, "slam": False, "markers": True, "markers_hz": MARKERS_HZ,
+                           "marker_size_m": marker_size(devices.sim.world),
+                           "aruco_dictionary": devices.sim.world.aruco_dictionary}, "slam": SLAM_OPTIONS,
             "status": {"socket": str(socket_path), "diagnostics_period_s": 1.0}}
+
+
+def marker_size(world: World) -> float:
+    """The side (m) of the world's ArUco markers, which the daemon needs to know (one size for all)."""
+    sizes = {d.width for d in world.markers}
+    if len(sizes) != 1:
+        raise UserError(f"the {world.name} world has markers of sizes {sorted(sizes)}: the daemon knows one size")
+    return sizes.pop()
 
 
 def _status(socket_path: Path) -> dict[str, Any] | None:
@@ -277,24 +290,30 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     write_trajectory_csv(out / "ground_truth.csv", recording.scans.stamps_ns, recording.scans.poses)
     write_trajectory_csv(out / "frames_ground_truth.csv", recording.frames.stamps_ns, recording.frames.poses)
     seconds = {"record": time.monotonic() - started}
-    say(f"[2/4] SLAM: replaying {len(recording.scans)} scans and the wheel encoders of {recording.log.name}")
-    run = run_slam(recording.log, progress=progress)
+    say(f"[2/4] SLAM: replaying {len(recording.scans)} scans, the wheel encoders and the daemon's marker sightings "
+        f"of {recording.log.name}, and again without the markers")
+    run = run_slam(recording.log, progress=progress, markers=True)
+    plain = run_slam(recording.log, progress=progress)
     seconds["slam"] = run.processing_s
-    say(f"      {run.slam.stats.keyframes} keyframes, {run.slam.stats.loop_closures} loop closures "
-        f"in {run.processing_s:.0f} s")
+    seconds["slam_without_markers"] = plain.processing_s
+    say(f"      {run.slam.stats.keyframes} keyframes, {run.slam.stats.loop_closures} loop closures, "
+        f"{len(run.slam.landmarks().ids)} markers mapped in {run.processing_s:.0f} s")
     say(f"[3/4] perception: ArUco markers in {len(recording.frames)} camera frames")
     t = time.monotonic()
     mount = sensor_mount(recording.log, "camera")
     score = score_markers(recording.log, recording.frames, world, mount, progress)
     seconds["markers"] = time.monotonic() - t
     say("[4/4] report")
-    report = build_report(settings.as_json(), recording, run, score, world, seconds)
+    report = build_report(settings.as_json(), recording, run, score, world, seconds, plain)
     save_map(run.grid, out / "map")
     write_trajectory_csv(out / "trajectory.csv", run.trajectory.stamps_ns, run.trajectory.poses)
     map_from_world = inverse(np.array(report["trajectory"]["ate"]["alignment_xyt"]))
     keyframes = run.slam.keyframe_poses()
+    mapped = run.slam.landmarks()
+    write_landmarks(out / "landmarks.csv", mapped)
     plot_run(run.grid, out / "trajectory.png", compose(map_from_world, recording.scans.poses), run.trajectory.poses,
-             run.odometry.poses, [(keyframes[i], keyframes[j]) for i, j in run.slam.loop_edges()])
+             run.odometry.poses, [(keyframes[i], keyframes[j]) for i, j in run.slam.loop_edges()],
+             (mapped.ids, mapped.positions, mapped.covariances))
     draw_detections(recording.log, score, recording.frames, world, mount, out / "camera_detections.png")
     seconds["total"] = time.monotonic() - started
     write_report(out, report)

@@ -1,6 +1,8 @@
 """SLAM over a demo log: the log replayed (as fast as possible) through ``trundle.fusion.slam.Slam``
 with wheel odometry from ``/wheels`` (the wheel model of the daemon's config, stored in the log)
-and the laser mount from ``/tf_static``, with the demo's SLAM options.
+and the laser mount from ``/tf_static``, with the demo's SLAM options; with ``markers`` the
+daemon's marker sightings on ``/landmarks`` join the pose graph as landmarks
+(``trundle.fusion.landmark_grid_slam.LandmarkGridSlam``).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import numpy as np
 
 from trundle.fusion.evaluation import Trajectory
 from trundle.fusion.odometry import DiffDriveOdometry, odometry_from_config
+from trundle.fusion.landmark_grid_slam import LandmarkGridSlam
 from trundle.fusion.slam import Slam, SlamConfig
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
@@ -21,7 +24,7 @@ from trundle.logs.metadata import read_metadata
 from trundle.logs.reader import LogInfo, LogReader
 from trundle.logs.replay import replay
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
-from trundle.tools.demo.topics import SCAN_TOPIC, WHEELS_TOPIC
+from trundle.tools.demo.topics import LANDMARK_TOPIC, SCAN_TOPIC, WHEELS_TOPIC
 
 # SLAM options of the demo (the [slam] table of its robot.toml), each for a property of the emulated robot:
 SLAM_OPTIONS: dict[str, Any] = {
@@ -55,15 +58,20 @@ def wheel_odometry(info: LogInfo) -> DiffDriveOdometry:
     return odometry
 
 
-def run_slam(log: Path, config: SlamConfig | None = None, progress: ProgressFactory = NoProgress) -> SlamRun:
+def run_slam(log: Path, config: SlamConfig | None = None, progress: ProgressFactory = NoProgress,
+             markers: bool = False) -> SlamRun:
     """Replay ``log`` (as fast as possible) through SLAM with wheel odometry from ``/wheels``
-    (``config`` default: ``SLAM_OPTIONS``), showing the scans done on a ``progress`` display."""
+    (``config`` default: ``SLAM_OPTIONS``), showing the scans done on a ``progress`` display; with
+    ``markers`` the log's ``/landmarks`` too (a UserError when it has none)."""
     with LogReader(log) as reader:
         info = reader.info()
     if SCAN_TOPIC not in info.topics:
         raise UserError(f"{log}: no {SCAN_TOPIC} topic")
+    if markers and LANDMARK_TOPIC not in info.topics:
+        raise UserError(f"{log}: no {LANDMARK_TOPIC} topic (marker sightings of the daemon)")
     odometry = wheel_odometry(info)
-    slam = Slam(config or SlamConfig.from_mapping(SLAM_OPTIONS), odometry)
+    config = config or SlamConfig.from_mapping(SLAM_OPTIONS)
+    slam = LandmarkGridSlam(config, odometry, landmark_topic=LANDMARK_TOPIC) if markers else Slam(config, odometry)
     odom_stamps: list[int] = []
     odom_poses: list[np.ndarray] = []
     bar = progress("slam", info.topics[SCAN_TOPIC].count)
@@ -77,7 +85,7 @@ def run_slam(log: Path, config: SlamConfig | None = None, progress: ProgressFact
             bar.update(slam.stats.scans, f"{slam.stats.scans} scans, {slam.stats.loop_closures} loop closures")
 
     started = time.perf_counter()
-    replay(log, feed, rate=0.0, topics=["/tf_static", WHEELS_TOPIC, SCAN_TOPIC])
+    replay(log, feed, rate=0.0, topics=["/tf_static", WHEELS_TOPIC, SCAN_TOPIC] + ([LANDMARK_TOPIC] if markers else []))
     slam.finish()
     bar.close()
     if slam.stats.scans == 0:

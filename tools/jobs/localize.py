@@ -4,7 +4,10 @@ The map (``map.yaml`` + ``map.pgm`` as ``trundle slam`` or ROS's map_saver write
 read. Odometry comes from the log's ``Odometry`` messages or its wheel ``JointState`` (wheel model
 from the log's ``robot`` metadata or the config's ``[odometry]`` table, as for the slam job);
 without either, the localizer runs on the scans alone. The laser mount comes from ``/tf_static``
-or the config's ``[laser]`` table.
+or the config's ``[laser]`` table. When the map folder has ``landmarks.csv`` (``trundle slam`` of a
+log with markers) and the log has landmark sightings (``/landmarks``), sightings of two mapped
+landmarks give absolute fixes (:mod:`trundle.fusion.landmark_localization`): global localisation
+at once, and kidnap recovery when the fixes keep disagreeing with the track.
 """
 
 from __future__ import annotations
@@ -15,14 +18,25 @@ from typing import Any
 
 import numpy as np
 
-from trundle.fusion.geometry import relative, scan_to_points, voxel_filter
+from trundle.fusion.geometry import compose, relative, scan_to_points, voxel_filter
+from trundle.fusion.landmark_localization import LandmarkFixer
+from trundle.fusion.landmark_slam import LANDMARK_TOPIC
 from trundle.fusion.localization import TRACKING, Localizer, grid_from_map
-from trundle.fusion.map_io import load_map, write_trajectory_csv
+from trundle.fusion.map_io import load_map, read_landmarks_csv, write_trajectory_csv
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
 from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, robot_config
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
+
+
+def _landmark_fixer(map_path: Path, info) -> LandmarkFixer | None:
+    """Landmark fixes when the map folder has ``landmarks.csv`` and the log has sightings on ``/landmarks``."""
+    folder = map_path if map_path.is_dir() else map_path.parent
+    if not (folder / "landmarks.csv").is_file() or LANDMARK_TOPIC not in info.topics:
+        return None
+    ids, positions, sigmas = read_landmarks_csv(folder / "landmarks.csv")
+    return LandmarkFixer(ids, positions, sigmas) if ids else None
 
 
 def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic: str = "/scan",
@@ -44,12 +58,14 @@ def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic
     info = reader.info()
     info.require(scan_topic, "sensor_msgs/msg/LaserScan")
     wheels = make_odometry(info, config) if use_odometry else None
+    fixer = _landmark_fixer(map_path, info)
     configured_mount = laser_pose(info, config)
     mounts: dict[str, np.ndarray] = {}
     localizer = Localizer(grid)
     odometry: np.ndarray | None = None
     previous_odometry: np.ndarray | None = None
     stamps, poses, scores = [], [], []
+    fixes = 0
     bar = progress("localize", max(info.duration_s, 1e-9))
     start_ns = info.start_ns or 0
     started = time.perf_counter()
@@ -62,8 +78,19 @@ def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic
             odom = wheels.update(msg)
             if odom is not None:
                 odometry = np.array([odom.x, odom.y, odom.theta])
+                if fixer is not None:
+                    fixer.odometry(odometry)
         elif isinstance(msg, m.Odometry) and wheels is None and use_odometry:
             odometry = np.array([msg.x, msg.y, msg.theta])
+            if fixer is not None:
+                fixer.odometry(odometry)
+        elif isinstance(msg, m.LandmarkList) and fixer is not None and item.topic == LANDMARK_TOPIC:
+            fix = fixer.add(msg)
+            if fix is not None and odometry is not None and previous_odometry is not None:
+                # the fix is of the robot now; the localizer's pose is that of the last scan
+                back = relative(odometry, previous_odometry)
+                fixes += 1
+                localizer.fix(compose(fix.pose, back), fix.covariance)
         elif isinstance(msg, m.LaserScan) and item.topic == scan_topic:
             mount = np.asarray(configured_mount if configured_mount is not None
                                else mounts.get(msg.frame_id, np.zeros(3)), dtype=np.float64)
@@ -88,6 +115,8 @@ def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic
         "log": str(log), "map": str(yaml_path), "scans": st.scans, "odometry": odometry is not None,
         "converged_at_scans": st.converged_at, "kidnaps_detected_at_scans": st.kidnaps_at,
         "false_alarms": st.false_alarms, "global_searches": st.global_searches, "tracked_scans": len(stamps),
+        "landmark_fixes": fixes, "landmark_fixes_rejected": st.fixes_rejected,
+        "landmarks_in_map": len(fixer.map) if fixer is not None else 0,
         "final_status": localizer.status, "final_pose": [float(v) for v in poses[-1]] if poses else None,
         "match_score_tracking": {"mean": float(np.mean(scores)), "min": float(np.min(scores))} if scores else None,
         "duration_s": info.duration_s, "processing_s": processing_s,

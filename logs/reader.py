@@ -12,16 +12,17 @@ import heapq
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO, Iterable, Iterator
+from typing import TYPE_CHECKING, BinaryIO, Iterable, Iterator
 
 from mcap.records import Attachment, Channel, Chunk, Header, Message, Metadata, Schema, Statistics
 from mcap.reader import SeekingReader
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from trundle.logs import messages as m
-from trundle.logs import ros2
 from trundle.logs.errors import UserError
 from trundle.logs.paths import input_file
+
+if TYPE_CHECKING:
+    from trundle.logs import messages as m
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -234,6 +235,8 @@ class LogReader:
     def messages(self, topics: Iterable[str] | None = None, start_ns: int | None = None,
                  end_ns: int | None = None) -> Iterator[LogMessage]:
         """Decoded messages of the types trundle maps, in log-time order; others are skipped."""
+        from trundle.logs import ros2  # numpy and the rosbags typestore: only to decode (not for info)
+
         for raw in self.raw_messages(topics, start_ns, end_ns):
             if ros2.is_supported(raw.ros_type):
                 yield LogMessage(raw.topic, raw.log_time_ns, ros2.decode(raw.ros_type, raw.data))

@@ -6,7 +6,9 @@ Topics (``NAME`` is the ``name`` option, default ``camera``):
                               bytes unchanged (MJPG pass-through), or raw frames encoded at
                               ``jpeg_quality`` when ``raw_output = "jpeg"``
   /NAME/image_raw             sensor_msgs/Image (bgr8 or mono8) when ``raw_output`` asks for it
-  /NAME/camera_info           sensor_msgs/CameraInfo, latched (calibration YAML or size only)
+  /NAME/camera_info           sensor_msgs/CameraInfo, latched (calibration YAML or size only; a source
+                              that does not give its size, such as MJPEG over HTTP, gets it from
+                              its first frame, and the CameraInfo is published then)
   /tf_static                  parent_frame -> frame_id (config) -> optical_frame_id (REP 103)
 
 Time: the message stamp is the capture time (V4L2 buffer timestamp or file media time, on
@@ -79,6 +81,8 @@ class CameraDriver(Driver):
     timing, ``overwritten`` frames replaced by newer ones before we read them, ``stalls``.
     """
 
+    usable = "frames"
+
     def __init__(self, config: CameraConfig, sink: Sink, source_factory: Callable[[], FrameSource], *,
                  camera_info: m.CameraInfo | None = None, clock: Callable[[], int] = wall_ns,
                  monotonic_ns: Callable[[], int] = time.monotonic_ns) -> None:
@@ -94,8 +98,10 @@ class CameraDriver(Driver):
         stamp = clock()
         self.camera_info = camera_info or uncalibrated_camera_info(config.width, config.height,
                                                                    config.optical_frame_id, stamp)
-        self._static = [(f"{config.topic_prefix}/camera_info", self.camera_info),
-                        ("/tf_static", static_transforms(config, stamp))]
+        self._info_topic = f"{config.topic_prefix}/camera_info"
+        self._static = [("/tf_static", static_transforms(config, stamp))]
+        if self.camera_info.width:  # else the first frame tells the size (never a 0x0 CameraInfo)
+            self._static.insert(0, (self._info_topic, self.camera_info))
         self._checker = JpegChecker(config.decode_check_every)
         self._grabber: FrameGrabber | None = None
         self._overwritten_before = 0
@@ -162,6 +168,8 @@ class CameraDriver(Driver):
         if msg is None:
             self.counters["corrupt"] += 1
             return
+        if not self.camera_info.width:
+            self._learn_size(msg, frame.recv_ns + self.offset_ns)
         topic = "image_raw/compressed" if isinstance(msg, m.CompressedImage) else "image_raw"
         self.publish(f"{self.config.topic_prefix}/{topic}", msg, frame.recv_ns + self.offset_ns)
         self.counters["frames"] += 1
@@ -183,11 +191,23 @@ class CameraDriver(Driver):
             return None
         return encode_raw(image, stamp_ns, frame_id, self.config.raw_output, self.config.jpeg_quality)
 
+    def _learn_size(self, msg: m.CompressedImage | m.Image, log_ns: int) -> None:
+        """The image size from the first good frame: the CameraInfo is made, latched and published."""
+        width, height = jpeg_header(msg.data) if isinstance(msg, m.CompressedImage) else (msg.width, msg.height)
+        self.camera_info = uncalibrated_camera_info(width, height, self.config.optical_frame_id, msg.stamp_ns)
+        self._static.insert(0, (self._info_topic, self.camera_info))
+        self.publish(self._info_topic, self.camera_info, log_ns)
+
     def close(self) -> None:
         grabber, self._grabber = self._grabber, None
         if grabber is not None:
             grabber.stop()
             self._overwritten_before += grabber.overwritten
+
+    def silence_reason(self) -> str:
+        if self.counters["corrupt"]:
+            return f"{self.counters['corrupt']} corrupt frames dropped (last: {self.last_corrupt})"
+        return "the camera sends no frames"
 
     def measured_fps(self) -> float:
         """Frame rate over the last (up to) 60 published frames, from their capture times."""
@@ -251,13 +271,9 @@ def _file_size(path: Path) -> tuple[int, int]:
 
 def _source_factory(config: CameraConfig, unsupported: set[str]) -> tuple[Callable[[], FrameSource], tuple[int, int]]:
     """How to open the source of ``config`` (checked now: a bad path is a ``UserError``) and its size."""
-    if config.scheme == "v4l2":
+    if config.scheme == "v4l2":  # a camera not plugged in yet is waited for (the source's open retries)
         path = device_path(config.target)
-        try:
-            mode = os.stat(path).st_mode
-        except FileNotFoundError:
-            raise UserError(f"no camera at {path} (see ls /dev/v4l/by-id/)") from None
-        if not stat.S_ISCHR(mode):
+        if os.path.exists(path) and not stat.S_ISCHR(os.stat(path).st_mode):
             raise UserError(f"{path} is not a video device (for a video file use file://{os.path.abspath(path)})")
         factory = partial(V4L2Source, path, width=config.width, height=config.height, fps=config.fps,
                           fourcc=config.fourcc, buffers=config.buffers, controls=config.controls,

@@ -112,5 +112,10 @@ class EncoderProtocol(ABC):
     def stop(self) -> None:
         """Stop any worker; the bus is closed by the driver."""
 
+    def silence_hint(self, seen_ids: set[int]) -> str:
+        """Why these wheels give no readings though the bus carries frames (``seen_ids``: the
+        arbitration ids heard), "" when the protocol has no guess."""
+        return ""
+
     def diagnostics(self) -> list[tuple[str, str]]:
         return [(f"{self.name}.{k}", str(v)) for k, v in sorted(self.counters.items())]

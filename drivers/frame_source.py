@@ -7,9 +7,11 @@ pixel array, with the capture time on the host's CLOCK_MONOTONIC. The driver che
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import cv2
 import numpy as np
 
 from trundle.drivers.lifecycle import DeviceError
@@ -60,6 +62,15 @@ class FrameSource(Protocol):
 
     def settings(self) -> dict[str, str]:
         """The settings actually in effect (read back from the device), for diagnostics."""
+
+
+def quiet_opencv() -> None:
+    """Silence OpenCV's and FFmpeg's own warnings on stderr (a file it cannot open, a refused
+    connection): the driver reports every failure itself, in one line and in its diagnostics.
+    A user's ``OPENCV_LOG_LEVEL`` / ``OPENCV_FFMPEG_LOGLEVEL`` still wins (for debugging)."""
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET; read when FFmpeg is first used
+    if "OPENCV_LOG_LEVEL" not in os.environ:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
 class CaptureSource:

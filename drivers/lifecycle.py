@@ -4,10 +4,16 @@ reconnect with capped exponential back-off, count errors, publish health.
 A concrete driver implements ``open`` (transport + handshake), ``read_once`` (read and publish
 what is available, raising ``DeviceError``/``OSError`` on a fault that needs a reconnect) and
 ``close``. ``run`` drives them until ``stop()``; ``start()`` does it on a thread.
+
+No device is silent: ``diagnostics`` is ERROR while the device cannot be opened (naming the
+error and its likely cause) and WARN while it is connected but its ``usable`` counter (scans,
+wheel readings, frames) has not moved for ``silence_s``, with the driver's own guess why
+(``silence_reason``: corrupt replies, node ids never seen, ...).
 """
 
 from __future__ import annotations
 
+import errno
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -27,9 +33,66 @@ class DeviceError(Exception):
     """A device fault that calls for closing and reopening the transport."""
 
 
+SILENCE_S = 3.0  # connected, but no usable data for this long: a WARN naming the likely cause
+
+# what an open failure most likely means, by errno
+OPEN_HINTS = {
+    errno.ENOENT: "not plugged in, or a wrong path",
+    errno.ENXIO: "no device behind the path (unplugged?)",
+    errno.ENODEV: "no such device (unplugged, or a wrong interface name)",
+    errno.EACCES: "no permission: add the user to the dialout (serial) or video (camera) group",
+    errno.EPERM: "no permission",
+    errno.EBUSY: "in use by another program",
+    errno.ECONNREFUSED: "nothing listens at that address and port",
+    errno.EHOSTUNREACH: "the host cannot be reached (network, address?)",
+    errno.ETIMEDOUT: "no answer from the host (network, address?)",
+    errno.ENOTTY: "not a serial port",
+    errno.EAFNOSUPPORT: "this machine has no such network family (no SocketCAN here?)",
+}
+
+
+def open_hint(error: BaseException) -> str:
+    """The likely cause of an open failure (from its errno, or that of its cause), "" if unknown."""
+    seen: set[int] = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        code = getattr(error, "errno", None)
+        if code is None and error.args and isinstance(error.args[0], int):  # termios.error and the like
+            code = error.args[0]
+        hint = OPEN_HINTS.get(code if isinstance(code, int) else -1)
+        if hint:
+            return hint
+        error = error.__cause__ or error.__context__  # type: ignore[assignment]
+    return ""
+
+
 def wall_ns() -> int:
     """Host wall-clock time in nanoseconds (the time base of every stamp)."""
     return time.time_ns()
+
+
+class SignalFlag:
+    """A request (stop, split) raised by a signal handler and polled by the main loop.
+
+    Raising it takes no lock: ``threading.Event.set`` in a handler deadlocks when a second signal
+    lands while the first handler holds the event's lock (seen: SIGTERM twice froze the daemon).
+    ``wait`` sleeps in short steps of ``poll_s`` so the request is acted on at once.
+    """
+
+    def __init__(self, poll_s: float = 0.1) -> None:
+        self.raised = False
+        self.poll_s = poll_s
+
+    def raise_(self, *_: object) -> None:
+        """Raise the flag (the signature of a signal handler)."""
+        self.raised = True
+
+    def wait(self, timeout_s: float) -> bool:
+        """Sleep until the flag is raised or ``timeout_s`` passed; True if raised."""
+        deadline = time.monotonic() + timeout_s
+        while not self.raised and (left := deadline - time.monotonic()) > 0:
+            time.sleep(min(self.poll_s, left))
+        return self.raised
 
 
 class Backoff:
@@ -53,7 +116,12 @@ class Driver(ABC):
 
     ``counters`` always has ``reconnects`` and ``errors``; drivers add their own (``scans``,
     ``checksum_errors``, ``frames``, ...). ``state`` is one of connecting, streaming, waiting, stopped.
+    ``usable`` names the counter of good output (what a silent device does not increase);
+    ``open_error`` holds why the last open failed ("" once the device opened).
     """
+
+    usable = "scans"
+    silence_s = SILENCE_S
 
     def __init__(self, name: str, sink: Sink, *, hardware_id: str = "", backoff: Backoff | None = None,
                  clock: Callable[[], int] = wall_ns) -> None:
@@ -65,9 +133,13 @@ class Driver(ABC):
         self.counters: Counter[str] = Counter(reconnects=0, errors=0)
         self.state = "stopped"
         self.last_error = ""
+        self.open_error = ""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._connected_once = False
+        self._connected_at: float | None = None  # monotonic s of the last successful open
+        self._usable_count = 0
+        self._usable_at = 0.0  # monotonic s when the usable counter last moved (or the device first opened)
 
     @abstractmethod
     def open(self) -> None:
@@ -92,11 +164,18 @@ class Driver(ABC):
         """Open, stream and reconnect until ``stop()``; never raises for device faults."""
         while not self._stop.is_set():
             self.state = "connecting"
+            opened = False
             try:
                 self.open()
+                opened = True
                 if self._connected_once:
                     self.counters["reconnects"] += 1
                 self._connected_once = True
+                self.open_error = ""
+                self._connected_at = time.monotonic()
+                if not self._usable_at:  # silence is counted from the first connection, across reconnects
+                    self._usable_at = self._connected_at
+                    self._usable_count = self.counters[self.usable]
                 self.backoff.reset()
                 self.state = "streaming"
                 while not self._stop.is_set():
@@ -104,7 +183,11 @@ class Driver(ABC):
             except (DeviceError, OSError, ValueError) as error:
                 self.counters["errors"] += 1
                 self.last_error = f"{type(error).__name__}: {error}"
+                if not opened:
+                    hint = open_hint(error)
+                    self.open_error = f"{error}" + (f" ({hint})" if hint else "")
             finally:
+                self._connected_at = None
                 self.close()
             if not self._stop.is_set():
                 self.state = "waiting"
@@ -130,9 +213,40 @@ class Driver(ABC):
     def stopping(self) -> bool:
         return self._stop.is_set()
 
+    def silence_reason(self) -> str:
+        """Why a connected device gives no usable data, as far as the driver can tell ("" if it cannot)."""
+        return ""
+
+    def counted(self, names: tuple[str, ...]) -> str:
+        """The counters ``names`` that are not zero, as ``"12 checksum errors, 3 truncated"``."""
+        return ", ".join(f"{self.counters[n]} {n.replace('_', ' ')}" for n in names if self.counters[n])
+
+    def health_status(self, now: float | None = None) -> tuple[int, str]:
+        """``(level, message)``: ERROR while the device cannot be opened, WARN while it is connected
+        but silent for ``silence_s`` (or reconnecting), OK while streaming, STALE once stopped.
+        ``now`` is monotonic seconds (default: now)."""
+        now = time.monotonic() if now is None else now
+        if self.state == "stopped":
+            return m.STALE, "stopped"
+        connected_at = self._connected_at
+        if self.state != "streaming" or connected_at is None:
+            if self.open_error:
+                named = self.hardware_id and self.hardware_id in self.open_error
+                return m.ERROR, self.open_error if named else f"cannot open {self.hardware_id}: {self.open_error}"
+            return m.WARN, f"{self.state}" + (f" after {self.last_error}" if self.last_error else "")
+        count = self.counters[self.usable]
+        if count != self._usable_count:
+            self._usable_count, self._usable_at = count, now
+        silent_s = now - self._usable_at
+        if silent_s >= self.silence_s:
+            reason = self.silence_reason()
+            return m.WARN, (f"connected, but no {self.usable.replace('_', ' ')} for {silent_s:.0f} s"
+                            + (f": {reason}" if reason else ""))
+        return m.OK, "streaming"
+
     def diagnostics(self) -> m.DiagnosticStatus:
-        level = m.OK if self.state == "streaming" else m.WARN if self.state != "stopped" else m.STALE
+        level, message = self.health_status()
         values = [("state", self.state), *sorted((k, str(v)) for k, v in self.counters.items())]
         if self.last_error:
             values.append(("last_error", self.last_error))
-        return m.DiagnosticStatus(level, self.name, self.state, self.hardware_id, tuple(values))
+        return m.DiagnosticStatus(level, self.name, message, self.hardware_id, tuple(values))

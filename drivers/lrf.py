@@ -2,10 +2,12 @@
 
 - ``scip2:///dev/ttyACM0`` Hokuyo SCIP 2.0 on a USB/serial port (also ``scip2:/dev/...``)
 - ``scip2+tcp://192.168.0.10:10940`` Hokuyo SCIP 2.0 over Ethernet (UST, UTM-EW)
-- ``rplidar:///dev/ttyUSB0?model=a2`` Slamtec RPLIDAR (model a1, a2, a3, s1; default a1)
+- ``rplidar:///dev/ttyUSB0?model=s2&mode=DenseBoost`` Slamtec RPLIDAR (model a1, a2, a2m12, a3, c1, s1,
+  s2, s3 sets the first baud rate tried; mode defaults to the device's typical scan mode)
 
 Query parameters and the ``config`` table (the ``[lrf]`` section of a robot TOML) set driver
-options; see ``ScipConfig`` and ``RplidarConfig`` for the keys. Use a stable path such as
+options; see ``ScipConfig`` and ``RplidarConfig`` for the keys (and ``name``, the driver's name
+in diagnostics, default ``lrf``). Use a stable path such as
 ``/dev/serial/by-id/...`` so reconnects find the device again after an unplug.
 """
 
@@ -40,7 +42,7 @@ def _value(text: str) -> Any:
 def make_config(cls: type[Config], port: str, options: Mapping[str, Any], device: str) -> Config:
     """A driver config dataclass from a table of options (``url`` ignored); UserError on a bad one."""
     fields = {f.name: f for f in dataclasses.fields(cls) if f.name != "port"}
-    unknown = sorted(set(options) - set(fields) - {"url", "port"})
+    unknown = sorted(set(options) - set(fields) - {"url", "port", "name"})
     if unknown:
         raise UserError(f"lrf: unknown option(s) {', '.join(unknown)} for {device}; known: {', '.join(sorted(fields))}")
     values = {}
@@ -66,6 +68,9 @@ def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = Non
         raise UserError(f"unknown laser URL {url!r}: use scip2:///dev/ttyACM0, scip2+tcp://host:10940 "
                         "or rplidar:///dev/ttyUSB0?model=a2")
     options = {**dict(config or {}), **{k: _value(v) for k, v in parse_qsl(parts.query)}}
+    name = options.get("name", "lrf")
+    if not isinstance(name, str) or not name:
+        raise UserError(f"lrf: name must be a non-empty string, got {name!r}")
     if scheme == "scip2+tcp":
         if not parts.hostname:
             raise UserError(f"laser URL {url!r} needs a host: scip2+tcp://192.168.0.10:10940")
@@ -79,5 +84,5 @@ def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = Non
         if not port:
             raise UserError(f"laser URL {url!r} needs a device path, e.g. {scheme}:///dev/ttyUSB0")
     if scheme == "rplidar":
-        return RplidarDriver(make_config(RplidarConfig, port, options, "an RPLIDAR"), sink)
-    return ScipDriver(make_config(ScipConfig, port, options, "a SCIP 2.0 laser"), sink)
+        return RplidarDriver(make_config(RplidarConfig, port, options, "an RPLIDAR"), sink, name=name)
+    return ScipDriver(make_config(ScipConfig, port, options, "a SCIP 2.0 laser"), sink, name=name)

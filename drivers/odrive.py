@@ -3,7 +3,9 @@
 Arbitration id = ``node_id << 5 | cmd_id`` (node 0..63, command 0..31), little-endian payloads,
 requests are RTR frames answered with the same id. Two firmware lines are supported because the
 heartbeat layout changed between them: ``"0.5"`` (ODrive v3.x, firmware 0.5.x) and ``"0.6"``
-(ODrive Pro / S1). Decoders raise ``ValueError`` on frames too short for their layout.
+(ODrive Pro / S1). Firmware 0.6 answers an RTR Get_Version (0x000) with its hardware and firmware
+version; 0.5 has no such message (0x000 is reserved for CANopen NMT there), which is how the
+line is told apart. Decoders raise ``ValueError`` on frames too short for their layout.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import math
 import struct
 from dataclasses import dataclass
 
+GET_VERSION = 0x000  # 0.6 only
 HEARTBEAT = 0x001
 ESTOP = 0x002
 GET_ERROR = 0x003  # 0.5: Get_Motor_Error (u64); 0.6: Get_Error (u32 active, u32 disarm reason)
@@ -75,6 +78,38 @@ def decode_heartbeat(data: bytes, firmware: str = "0.5") -> Heartbeat:
 
 def encode_heartbeat(heartbeat: Heartbeat) -> bytes:
     return _HEARTBEAT.pack(heartbeat.axis_error, heartbeat.axis_state, *heartbeat.flags)
+
+
+@dataclass(frozen=True)
+class Version:
+    """Get_Version (0x000, firmware 0.6): CAN Simple protocol version, hardware (major, minor,
+    variant) and firmware (major, minor, revision; ``unreleased`` for a development build)."""
+
+    protocol: int
+    hardware: tuple[int, int, int]
+    firmware: tuple[int, int, int]
+    unreleased: bool = False
+
+    @property
+    def firmware_text(self) -> str:
+        return ".".join(map(str, self.firmware)) + ("-dev" if self.unreleased else "")
+
+    @property
+    def line(self) -> str:
+        """The heartbeat layout this firmware uses: ``"0.5"`` for 0.5.x and older, else ``"0.6"``."""
+        return "0.5" if self.firmware[:2] <= (0, 5) else "0.6"
+
+
+def decode_version(data: bytes) -> Version:
+    """Get_Version payload: u8 protocol, hw major, minor, variant, fw major, minor, revision, unreleased."""
+    if len(data) < 8:
+        raise ValueError(f"ODrive Get_Version needs 8 bytes, got {len(data)}")
+    b = bytes(data[:8])
+    return Version(b[0], (b[1], b[2], b[3]), (b[4], b[5], b[6]), bool(b[7]))
+
+
+def encode_version(version: Version) -> bytes:
+    return bytes((version.protocol, *version.hardware, *version.firmware, int(version.unreleased)))
 
 
 def decode_encoder_estimates(data: bytes) -> tuple[float, float]:

@@ -1,9 +1,15 @@
-"""Slamtec RPLIDAR serial protocol codec: requests, response descriptors, scan nodes, express capsules.
+"""Slamtec RPLIDAR serial protocol codec: requests, response descriptors, device info, health,
+the configuration queries that enumerate scan modes, and legacy 5-byte scan nodes.
 
 Pure functions over bytes and numpy arrays (no I/O), shared by the driver and the emulator.
-Little-endian throughout. Scan data never raise: ``NodeDecoder`` and ``CapsuleDecoder`` drop
-bytes until the check bits / checksum hold again and count what they dropped, where the SDK's
+Little-endian throughout. The capsule answers of EXPRESS_SCAN (express, ultra, dense,
+ultra-dense, HQ) are in ``rplidar_capsules``. Scan data never raise: ``NodeDecoder`` drops bytes
+until the check bits hold again and counts what it dropped, where the SDK's
 ``handler_normalnode.cpp`` resynchronises and the Python libraries raise.
+
+Sources (lrf-protocols.md section 2): Slamtec's ``sl_lidar_cmd.h`` and ``sl_lidar_protocol.h``
+(Slamtec/rplidar_ros @ 2f10ad5b, ``sdk/include``), ``sl_lidar_driver.cpp`` (Slamtec/rplidar_sdk,
+SDK 2.1) and the RPLIDAR interface protocol document (A3M1 edition, 2019, GET_LIDAR_CONF pages).
 """
 
 from __future__ import annotations
@@ -18,11 +24,24 @@ STOP, RESET, SCAN, FORCE_SCAN, EXPRESS_SCAN = 0x25, 0x40, 0x20, 0x21, 0x82
 GET_INFO, GET_HEALTH, GET_SAMPLERATE, GET_LIDAR_CONF = 0x50, 0x52, 0x59, 0x84
 SET_MOTOR_PWM, GET_ACC_BOARD_FLAG, HQ_MOTOR_SPEED_CTRL = 0xF0, 0xFF, 0xA8
 ANS_INFO, ANS_HEALTH, ANS_MEASUREMENT, ANS_CAPSULED = 0x04, 0x06, 0x81, 0x82
-ANS_SAMPLERATE, ANS_ACC_BOARD_FLAG = 0x15, 0xFF
+ANS_HQ, ANS_ULTRA, ANS_DENSE, ANS_ULTRA_DENSE = 0x83, 0x84, 0x85, 0x86
+ANS_SAMPLERATE, ANS_CONF, ANS_ACC_BOARD_FLAG = 0x15, 0x20, 0xFF
 SINGLE, MULTIPLE = 0, 1
-DESCRIPTOR_SIZE, NODE_SIZE, CAPSULE_SIZE, CABINS = 7, 5, 84, 16
+DESCRIPTOR_SIZE, NODE_SIZE = 7, 5
 FULL_CIRCLE_Q6 = 360 << 6
 HEALTH_GOOD, HEALTH_WARNING, HEALTH_ERROR = 0, 1, 2
+
+# GET_LIDAR_CONF entries (sl_lidar_cmd.h SL_LIDAR_CONF_*): the mode count and the typical mode
+# take no payload; the others take the mode id as a u16 after the type.
+CONF_DESIRED_ROT_FREQ = 0x01  # u16 rpm, u16 PWM reference
+CONF_SCAN_MODE_COUNT = 0x70  # u16
+CONF_SCAN_MODE_US_PER_SAMPLE = 0x71  # u32, Q8 microseconds
+CONF_SCAN_MODE_MAX_DISTANCE = 0x74  # u32, Q8 metres
+CONF_SCAN_MODE_ANS_TYPE = 0x75  # u8, the answer type EXPRESS_SCAN streams in that mode
+CONF_SCAN_MODE_TYPICAL = 0x7C  # u16, the mode Slamtec recommends for the model
+CONF_SCAN_MODE_NAME = 0x7F  # NUL-terminated ASCII
+MODE_ENTRIES = (CONF_SCAN_MODE_US_PER_SAMPLE, CONF_SCAN_MODE_MAX_DISTANCE, CONF_SCAN_MODE_ANS_TYPE,
+                CONF_SCAN_MODE_NAME)
 
 
 class RplidarError(ValueError):
@@ -120,7 +139,52 @@ HEALTH_DESCRIPTOR = Descriptor(3, SINGLE, ANS_HEALTH)
 SAMPLERATE_DESCRIPTOR = Descriptor(4, SINGLE, ANS_SAMPLERATE)
 ACC_BOARD_DESCRIPTOR = Descriptor(4, SINGLE, ANS_ACC_BOARD_FLAG)
 SCAN_DESCRIPTOR = Descriptor(5, MULTIPLE, ANS_MEASUREMENT)
-EXPRESS_DESCRIPTOR = Descriptor(84, MULTIPLE, ANS_CAPSULED)
+
+
+def conf_request(entry: int, mode: int | None = None) -> bytes:
+    """GET_LIDAR_CONF payload: u32 entry type, then the u16 mode id for per-mode entries (SDK 2.1)."""
+    return struct.pack("<I", entry) + (b"" if mode is None else struct.pack("<H", mode))
+
+
+def conf_answer(entry: int, value: bytes) -> bytes:
+    """The GET_LIDAR_CONF answer payload: the entry type echoed, then its value."""
+    return struct.pack("<I", entry) + value
+
+
+def parse_conf(entry: int, payload: bytes) -> bytes:
+    """The value of a GET_LIDAR_CONF answer; RplidarError unless it echoes ``entry``."""
+    if len(payload) < 4 or struct.unpack("<I", payload[:4])[0] != entry:
+        raise RplidarError(f"configuration answer for entry {entry:#x} does not echo it: {payload[:8].hex(' ')}")
+    return payload[4:]
+
+
+@dataclass(frozen=True)
+class ScanMode:
+    """One scan mode as GET_LIDAR_CONF describes it: ``id`` (the EXPRESS_SCAN working mode),
+    ``name``, ``us_per_sample`` (microseconds), ``max_distance`` (m), ``answer_type``."""
+
+    id: int
+    name: str
+    us_per_sample: float
+    max_distance: float
+    answer_type: int
+
+    def conf_values(self) -> dict[int, bytes]:
+        """The value of every per-mode entry (the emulator's answers)."""
+        return {CONF_SCAN_MODE_US_PER_SAMPLE: struct.pack("<I", round(self.us_per_sample * 256)),
+                CONF_SCAN_MODE_MAX_DISTANCE: struct.pack("<I", round(self.max_distance * 256)),
+                CONF_SCAN_MODE_ANS_TYPE: bytes((self.answer_type,)),
+                CONF_SCAN_MODE_NAME: self.name.encode("ascii") + b"\0"}
+
+    @classmethod
+    def from_conf(cls, mode: int, values: dict[int, bytes]) -> ScanMode:
+        """A mode from the values of its four entries (RplidarError when one is malformed)."""
+        us, distance, kind, name = (values.get(e, b"") for e in MODE_ENTRIES)
+        if len(us) < 4 or len(distance) < 4 or len(kind) < 1 or not name:
+            raise RplidarError(f"incomplete description of scan mode {mode}")
+        # Q8 fixed point (protocol: 64000 means 250 us); SDK 2.1 keeps the fraction of the duration
+        return cls(mode, name.split(b"\0")[0].decode("ascii", "replace"), struct.unpack("<I", us[:4])[0] / 256,
+                   struct.unpack("<I", distance[:4])[0] / 256, kind[0])
 
 
 @dataclass(frozen=True)
@@ -146,6 +210,22 @@ class DeviceInfo:
     @property
     def major_model(self) -> int:
         return self.model >> 4
+
+    @property
+    def model_name(self) -> str:
+        """Slamtec's name for the model id (SDK 2.1 ``GetModelNameStringByModelID``): the major
+        number picks the series (1-3 A, 4-5 C, 6-8 S, 9-11 T, 12+ M), the low nibble the variant."""
+        major, minor = self.model >> 4, self.model & 0xF
+        for first, series in ((12, "M"), (9, "T"), (6, "S"), (4, "C")):
+            if major >= first:
+                return f"{series}{major - first + 1}M{minor}"
+        return f"A{major}M{minor}"
+
+    @property
+    def supports_conf(self) -> bool:
+        """GET_LIDAR_CONF: firmware 1.24 and later, and every C/S/T/M model whatever its
+        firmware number (SDK 2.1 ``checkSupportConfigCommands``: those restart at 1.0x)."""
+        return self.firmware >= (1, 24) or self.major_model >= 4
 
     @property
     def native_baudrate(self) -> int:
@@ -205,16 +285,25 @@ def _node_ok(b: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Nodes:
-    """Decoded samples: ``start`` flag, ``quality``, ``angle_q6``, ``distance_q2``, and ``broken``:
-    True where bytes were lost just before this sample (the stream is discontinuous there);
-    ``lost`` estimates how many samples those lost bytes held."""
+    """Decoded samples: ``start`` flag (first sample of a revolution), ``quality`` (0..63, the
+    legacy scale), ``angle_q6`` (measurement angle, 1/64 deg), ``distance_q2`` (1/4 mm, 0 = no
+    measurement), ``broken`` (True where bytes were lost just before this sample) and
+    ``encoder_q6``, the angle of the turret when the sample was taken: it rises steadily through
+    a revolution and differs from ``angle_q6`` where the format corrects each sample's angle
+    (express offsets, the ultra capsules' optical compensation). ``lost`` estimates how many
+    samples the lost bytes held."""
 
     start: np.ndarray
     quality: np.ndarray
     angle_q6: np.ndarray
     distance_q2: np.ndarray
     broken: np.ndarray
+    encoder_q6: np.ndarray | None = None
     lost: int = 0
+
+    def __post_init__(self) -> None:
+        if self.encoder_q6 is None:
+            self.encoder_q6 = self.angle_q6
 
     def __len__(self) -> int:
         return int(self.start.size)
@@ -230,8 +319,16 @@ class Nodes:
             empty = cls.empty()
             empty.lost = lost
             return empty
+        if len(parts) == 1 and not lost:
+            return parts[0]
         return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                     ("start", "quality", "angle_q6", "distance_q2", "broken")), lost + sum(p.lost for p in parts))
+                     ("start", "quality", "angle_q6", "distance_q2", "broken", "encoder_q6")),
+                   lost + sum(p.lost for p in parts))
+
+    def slice(self, a: int, b: int) -> Nodes:
+        """Samples ``a`` to ``b - 1`` (no lost count)."""
+        return Nodes(self.start[a:b], self.quality[a:b], self.angle_q6[a:b], self.distance_q2[a:b],
+                     self.broken[a:b], self.encoder_q6[a:b])
 
 
 def decode_nodes(data: np.ndarray) -> Nodes:
@@ -242,7 +339,7 @@ def decode_nodes(data: np.ndarray) -> Nodes:
 
 
 @dataclass
-class _Resynchronising:
+class Resynchronising:
     """State shared by the frame decoders: buffered bytes, whether the next byte starts a frame
     (``_aligned``), whether bytes were lost since the last good frame (``_broken``), counters."""
 
@@ -257,9 +354,17 @@ class _Resynchronising:
         self._buf.clear()
         self._aligned, self._broken = True, False
 
+    def _lose_alignment(self) -> int:
+        """A frame failed its checks: count it, skip its first byte (returned: bytes to advance)
+        and look for the next offset where frames check out again."""
+        self.resyncs += 1
+        self.skipped_bytes += 1
+        self._aligned, self._broken = False, True
+        return 1
+
 
 @dataclass
-class NodeDecoder(_Resynchronising):
+class NodeDecoder(Resynchronising):
     """Stream of legacy scan nodes -> ``Nodes``, resynchronising on bad check bits.
 
     After a bad node it skips bytes until ``confirm`` nodes in a row pass their checks (the
@@ -307,170 +412,6 @@ class NodeDecoder(_Resynchronising):
             p += good * NODE_SIZE
             if bad.size:
                 self.bad_nodes += 1
-                self.resyncs += 1
-                self.skipped_bytes += 1
-                self._aligned, self._broken = False, True
-                p += 1
+                p += self._lose_alignment()
         del self._buf[:p]
         return Nodes.concat(parts, round((self.skipped_bytes - skipped) / NODE_SIZE))
-
-
-def encode_capsule(start_angle_q6: int, distance_q2: np.ndarray, dtheta_q3: np.ndarray, new_scan: bool = False) -> bytes:
-    """An express capsule (type 0x82): 32 distances (1/4 mm, multiples of 4) with their angle
-    offsets (1/8 deg, 0..63), after a start angle in 1/64 deg."""
-    dist = np.asarray(distance_q2, np.int64).reshape(CABINS, 2)
-    dth = np.asarray(dtheta_q3, np.int64).reshape(CABINS, 2)
-    words = (dist & 0xFFFC) | ((dth >> 4) & 3)
-    cabins = np.empty((CABINS, 5), np.uint8)
-    cabins[:, 0], cabins[:, 1] = words[:, 0] & 0xFF, words[:, 0] >> 8
-    cabins[:, 2], cabins[:, 3] = words[:, 1] & 0xFF, words[:, 1] >> 8
-    cabins[:, 4] = (dth[:, 0] & 0xF) | ((dth[:, 1] & 0xF) << 4)
-    body = struct.pack("<H", (start_angle_q6 & 0x7FFF) | (0x8000 if new_scan else 0)) + cabins.tobytes()
-    check = xor(body)
-    return bytes((0xA0 | (check & 0xF), 0x50 | (check >> 4))) + body
-
-
-@dataclass(frozen=True)
-class Capsule:
-    """A decoded express capsule: ``start_angle_q6``, ``new_scan`` flag, 32 ``distance_q2`` and
-    32 ``dtheta_q3``; ``broken`` when bytes were lost just before it."""
-
-    start_angle_q6: int
-    new_scan: bool
-    distance_q2: np.ndarray
-    dtheta_q3: np.ndarray
-    broken: bool = False
-
-
-def _capsule_ok(a: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Whether a valid capsule starts at each of ``offsets`` in ``a`` (all with 84 bytes left)."""
-    if not offsets.size:
-        return np.zeros(0, bool)
-    rows = a[offsets[:, None] + np.arange(CAPSULE_SIZE)]
-    check = np.bitwise_xor.reduce(rows[:, 2:], axis=1)
-    return (((rows[:, 0] >> 4) == 0xA) & ((rows[:, 1] >> 4) == 0x5)
-            & ((rows[:, 0] & 0xF) == (check & 0xF)) & ((rows[:, 1] & 0xF) == (check >> 4)))
-
-
-def decode_capsule(data: np.ndarray, broken: bool = False) -> Capsule:
-    """Decode one 84-byte capsule (checked by the caller)."""
-    d = data.astype(np.int64)
-    head = int(d[2] | (d[3] << 8))
-    cab = d[4:].reshape(CABINS, 5)
-    w1, w2 = cab[:, 0] | (cab[:, 1] << 8), cab[:, 2] | (cab[:, 3] << 8)
-    dist = np.column_stack((w1 & 0xFFFC, w2 & 0xFFFC)).reshape(-1)
-    dth = np.column_stack(((cab[:, 4] & 0xF) | ((w1 & 3) << 4), (cab[:, 4] >> 4) | ((w2 & 3) << 4))).reshape(-1)
-    return Capsule(head & 0x7FFF, bool(head & 0x8000), dist, dth, broken)
-
-
-@dataclass
-class CapsuleDecoder(_Resynchronising):
-    """Stream of express capsules -> ``Capsule`` list, resynchronising on bad sync nibbles or checksum.
-
-    After a bad capsule it looks for an offset where two capsules in a row check out.
-    Counters: ``bad_capsules``, ``resyncs``, ``skipped_bytes``.
-    """
-
-    bad_capsules: int = 0
-
-    def feed(self, data: bytes) -> list[Capsule]:
-        self._buf += data
-        a = np.frombuffer(bytes(self._buf), np.uint8)
-        out: list[Capsule] = []
-        p = 0
-        while len(a) - p >= CAPSULE_SIZE:
-            if not self._aligned:
-                if len(a) - p < 2 * CAPSULE_SIZE:
-                    break
-                last = len(a) - 2 * CAPSULE_SIZE
-                cand = p + np.flatnonzero(((a[p:last + 1] >> 4) == 0xA) & ((a[p + 1:last + 2] >> 4) == 0x5))
-                good = cand[_capsule_ok(a, cand)]
-                good = good[_capsule_ok(a, good + CAPSULE_SIZE)]
-                if not good.size:
-                    self.skipped_bytes += last + 1 - p
-                    p = last + 1
-                    continue
-                self.skipped_bytes += int(good[0]) - p
-                p = int(good[0])
-                self._aligned = True
-            if _capsule_ok(a, np.array([p]))[0]:
-                out.append(decode_capsule(a[p:p + CAPSULE_SIZE], self._broken))
-                self._broken = False
-                p += CAPSULE_SIZE
-            else:
-                self.bad_capsules += 1
-                self.resyncs += 1
-                self.skipped_bytes += 1
-                self._aligned, self._broken = False, True
-                p += 1
-        del self._buf[:p]
-        return out
-
-
-def capsule_nodes(capsule: Capsule, next_start_q6: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Angles (1/64 deg, in [0, 360)), distances (1/4 mm) and sync flags of a capsule's 32 samples.
-
-    Sample k lies at ``start + delta * k / 32 - dtheta_k`` with ``delta`` the angle to the next
-    capsule's start; computed in the SDK's fixed point (q16 accumulation, >> 10 to q6). The sync
-    flag marks the sample after which the raw angle crosses 360 deg (a new revolution).
-    """
-    start_q8 = capsule.start_angle_q6 << 2
-    diff_q8 = (next_start_q6 << 2) - start_q8
-    if diff_q8 < 0:
-        diff_q8 += 360 << 8
-    inc_q16 = diff_q8 << 3
-    raw_q16 = (start_q8 << 8) + inc_q16 * np.arange(2 * CABINS, dtype=np.int64)
-    angle = (raw_q16 - (capsule.dtheta_q3 << 13)) >> 10
-    angle = np.mod(angle, FULL_CIRCLE_Q6)
-    sync = ((raw_q16 + inc_q16) % (360 << 16)) < inc_q16
-    return angle, capsule.distance_q2.copy(), sync
-
-
-@dataclass
-class ExpressNodeDecoder:
-    """Stream of express capsules -> ``Nodes`` (the same output as ``NodeDecoder``).
-
-    A capsule's samples need the next capsule's start angle, and an XOR checksum cannot see
-    an inserted or lost byte that happens to equal the one it displaces, so the samples of
-    capsule i are only emitted once capsules i+1 and i+2 have followed it without a break.
-    ``start`` marks the first sample of a revolution (the angle falls back by more than half a
-    turn); quality is not sent in this mode and is reported as 0.
-    """
-
-    capsules: CapsuleDecoder = field(default_factory=CapsuleDecoder)
-    _held: list[Capsule] = field(default_factory=list)
-    _last_angle: int = -1
-    _broken: bool = False
-
-    @property
-    def bad_capsules(self) -> int:
-        return self.capsules.bad_capsules
-
-    def reset(self) -> None:
-        self.capsules.reset()
-        self._held.clear()
-        self._last_angle, self._broken = -1, False
-
-    def feed(self, data: bytes) -> Nodes:
-        parts: list[Nodes] = []
-        skipped = self.capsules.skipped_bytes
-        lost = 0
-        for capsule in self.capsules.feed(data):
-            if capsule.broken:
-                lost += 2 * CABINS * len(self._held)
-                self._held.clear()
-                self._last_angle, self._broken = -1, True
-            self._held.append(capsule)
-            if len(self._held) < 3:
-                continue
-            first, second = self._held[0], self._held[1]
-            del self._held[0]
-            angle, dist, _ = capsule_nodes(first, second.start_angle_q6)
-            previous = np.concatenate(([self._last_angle], angle[:-1]))
-            start = (previous >= 0) & (angle < previous - FULL_CIRCLE_Q6 // 2)
-            broken = np.zeros(angle.size, bool)
-            broken[0] = self._broken
-            self._broken = False
-            self._last_angle = int(angle[-1])
-            parts.append(Nodes(start, np.zeros(angle.size, np.int64), angle, dist, broken))
-        return Nodes.concat(parts, lost + round((self.capsules.skipped_bytes - skipped) * 2 * CABINS / CAPSULE_SIZE))

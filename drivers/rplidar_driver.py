@@ -1,12 +1,15 @@
-"""Slamtec RPLIDAR driver (A1/A2/A3/S1): legacy or express scans, one LaserScan per revolution.
+"""Slamtec RPLIDAR driver (A1, A2, A3, C1, S1, S2, S3): any scan mode, one LaserScan per revolution.
 
 Start-up stops a scan left running (STOP, wait, flush), checks health (RESET on error, then
-give up as a hardware fault), reads GET_INFO and GET_SAMPLERATE, starts the motor the way the
-model wants (DTR on A1, PWM through the accessory board on A2/A3, rpm on S1; a pty's missing
-modem lines only cost a counter), starts SCAN or EXPRESS_SCAN and checks the descriptor.
-``RevolutionAssembler`` (pure) turns the decoded samples into whole revolutions and refuses
-any revolution touched by lost or corrupt bytes; ``revolution_scan`` bins one onto a fixed
-angular grid. Shutdown sends STOP and stops the motor.
+give up as a hardware fault), reads GET_INFO, enumerates the scan modes with GET_LIDAR_CONF
+(firmware 1.24 and later, and every C/S model; older firmware has Standard and Express, timed
+by GET_SAMPLERATE), picks the typical mode unless the config names one, starts the motor the
+way the model wants (rpm command on the S series, PWM through the accessory board on A2/A3,
+DTR on A1; the C1 turns by itself; a pty's missing modem lines only cost a counter), starts
+SCAN or EXPRESS_SCAN with the mode's working mode and checks the descriptor against the
+mode's answer type. ``RevolutionAssembler`` (pure) turns the decoded samples into whole
+revolutions and refuses any revolution touched by lost or corrupt bytes; ``revolution_scan``
+bins one onto a fixed angular grid. Shutdown sends STOP and stops the motor.
 """
 
 from __future__ import annotations
@@ -22,36 +25,62 @@ import numpy as np
 import serial
 
 from trundle.drivers import rplidar as rp
+from trundle.drivers import rplidar_capsules as rc
 from trundle.drivers.laser_mount import laser_transform
 from trundle.drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
-from trundle.drivers.serial_link import SerialLink, set_modem_line
+from trundle.drivers.serial_link import STREAM_BATCH_S, SerialLink, set_modem_line
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 
-# model: (default baud, range_min m, range_max m)
-MODELS = {"a1": (115200, 0.15, 12.0), "a2": (115200, 0.15, 12.0), "a3": (256000, 0.2, 25.0), "s1": (256000, 0.1, 40.0)}
-LEGACY_SAMPLE_US = 476  # the SDK's default when GET_SAMPLERATE is not answered
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """What the device does not report: default ``baud`` (sllidar_ros2 launch files), closest
+    range (m) and, for firmware without scan modes, the farthest (datasheets)."""
+
+    model_id: int
+    baud: int
+    range_min: float
+    range_max: float
+
+
+MODELS = {"a1": ModelSpec(0x18, 115200, 0.15, 12.0), "a2": ModelSpec(0x28, 115200, 0.15, 12.0),
+          "a2m12": ModelSpec(0x2C, 256000, 0.2, 12.0), "a3": ModelSpec(0x31, 256000, 0.2, 25.0),
+          "s1": ModelSpec(0x61, 256000, 0.1, 40.0), "s2": ModelSpec(0x71, 1000000, 0.05, 30.0),
+          "s3": ModelSpec(0x81, 1000000, 0.05, 40.0), "c1": ModelSpec(0x41, 460800, 0.05, 12.0)}
+SERIES = {"A": "a2", "C": "c1", "S": "s2"}  # for model ids not in MODELS
+LEGACY_SAMPLE_US = 476  # the SDK's sample duration when nothing better is known
 BAUDS = (115200, 256000, 460800, 1000000)  # the native rates of the A/S/C series
 WRAP_Q6 = 16 * 64  # a clean wrap goes from the last 16 deg of a turn to its first 16 deg
+DEFAULT_PWM, DEFAULT_RPM = 660, 600  # the SDK's values when the device does not say
+
+
+def model_key(info: rp.DeviceInfo) -> str:
+    """The ``MODELS`` key of a device, by model id, else by series (A, C, S)."""
+    exact = next((k for k, spec in MODELS.items() if spec.model_id == info.model), None)
+    return exact or SERIES.get(info.model_name[0], "a2")
 
 
 @dataclass(frozen=True)
 class RplidarConfig:
     """Driver options (the ``[lrf]`` table of a robot config). Angles in radians, times in seconds.
 
-    ``model`` picks the default baud and range limits; ``mode`` is ``standard`` (SCAN) or
-    ``express`` (EXPRESS_SCAN); ``beams`` is the size of the published angular grid;
-    ``motor_pwm`` (A2/A3) and ``motor_rpm`` (S series) set the motor speed. ``range_min``,
-    ``range_max`` and ``baudrate`` default (0) to the model's. ``error_limit`` bad revolutions
-    in a row or ``timeout_s`` of silence force a reconnect (backing off up to ``backoff_max_s``);
-    ``reply_timeout_s`` bounds each start-up reply, ``startup_timeout_s`` the scan's first answer.
+    ``model`` (a key of ``MODELS``) sets the first baud rate tried and is checked against GET_INFO
+    (the device's own answer wins); ``mode`` names a scan mode as the device lists it (Standard,
+    Express, Boost, Sensitivity, Stability, DenseBoost, ...), "" for the model's typical mode;
+    ``beams`` is the size of the published angular grid (0: the samples of the first whole
+    revolution); ``motor_pwm`` (A2/A3) and ``motor_rpm`` (S series) set the motor speed (0: the
+    device's desired speed). ``range_min``, ``range_max`` and ``baudrate`` default (0) to the
+    model's and the mode's. ``error_limit`` bad revolutions in a row or ``timeout_s`` of silence
+    force a reconnect (backing off up to ``backoff_max_s``); ``reply_timeout_s`` bounds each
+    start-up reply, ``startup_timeout_s`` the scan's first answer.
     """
 
     port: str
-    model: str = "a1"
+    model: str = ""
     baudrate: int = 0
-    mode: str = "standard"
-    beams: int = 360
+    mode: str = ""
+    beams: int = 0
     frame_id: str = "laser"
     parent_frame: str = "base_link"
     topic: str = "/scan"
@@ -61,8 +90,8 @@ class RplidarConfig:
     yaw: float = 0.0
     range_min: float = 0.0
     range_max: float = 0.0
-    motor_pwm: int = 660
-    motor_rpm: int = 600
+    motor_pwm: int = 0
+    motor_rpm: int = 0
     error_limit: int = 4
     timeout_s: float = 1.0
     startup_timeout_s: float = 3.0
@@ -70,17 +99,16 @@ class RplidarConfig:
     backoff_max_s: float = 0.5
 
     def __post_init__(self) -> None:
-        if self.model not in MODELS:
+        if self.model and self.model not in MODELS:
             raise UserError(f"lrf: unknown RPLIDAR model {self.model!r} (choose {', '.join(MODELS)})")
-        if self.mode not in ("standard", "express"):
-            raise UserError(f"lrf: mode must be standard or express, not {self.mode!r}")
-        if not 8 <= self.beams <= 8192 or not 0 <= self.motor_pwm <= 1023:
-            raise UserError("lrf: beams must be 8-8192 and motor_pwm 0-1023")
+        if self.beams and not 8 <= self.beams <= rp.FULL_CIRCLE_Q6:
+            raise UserError(f"lrf: beams must be 0 (one per sample) or 8-{rp.FULL_CIRCLE_Q6}")
+        if not 0 <= self.motor_pwm <= 1023 or not 0 <= self.motor_rpm <= 0xFFFF:
+            raise UserError("lrf: motor_pwm must be 0-1023 and motor_rpm 0-65535")
 
     @property
-    def limits(self) -> tuple[int, float, float]:
-        baud, lo, hi = MODELS[self.model]
-        return self.baudrate or baud, self.range_min or lo, self.range_max or hi
+    def first_baud(self) -> int:
+        return self.baudrate or (MODELS[self.model].baud if self.model else BAUDS[0])
 
 
 @dataclass
@@ -100,10 +128,10 @@ class RevolutionAssembler:
     """Decoded samples -> whole revolutions, dropping every revolution touched by a fault.
 
     A revolution runs from a start sample to the next; it is kept only if both of its
-    boundaries are clean wraps (no lost bytes there, the angle falls from its last 16 degrees to
-    its first 16), no
-    bytes were lost inside it, and its angles advance without a gap wider than five typical
-    steps (``monotonic``: never backwards, as legacy scans are). Counters, for revolutions that
+    boundaries are clean wraps (no lost bytes there, the turret angle falls from its last 16
+    degrees to its first 16), no bytes were lost inside it, and its turret angles (``encoder_q6``)
+    advance, never backwards and without a gap wider than five typical steps; its samples keep
+    their measurement angles (``angle_q6``) for binning. Counters, for revolutions that
     began with a clean wrap: ``corrupt_revolutions`` (lost or bad bytes inside or at the end),
     ``incomplete_revolutions`` (angle gaps); ``late_data`` counts start samples that arrived
     over 50 ms later than the sample clock predicts.
@@ -112,11 +140,10 @@ class RevolutionAssembler:
     they held), re-anchored on the earliest receive time seen, so data held up by the host or a
     USB hiccup is not stamped late. The newest
     sample of a chunk is taken as measured at its receive time, ``lag_samples`` after the last
-    sample the decoder hands over (express capsules are held back two at a time).
+    sample the decoder hands over (capsules are held back two at a time).
     """
 
     sample_ns: int
-    monotonic: bool = True
     lag_samples: int = 0
     counters: Counter = field(default_factory=Counter)
     _parts: list[rp.Nodes] = field(default_factory=list)
@@ -145,18 +172,18 @@ class RevolutionAssembler:
         pos = 0
         for b in marks + [n]:
             if b > pos:
-                self._parts.append(_slice(nodes, pos, b))
-                self._prev_angle = self._last_angle = int(nodes.angle_q6[b - 1])
+                self._parts.append(nodes.slice(pos, b))
+                self._prev_angle = self._last_angle = int(nodes.encoder_q6[b - 1])
                 self._since_anchor += b - pos
             if b == n:
                 break
             pos = b
             if nodes.broken[b]:
-                self._since_anchor += self._lost(int(nodes.angle_q6[b]))
+                self._since_anchor += self._lost(int(nodes.encoder_q6[b]))
                 self._clean, self._prev_angle = False, None
             if nodes.start[b]:
                 wrap = (not nodes.broken[b] and self._prev_angle is not None
-                        and self._prev_angle >= rp.FULL_CIRCLE_Q6 - WRAP_Q6 and nodes.angle_q6[b] < WRAP_Q6)
+                        and self._prev_angle >= rp.FULL_CIRCLE_Q6 - WRAP_Q6 and nodes.encoder_q6[b] < WRAP_Q6)
                 revolution = self._close(wrap)
                 if revolution is not None:
                     out.append(revolution)
@@ -195,21 +222,16 @@ class RevolutionAssembler:
             if self._started:
                 self.counters["corrupt_revolutions"] += 1
             return None
-        angle = np.concatenate([p.angle_q6 for p in parts])
-        step = np.diff(angle)
-        limit = max(5 * float(np.median(np.abs(step))) if step.size else 0.0, 2.0 * 64)
-        if (angle.size < 8 or step.max() > limit or angle[0] > limit or angle[-1] < rp.FULL_CIRCLE_Q6 - limit
-                or (self.monotonic and step.min() < 0) or step.min() < -limit):
+        encoder = np.concatenate([p.encoder_q6 for p in parts])
+        step = np.diff(encoder)
+        limit = max(5 * float(np.median(step)) if step.size else 0.0, 2.0 * 64)
+        if (encoder.size < 8 or step.max() > limit or step.min() < 0 or encoder[0] > limit
+                or encoder[-1] < rp.FULL_CIRCLE_Q6 - limit):
             self.counters["incomplete_revolutions"] += 1
             return None
-        self._step_q6 = rp.FULL_CIRCLE_Q6 / angle.size
-        return Revolution(angle, np.concatenate([p.distance_q2 for p in parts]),
-                          np.concatenate([p.quality for p in parts]), self._start_ns, angle.size * self.sample_ns)
-
-
-def _slice(nodes: rp.Nodes, a: int, b: int) -> rp.Nodes:
-    return rp.Nodes(nodes.start[a:b], nodes.quality[a:b], nodes.angle_q6[a:b], nodes.distance_q2[a:b],
-                    nodes.broken[a:b])
+        self._step_q6 = rp.FULL_CIRCLE_Q6 / encoder.size
+        return Revolution(np.concatenate([p.angle_q6 for p in parts]), np.concatenate([p.distance_q2 for p in parts]),
+                          np.concatenate([p.quality for p in parts]), self._start_ns, encoder.size * self.sample_ns)
 
 
 def revolution_scan(rev: Revolution, beams: int, range_min: float, range_max: float, frame_id: str = "laser",
@@ -251,7 +273,8 @@ class RplidarDriver(Driver):
 
     COUNTERS = ("scans", "bad_nodes", "bad_capsules", "resyncs", "skipped_bytes", "corrupt_revolutions",
                 "incomplete_revolutions", "late_data", "timeouts", "drained_bytes", "stale_streams",
-                "health_warnings", "health_resets", "modem_lines_unsupported", "sink_drops")
+                "health_warnings", "health_resets", "modem_lines_unsupported", "model_mismatches",
+                "conf_unanswered", "sink_drops")
 
     def __init__(self, config: RplidarConfig, sink: Sink, *, clock: Callable[[], int] = wall_ns,
                  name: str = "lrf") -> None:
@@ -260,11 +283,17 @@ class RplidarDriver(Driver):
         self.counters.update({k: 0 for k in self.COUNTERS})
         self.info: rp.DeviceInfo | None = None
         self.health: rp.Health | None = None
+        self.modes: list[rp.ScanMode] = []
+        self.scan_mode: rp.ScanMode | None = None
         self.motor = ""
         self.link: SerialLink | None = None
+        self.beams = config.beams
         self._buf = bytearray()
-        self._decoder: rp.NodeDecoder | rp.ExpressNodeDecoder = rp.NodeDecoder()
+        self._decoder: rp.NodeDecoder | rc.CapsuleNodeDecoder = rp.NodeDecoder()
         self._assembler = RevolutionAssembler(LEGACY_SAMPLE_US * 1000, counters=self.counters)
+        self._limits = (0.0, 0.0)
+        self._intensities = True
+        self._modes_from_conf = False
         self._bad_in_row = 0
         self._static = laser_transform(config, clock())
 
@@ -282,24 +311,34 @@ class RplidarDriver(Driver):
         assert self.link is not None
         self.link.write(rp.request(command, payload))
 
-    def _response(self, expected: rp.Descriptor, timeout_s: float | None = None) -> bytes:
-        """Wait for ``expected``'s descriptor (skipping and counting other bytes); return its
-        payload (single) or the bytes that followed it (multiple)."""
+    def _answer(self, answer_type: int, timeout_s: float | None = None, mode: int = rp.SINGLE,
+                length: int | None = None) -> bytes:
+        """Wait for a descriptor of ``answer_type`` and ``mode`` (skipping and counting other
+        bytes); return its payload (single) or the bytes that followed it (multiple). A multiple
+        answer must announce ``length`` bytes per packet."""
         deadline = time.monotonic() + (timeout_s or self.config.reply_timeout_s)
-        head = expected.encode()
         while time.monotonic() < deadline and not self.stopping:
-            at = self._buf.find(head)
-            need = at + rp.DESCRIPTOR_SIZE + (0 if expected.mode == rp.MULTIPLE else expected.length)
-            if at >= 0 and len(self._buf) >= need:
-                self.counters["drained_bytes"] += at
-                if expected.mode == rp.MULTIPLE:
-                    rest, self._buf = bytes(self._buf[need:]), bytearray()
-                    return rest
-                payload = bytes(self._buf[need - expected.length:need])
-                del self._buf[:need]
-                return payload
+            at = self._buf.find(bytes((rp.SYNC, rp.SYNC2)))
+            while 0 <= at <= len(self._buf) - rp.DESCRIPTOR_SIZE:
+                head = rp.Descriptor.parse(bytes(self._buf[at:at + rp.DESCRIPTOR_SIZE]))
+                if head.type == answer_type and head.mode == mode:
+                    if mode == rp.MULTIPLE:
+                        if length is not None and head.length != length:
+                            raise DeviceError(f"answer {answer_type:#04x} announces {head.length}-byte packets, "
+                                              f"not {length}: not a format this driver knows")
+                        self.counters["drained_bytes"] += at
+                        rest, self._buf = bytes(self._buf[at + rp.DESCRIPTOR_SIZE:]), bytearray()
+                        return rest
+                    end = at + rp.DESCRIPTOR_SIZE + head.length
+                    if len(self._buf) < end:
+                        break
+                    self.counters["drained_bytes"] += at
+                    payload = bytes(self._buf[at + rp.DESCRIPTOR_SIZE:end])
+                    del self._buf[:end]
+                    return payload
+                at = self._buf.find(bytes((rp.SYNC, rp.SYNC2)), at + 1)
             self._buf += self._read()
-        raise DeviceError(f"no {expected.type:#04x} response from {self.config.port} "
+        raise DeviceError(f"no {answer_type:#04x} answer from {self.config.port} "
                           f"(wrong port or baud rate {self.link.port.baudrate if self.link else '?'}?)")
 
     def _flush(self, quiet_s: float = 0.02) -> int:
@@ -312,8 +351,7 @@ class RplidarDriver(Driver):
     # --- start-up ----------------------------------------------------------------------------
 
     def open(self) -> None:
-        baud, range_min, range_max = self.config.limits
-        self.link = SerialLink(self.config.port, baud)
+        self.link = SerialLink(self.config.port, self.config.first_baud)
         self._buf = bytearray()
         self._send(rp.STOP)
         time.sleep(0.01)
@@ -323,23 +361,16 @@ class RplidarDriver(Driver):
             self.counters["stale_streams"] += 1
         self._check_health()
         self._send(rp.GET_INFO)
-        self.info = rp.DeviceInfo.parse(self._response(rp.INFO_DESCRIPTOR))
-        self.hardware_id = (f"RPLIDAR model {self.info.model:#04x} fw {self.info.firmware[0]}.{self.info.firmware[1]:02d}"
-                            f" hw {self.info.hardware} sn {self.info.serial.hex().upper()}")
-        sample_us = self._sample_us()
+        self.info = info = rp.DeviceInfo.parse(self._answer(rp.ANS_INFO))
+        self.hardware_id = (f"RPLIDAR {info.model_name} (model {info.model:#04x}) fw {info.firmware[0]}."
+                            f"{info.firmware[1]:02d} hw {info.hardware} sn {info.serial.hex().upper()}")
+        key = model_key(info)
+        if self.config.model and self.config.model != key:
+            self.counters["model_mismatches"] += 1
+        self.modes, typical = self._scan_modes(MODELS[key])
+        mode = self._choose(typical)
         self._start_motor()
-        express = self.config.mode == "express"
-        if express:
-            self._send(rp.EXPRESS_SCAN, bytes(5))
-        else:
-            self._send(rp.SCAN)
-        rest = self._response(rp.EXPRESS_DESCRIPTOR if express else rp.SCAN_DESCRIPTOR, self.config.startup_timeout_s)
-        self._decoder = rp.ExpressNodeDecoder() if express else rp.NodeDecoder()
-        self._assembler = RevolutionAssembler(sample_us * 1000, monotonic=not express,
-                                              lag_samples=4 * rp.CABINS if express else 0, counters=self.counters)
-        self._bad_in_row = 0
-        if rest:
-            self._process(rest, self.clock())
+        self._start_scan(mode, MODELS[key])
 
     def _health(self) -> rp.Health:
         """GET_HEALTH; with no answer, try the other RPLIDAR bauds (a wrong baud is the usual
@@ -350,7 +381,7 @@ class RplidarDriver(Driver):
             self.link.port.baudrate = baud
             self._send(rp.GET_HEALTH)
             try:
-                return rp.Health.parse(self._response(rp.HEALTH_DESCRIPTOR))
+                return rp.Health.parse(self._answer(rp.ANS_HEALTH))
             except DeviceError:
                 self._buf.clear()
         raise DeviceError(f"no RPLIDAR answer on {self.config.port} at {', '.join(map(str, bauds))} baud "
@@ -370,37 +401,131 @@ class RplidarDriver(Driver):
                 self._flush(quiet_s=0.05)  # the device prints a text banner after a reset
         raise DeviceError(f"RPLIDAR hardware fault: health error code {self.health.error_code:#06x} after RESET")
 
-    def _sample_us(self) -> int:
-        """Microseconds between samples in the chosen mode (GET_SAMPLERATE, firmware >= 1.17)."""
+    def _conf(self, entry: int, mode: int | None = None) -> bytes:
+        """One GET_LIDAR_CONF entry's value."""
+        self._send(rp.GET_LIDAR_CONF, rp.conf_request(entry, mode))
+        try:
+            return rp.parse_conf(entry, self._answer(rp.ANS_CONF))
+        except rp.RplidarError as error:
+            raise DeviceError(str(error)) from None
+
+    def _scan_modes(self, spec: ModelSpec) -> tuple[list[rp.ScanMode], int]:
+        """The device's scan modes and the id of its typical one; firmware without GET_LIDAR_CONF
+        (or not answering it) has Standard and, from 1.17, Express, timed by GET_SAMPLERATE."""
         assert self.info is not None
+        if self.info.supports_conf:
+            try:
+                count = struct.unpack("<H", self._conf(rp.CONF_SCAN_MODE_COUNT)[:2])[0]
+                typical = struct.unpack("<H", self._conf(rp.CONF_SCAN_MODE_TYPICAL)[:2])[0]
+                modes = [rp.ScanMode.from_conf(i, {e: self._conf(e, i) for e in rp.MODE_ENTRIES}) for i in range(count)]
+                self._modes_from_conf = True
+                return [self._timed(mode) for mode in modes], min(typical, max(count - 1, 0))
+            except (DeviceError, rp.RplidarError, struct.error):
+                self.counters["conf_unanswered"] += 1
+        self._modes_from_conf = False
+        standard, express = self._sample_rates()
+        modes = [rp.ScanMode(0, "Standard", standard, spec.range_max, rp.ANS_MEASUREMENT)]
         if self.info.firmware >= (1, 17):
+            modes.append(rp.ScanMode(1, "Express", express, spec.range_max, rp.ANS_CAPSULED))
+        return modes, len(modes) - 1
+
+    def _sample_rates(self) -> tuple[float, float]:
+        """GET_SAMPLERATE (firmware 1.17 and later): microseconds a sample in SCAN and EXPRESS_SCAN."""
+        assert self.info is not None
+        if self.info.firmware >= (1, 17) or self.info.major_model >= 4:
             self._send(rp.GET_SAMPLERATE)
             try:
-                standard, express = struct.unpack("<HH", self._response(rp.SAMPLERATE_DESCRIPTOR))
-                return max(1, express if self.config.mode == "express" else standard)
-            except DeviceError:
+                standard, express = struct.unpack("<HH", self._answer(rp.ANS_SAMPLERATE))
+                return float(standard or LEGACY_SAMPLE_US), float(express or LEGACY_SAMPLE_US)
+            except (DeviceError, struct.error):
                 pass
-        return LEGACY_SAMPLE_US
+        return float(LEGACY_SAMPLE_US), float(LEGACY_SAMPLE_US)
+
+    def _timed(self, mode: rp.ScanMode) -> rp.ScanMode:
+        """A mode whose sample duration the device reported as 0 (seen on S3 firmware 1.02,
+        Slamtec/rplidar_ros #155) gets GET_SAMPLERATE's figure instead."""
+        if mode.us_per_sample > 0:
+            return mode
+        standard, express = self._sample_rates()
+        us = standard if mode.answer_type == rp.ANS_MEASUREMENT else express
+        return rp.ScanMode(mode.id, mode.name, us, mode.max_distance, mode.answer_type)
+
+    def _choose(self, typical: int) -> rp.ScanMode:
+        """The configured mode (by name, any case) or the typical one."""
+        wanted = self.config.mode.strip().lower()
+        if not wanted:
+            return self.modes[typical]
+        for mode in self.modes:
+            if mode.name.lower() == wanted:
+                return mode
+        assert self.info is not None
+        raise DeviceError(f"RPLIDAR {self.info.model_name} has no scan mode {self.config.mode!r}; "
+                          f"it offers {', '.join(mode.name for mode in self.modes)}")
 
     def _start_motor(self) -> None:
-        """S series: rpm command; A series: PWM if the accessory board says so, else DTR."""
+        """S series: rpm command; A2/A3: PWM if the accessory board says so, else DTR (A1);
+        C series without the accessory flag: the motor follows the scan, nothing to do."""
         assert self.info is not None and self.link is not None
-        if self.info.major_model >= 6:
+        major = self.info.major_model
+        if major >= 6:
             self.motor = "rpm"
-            self._send(rp.HQ_MOTOR_SPEED_CTRL, struct.pack("<H", self.config.motor_rpm))
+            self._send(rp.HQ_MOTOR_SPEED_CTRL, struct.pack("<H", self.config.motor_rpm or self._desired()[0]))
             return
-        self._send(rp.GET_ACC_BOARD_FLAG, bytes(4))
-        try:
-            flags = int.from_bytes(self._response(rp.ACC_BOARD_DESCRIPTOR, 0.2), "little")
-        except DeviceError:
-            flags = 0
+        flags = 0
+        if major >= 2:
+            self._send(rp.GET_ACC_BOARD_FLAG, bytes(4))
+            try:
+                flags = int.from_bytes(self._answer(rp.ANS_ACC_BOARD_FLAG, 0.2), "little")
+            except DeviceError:
+                flags = 0
         if flags & 1:
             self.motor = "pwm"
-            self._send(rp.SET_MOTOR_PWM, struct.pack("<H", self.config.motor_pwm))
+            self._send(rp.SET_MOTOR_PWM, struct.pack("<H", self.config.motor_pwm or self._desired()[1]))
+        elif major >= 4:
+            self.motor = "none"
         else:
             self.motor = "dtr"
             if not set_modem_line(self.link.port, "dtr", False):  # SDK: DTR cleared = motor runs
                 self.counters["modem_lines_unsupported"] += 1
+
+    def _desired(self) -> tuple[int, int]:
+        """The device's desired (rpm, PWM) from GET_LIDAR_CONF, else the SDK's defaults."""
+        assert self.info is not None
+        if self.info.supports_conf:
+            try:
+                rpm, pwm = struct.unpack("<HH", self._conf(rp.CONF_DESIRED_ROT_FREQ)[:4])
+                return rpm or DEFAULT_RPM, pwm or DEFAULT_PWM
+            except (DeviceError, struct.error):
+                pass
+        return DEFAULT_RPM, DEFAULT_PWM
+
+    def _start_scan(self, mode: rp.ScanMode, spec: ModelSpec) -> None:
+        """SCAN for the standard answer type, else EXPRESS_SCAN with the mode's working mode
+        (0, the legacy express scan, without scan modes); the descriptor must match."""
+        assert self.info is not None
+        fmt = rc.FORMATS.get(mode.answer_type)
+        if mode.answer_type == rp.ANS_MEASUREMENT:
+            self._send(rp.SCAN)
+        elif fmt is None:
+            raise DeviceError(f"scan mode {mode.name} answers {mode.answer_type:#04x}, a format this driver "
+                              "does not know")
+        else:
+            working_mode = mode.id if self._modes_from_conf else 0
+            self._send(rp.EXPRESS_SCAN, struct.pack("<BHH", working_mode, 0, 0))
+        rest = self._answer(mode.answer_type, self.config.startup_timeout_s, rp.MULTIPLE,
+                            fmt.size if fmt else rp.NODE_SIZE)
+        self.scan_mode = mode
+        self._decoder = rc.CapsuleNodeDecoder(fmt) if fmt else rp.NodeDecoder()
+        self._assembler = RevolutionAssembler(round(mode.us_per_sample * 1000),
+                                              lag_samples=fmt.hold * fmt.samples if fmt else 0, counters=self.counters)
+        self._intensities = fmt is None or fmt.quality
+        self._limits = (self.config.range_min or spec.range_min,
+                        self.config.range_max or mode.max_distance or spec.range_max)
+        self._bad_in_row = 0
+        assert self.link is not None
+        self.link.batch_s = STREAM_BATCH_S
+        if rest:
+            self._process(rest, self.clock())
 
     def close(self) -> None:
         """STOP, then stop the motor, then close; never raises."""
@@ -437,31 +562,43 @@ class RplidarDriver(Driver):
     def _decoder_stats(self) -> tuple[int, int, int]:
         """(bad frames, resyncs, skipped bytes) of the current decoder."""
         d = self._decoder
-        if isinstance(d, rp.ExpressNodeDecoder):
-            return d.capsules.bad_capsules, d.capsules.resyncs, d.capsules.skipped_bytes
+        if isinstance(d, rc.CapsuleNodeDecoder):
+            return d.framer.bad_capsules, d.framer.resyncs, d.framer.skipped_bytes
         return d.bad_nodes, d.resyncs, d.skipped_bytes
 
     def _process(self, data: bytes, rx_ns: int) -> None:
         decoder = self._decoder
-        express = isinstance(decoder, rp.ExpressNodeDecoder)
         before = self._decoder_stats()
         bad_before = self.counters["corrupt_revolutions"] + self.counters["incomplete_revolutions"]
         nodes = decoder.feed(data)
         bad, resyncs, skipped = (a - b for a, b in zip(self._decoder_stats(), before))
-        self.counters["bad_capsules" if express else "bad_nodes"] += bad
+        self.counters["bad_capsules" if isinstance(decoder, rc.CapsuleNodeDecoder) else "bad_nodes"] += bad
         self.counters["resyncs"] += resyncs
         self.counters["skipped_bytes"] += skipped
-        _, range_min, range_max = self.config.limits
+        range_min, range_max = self._limits
         for rev in self._assembler.feed(nodes, rx_ns):
             self._bad_in_row = 0
             self.counters["scans"] += 1
-            scan = revolution_scan(rev, self.config.beams, range_min, range_max, self.config.frame_id,
-                                   intensities=not express)
+            self.beams = self.beams or int(rev.angle_q6.size)
+            scan = revolution_scan(rev, self.beams, range_min, range_max, self.config.frame_id,
+                                   intensities=self._intensities)
             if self.sink(self.config.topic, scan, rx_ns) is False:
                 self.counters["sink_drops"] += 1
         self._bad_in_row += self.counters["corrupt_revolutions"] + self.counters["incomplete_revolutions"] - bad_before
 
+    def silence_reason(self) -> str:
+        bad = self.counted(("corrupt_revolutions", "incomplete_revolutions", "bad_capsules", "bad_nodes",
+                            "skipped_bytes", "timeouts"))
+        return f"data, but no whole revolution ({bad})" if bad else "no scan data arrives"
+
     def diagnostics(self) -> m.DiagnosticStatus:
         base = super().diagnostics()
-        extra = [("motor", self.motor), ("health", str(self.health.status) if self.health else "")]
+        mode = self.scan_mode
+        extra = [("motor", self.motor), ("health", str(self.health.status) if self.health else ""),
+                 ("scan_mode", mode.name if mode else ""),
+                 ("answer_type", f"{mode.answer_type:#04x}" if mode else ""),
+                 ("us_per_sample", f"{mode.us_per_sample:g}" if mode else ""),
+                 ("scan_modes", ", ".join(f"{x.name} ({x.answer_type:#04x}, {x.us_per_sample:g} us, "
+                                          f"{x.max_distance:g} m)" for x in self.modes)),
+                 ("beams", str(self.beams))]
         return m.DiagnosticStatus(base.level, base.name, base.message, self.hardware_id, base.values + tuple(extra))

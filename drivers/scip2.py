@@ -88,11 +88,10 @@ def decode_values(chars: bytes | np.ndarray, width: int) -> np.ndarray:
     d = c - np.uint8(CHAR_BASE)  # wraps below 0x30, so one test catches both ends of the range
     if d.size and d.max() > 0x3F:
         raise ScipError("format", "character outside the SCIP encoding range 0x30-0x6F")
-    groups = d.reshape(-1, width).astype(np.uint32)
-    out = groups[:, 0]
-    for k in range(1, width):
-        out = (out << 6) | groups[:, k]
-    return out
+    return d.reshape(-1, width) @ _WEIGHTS[width]  # one pass: sum of 6-bit digits times 64^k
+
+
+_WEIGHTS = {width: (1 << (6 * np.arange(width - 1, -1, -1))).astype(np.uint32) for width in range(1, 6)}
 
 
 def decode_value(chars: bytes) -> int:
@@ -346,13 +345,19 @@ def decode_scan(reply: Reply, measure: Measure) -> Scan:
     if len(stamp_line) != TIMESTAMP_CHARS + 2 or stamp_line[-1] != LF:
         raise ScipError("truncated", "timestamp line")
     timestamp = decode_value(verify_line(stamp_line[:-1]))
-    chars = decode_data(body[4 + TIMESTAMP_CHARS + 2:], measure.data_chars)
-    values = decode_values(chars, measure.width)
+    distances, intensities = decode_measurement(body, measure)
     remaining = int(reply.echo[13:15]) if measure.continuous and reply.echo[13:15].isdigit() else 0
+    return Scan(timestamp, distances, intensities, remaining)
+
+
+def decode_measurement(body: bytes, measure: Measure) -> tuple[np.ndarray, np.ndarray | None]:
+    """Distances and (GE/ME) intensities of a reply ``body`` whose status and timestamp lines
+    the caller has checked (ScipError on any defect in the data lines)."""
+    values = decode_values(decode_data(body[4 + TIMESTAMP_CHARS + 2:], measure.data_chars), measure.width)
     if measure.intensity:
         pairs = values.reshape(-1, 2)
-        return Scan(timestamp, pairs[:, 0], pairs[:, 1], remaining)
-    return Scan(timestamp, values, None, remaining)
+        return pairs[:, 0], pairs[:, 1]
+    return values, None
 
 
 def encode_scan(measure: Measure, timestamp: int, distances: np.ndarray, intensities: np.ndarray | None = None,

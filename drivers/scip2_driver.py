@@ -22,7 +22,7 @@ from trundle.drivers.laser_mount import laser_transform
 from trundle.drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
 from trundle.drivers.scip2 import Measure, Reply, ScipError, ScipFramer, SensorParams
 from trundle.drivers.sensor_clock import SensorClock
-from trundle.drivers.serial_link import SerialLink
+from trundle.drivers.serial_link import STREAM_BATCH_S, SerialLink
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 
@@ -193,8 +193,8 @@ class ScipScanStream:
         timing = self._timestamp(reply, host_rx_ns)
         if timing is None:
             return None
-        try:
-            scan = scip2.decode_scan(reply, self.measure)
+        try:  # status and timestamp are checked: only the data lines are left
+            distances, intensity = scip2.decode_measurement(reply.body, self.measure)
         except ScipError as error:
             self._bad({"checksum": "checksum_errors", "format": "format_errors"}.get(error.kind, "truncated"))
             return None
@@ -204,9 +204,8 @@ class ScipScanStream:
             return None
         self.counters["scans"] += 1
         stamp = self.clock.host_ns(timing.unwrapped) + self.first_beam_ns
-        intensities = scan.intensities.astype(np.float32) if scan.intensities is not None else np.zeros(0, np.float32)
-        return m.LaserScan(stamp, ranges=self.ranges(scan.distances), intensities=intensities,
-                           **self.template), timing
+        intensities = intensity.astype(np.float32) if intensity is not None else np.zeros(0, np.float32)
+        return m.LaserScan(stamp, ranges=self.ranges(distances), intensities=intensities, **self.template), timing
 
     def _timestamp(self, reply: Reply, host_rx_ns: int) -> Timing | None:
         """Read the timestamp line, feed the clock, account for scans that never came."""
@@ -409,6 +408,8 @@ class ScipDriver(Driver):
             raise DeviceError(f"{p.model} refused {what} {measure.encode().strip().decode()} with status {status}")
         self.stream = ScipScanStream(p, measure, self.sensor_clock, c.frame_id, self._framer, self.counters,
                                      hold_after_reset=self.sensor_clock.synced)
+        assert self.link is not None
+        self.link.batch_s = STREAM_BATCH_S  # a scan's halves in one read; 0 again for the next TM sync
 
     # --- streaming ---------------------------------------------------------------------------
 
@@ -436,9 +437,10 @@ class ScipDriver(Driver):
 
     def _resync_clock(self) -> None:
         """The sensor clock restarted under a running stream: stop it, TM-synchronise, restart."""
+        assert self.link is not None
+        self.link.batch_s = 0.0  # round trips timed as they come
         self._request(b"QT\n")
         self._framer.clear()
-        assert self.link is not None
         self.link.drain(0.05)
         self._sync_clock()
         self._start_stream()
@@ -449,6 +451,11 @@ class ScipDriver(Driver):
             ("host_rx_monotonic_ns", str(time.monotonic_ns())), ("offset_ns", str(t.offset_ns)),
             ("drift_ppm", f"{t.drift_ppm:.3f}")))
         self.sink(self.config.timing_topic, m.DiagnosticArray(stamp_ns, (status,)), t.host_rx_ns)
+
+    def silence_reason(self) -> str:
+        bad = self.counted(("checksum_errors", "truncated", "format_errors", "status_errors", "unstable", "abnormal",
+                            "timeouts", "garbage_bytes"))
+        return f"replies, but no valid scans ({bad})" if bad else "no scan data arrives"
 
     def diagnostics(self) -> m.DiagnosticStatus:
         base = super().diagnostics()

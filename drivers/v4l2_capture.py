@@ -27,7 +27,7 @@ from typing import Callable, Mapping
 import cv2
 import numpy as np
 
-from trundle.drivers.frame_source import CaptureSource, Frame, StallError
+from trundle.drivers.frame_source import CaptureSource, Frame, StallError, quiet_opencv
 from trundle.drivers.lifecycle import DeviceError, wall_ns
 from trundle.drivers.video_file import JPEG_FOURCCS, fourcc_text
 
@@ -126,7 +126,8 @@ class V4L2Source(CaptureSource):
 
     def open(self) -> None:
         if not os.path.exists(self.path):
-            raise DeviceError(f"{self.path}: no such device (unplugged?)")
+            raise DeviceError(f"no camera at {self.path} (unplugged? see ls /dev/v4l/by-id/)")
+        quiet_opencv()
         try:
             cap = cv2.VideoCapture(self.path, cv2.CAP_V4L2)
         except cv2.error as error:

@@ -23,7 +23,7 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
-from trundle.drivers.frame_source import CaptureSource, EndOfStream, Frame
+from trundle.drivers.frame_source import CaptureSource, EndOfStream, Frame, quiet_opencv
 from trundle.drivers.lifecycle import DeviceError
 from trundle.logs.errors import UserError
 
@@ -46,6 +46,7 @@ def open_ffmpeg(target: str, params: Sequence[int] = ()) -> tuple[cv2.VideoCaptu
     ``raw_jpeg`` is True when the stream is MJPEG and demux-only mode is on, so reads return
     the JPEG packets undecoded. Raises ``DeviceError`` when FFmpeg cannot open it.
     """
+    quiet_opencv()
     try:
         cap = cv2.VideoCapture(target, cv2.CAP_FFMPEG, list(params))
     except cv2.error as error:

@@ -12,7 +12,7 @@ Configuration (the ``[can]`` table of the robot TOML; ``encoders`` also from ``-
     counts_per_rev = 8192            # override the device's counts per motor turn (optional)
     wheel_radius_m = 0.08            # with track_m: odometry (trundle.fusion.odometry.OdometrySink)
     track_m = 0.35
-    [can.odrive]   firmware = "0.5", source = "estimates", poll_hz = 0, heartbeat_timeout_s = 0.35
+    [can.odrive]   firmware = "auto", source = "estimates", poll_hz = 0, heartbeat_timeout_s = 0.35
     [can.cia406]   eds = "...", counts_per_rev = 4096, tpdo_period_ms = 10, heartbeat_ms = 100
     [can.dbc]      signals = ["Msg.Signal", ...], units_per_rev = 42, velocity_signals = [...]
 
@@ -41,7 +41,11 @@ from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 
 PROTOCOLS = ("odrive", "cia406", "dbc")
+# the [can] table's keys: the driver's, the protocols' subtables and the wheel model odometry reads
+KEYS = {"url", "name", "encoders", "wheels", "direction", "gear_ratio", "counts_per_rev", "publish_frames",
+        *PROTOCOLS, "wheel_radius_m", "track_m", "odometry_wheels", "wheel_variance_per_m"}
 VELOCITY_WINDOW_S = 0.05  # shortest span for a velocity from two positions
+MAX_SEEN_IDS = 256  # arbitration ids remembered for the "which nodes are there" hint
 MAX_CARRY_S = 0.05  # a reading older than this at the publish instant is not carried forward:
 # that much lag is a receive stall (stamps of a burst), not the phase between two nodes
 
@@ -96,7 +100,14 @@ def build_protocols(spec: str, config: Mapping[str, Any]) -> list[EncoderProtoco
 
 
 class WheelsDriver(Driver):
-    """Reads a CAN bus, decodes wheel encoders, publishes raw frames and wheel states."""
+    """Reads a CAN bus, decodes wheel encoders, publishes raw frames and wheel states.
+
+    ``wheel_readings`` counts the wheel states with a position of every wheel (the usable
+    output); ``seen_ids`` holds the arbitration ids heard (up to ``MAX_SEEN_IDS``), so a bus
+    whose frames give no readings can say what is on it.
+    """
+
+    usable = "wheel_readings"
 
     def __init__(self, bus: CanBus, protocols: list[EncoderProtocol], sink: Sink, *, names: tuple[str, ...],
                  direction: list[float], gear_ratio: list[float], counts_per_rev: list[float | None],
@@ -125,6 +136,7 @@ class WheelsDriver(Driver):
         self._healthy: set[int] = set()
         self._next_poll = 0
         self._published_finite = False
+        self.seen_ids: set[int] = set()
 
     # -- life cycle ----------------------------------------------------------------------------
     def open(self) -> None:
@@ -156,6 +168,8 @@ class WheelsDriver(Driver):
     def handle(self, received: Received, now_ns: int) -> None:
         msg = received.msg
         self.counters["frames"] += 1
+        if len(self.seen_ids) < MAX_SEEN_IDS and not msg.is_error_frame:
+            self.seen_ids.add(msg.arbitration_id)
         if self.publish_frames:
             self.publish("/can/rx", m.CanFrame(received.stamp_ns, self.frame_id, msg.arbitration_id, bytes(msg.data),
                                                msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame),
@@ -246,6 +260,8 @@ class WheelsDriver(Driver):
         velocities[stale] = math.nan
         self._fresh[:] = False
         self._published_finite = bool(np.isfinite(positions).any())
+        if np.isfinite(positions).all():
+            self.counters["wheel_readings"] += 1
         self._emit(m.JointState(stamp_ns, "base_link", self.names, positions,
                                 velocities if np.isfinite(velocities).any() else ()), log_ns)
 
@@ -261,6 +277,15 @@ class WheelsDriver(Driver):
         self.publish("/wheels", state, log_ns)
 
     # -- health --------------------------------------------------------------------------------
+    def silence_reason(self) -> str:
+        """What the bus carries instead of wheel readings: nothing, corrupt frames, or other nodes."""
+        if not self.counters["frames"]:
+            return "no CAN frames at all (bus not connected or not terminated, wrong bit rate, nodes off?)"
+        if self.counters["decode_errors"] and self.counters["decode_errors"] * 2 >= self.counters["frames"]:
+            return f"{self.counters['decode_errors']} of {self.counters['frames']} frames could not be decoded"
+        hints = [hint for protocol in self.protocols if (hint := protocol.silence_hint(self.seen_ids))]
+        return "; ".join(hints) or f"{self.counters['frames']} frames, none a reading of every wheel"
+
     def diagnostics(self) -> m.DiagnosticStatus:
         status = super().diagnostics()
         stale = [self.names[w] for w in range(len(self.names)) if w not in self._healthy]
@@ -279,6 +304,9 @@ class WheelsDriver(Driver):
 def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any]) -> WheelsDriver:
     """The wheels driver for CAN ``url`` with ``config`` (the ``[can]`` table, ``encoders`` set)."""
     spec = parse_url(url)
+    unknown = sorted(set(config) - KEYS)
+    if unknown:
+        raise UserError(f"unknown [can] option(s) {', '.join(unknown)} (known: {', '.join(sorted(KEYS))})")
     encoders = config.get("encoders")
     if not encoders:
         raise UserError("no wheel encoders given: use --encoders odrive:0,1 (or encoders in [can])")

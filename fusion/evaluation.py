@@ -24,6 +24,7 @@ import numpy as np
 from trundle.fusion.geometry import compose, relative, wrap_angle
 from trundle.fusion.map_io import read_trajectory_csv
 from trundle.logs.errors import UserError
+from trundle.logs.paths import input_file
 
 DEFAULT_TOLERANCE_NS = 1_000_000  # 1 ms: scans are tens of milliseconds apart
 
@@ -154,9 +155,7 @@ def read_carmen_trajectory(path: str | Path) -> Trajectory:
 
 def read_reference(path: str | Path) -> Trajectory | Relations:
     """A reference for evaluation: ``.relations`` file, ``t_ns,x,y,theta`` CSV, or CARMEN log."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: no such file")
+    path = input_file(path, "reference or trajectory file")
     if path.suffix == ".relations":
         return read_relations(path)
     with path.open("rb") as handle:
@@ -259,3 +258,36 @@ def absolute_trajectory_error(estimate: Trajectory, reference: Trajectory, toler
     return AbsoluteError(int(found.sum()), float(np.sqrt(np.mean(error ** 2))), float(error.mean()),
                          float(np.median(error)), float(error.std()), float(error.max()),
                          float(np.sqrt(np.mean(np.square(heading)))), tuple(float(v) for v in alignment))
+
+
+@dataclass(frozen=True)
+class LandmarkError:
+    """Mapped landmarks against surveyed ones after an SE(2) alignment: position errors (m) over the
+    ``count`` landmarks in both, and the ids only in the reference (``missing``) or only mapped (``extra``)."""
+
+    count: int
+    mean_m: float
+    rmse_m: float
+    median_m: float
+    max_m: float
+    per_landmark_m: dict[str, float]
+    missing: list[str]
+    extra: list[str]
+
+
+def landmark_error(ids: list[str], positions: np.ndarray, reference_ids: list[str], reference_positions: np.ndarray,
+                   alignment_xyt) -> LandmarkError:
+    """Errors of mapped landmarks (map frame) against the reference, the map placed by ``alignment_xyt``
+    (e.g. the trajectory's ATE alignment, so map and path are judged in one frame)."""
+    reference = {name: np.asarray(p, np.float64) for name, p in zip(reference_ids, reference_positions)}
+    mapped = {name: np.asarray(p, np.float64) for name, p in zip(ids, positions)}
+    common = [name for name in mapped if name in reference]
+    if not common:
+        raise UserError("no mapped landmark has an id of the reference landmarks")
+    aligned = compose(np.asarray(alignment_xyt, np.float64),
+                      np.column_stack([np.array([mapped[n] for n in common]), np.zeros(len(common))]))[:, :2]
+    errors = np.hypot(*(aligned - np.array([reference[n] for n in common])).T)
+    return LandmarkError(len(common), float(errors.mean()), float(np.sqrt(np.mean(errors ** 2))),
+                         float(np.median(errors)), float(errors.max()),
+                         {n: float(e) for n, e in zip(common, errors)},
+                         sorted(set(reference) - set(mapped)), sorted(set(mapped) - set(reference)))

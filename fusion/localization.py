@@ -16,6 +16,9 @@ The map (a ``LogOddsGrid``) is only read, never updated. Three pieces:
   with the odometry even so. The localizer then searches globally; if the best place found is
   where it was tracking, the odometry merely slipped (counted in ``stats.false_alarms``) and
   tracking resumes there, otherwise it reports the kidnapping and follows the new hypotheses.
+- :meth:`Localizer.fix` takes an absolute pose fix (landmarks with known map positions,
+  :mod:`trundle.fusion.landmark_localization`): it localises globally at once, corrects the
+  track, and fixes that keep disagreeing with it reveal a kidnapping.
 """
 
 from __future__ import annotations
@@ -233,6 +236,8 @@ class LocalizerStats:
     converged_at: list[int] = field(default_factory=list)
     kidnaps_at: list[int] = field(default_factory=list)
     false_alarms: int = 0
+    fixes: int = 0
+    fixes_rejected: int = 0
 
 
 class Localizer:
@@ -247,6 +252,7 @@ class Localizer:
         self._hypotheses: list[_Hypothesis] = []
         self._ekf: PoseEKF | None = None
         self._bad = 0
+        self._fix_misses = 0
 
     @property
     def hypotheses(self) -> list[tuple[np.ndarray, float]]:
@@ -286,12 +292,44 @@ class Localizer:
             return self._report(converged=True)
         return self._report()
 
+    def fix(self, pose_xyt, covariance, gate_chi2: float = 16.27) -> LocalizationUpdate:
+        """An absolute pose fix (map frame, 3x3 covariance), e.g. from landmarks with known map positions.
+
+        While searching, the fix is the answer: tracking starts there. While tracking, a fix within
+        ``gate_chi2`` (Mahalanobis, 3 dof; default 99.9 %) of the tracked pose corrects it; ``lost_after``
+        fixes in a row outside it reveal a kidnapping, and tracking restarts at the fix. Counted in
+        ``stats.fixes``, ``stats.fixes_rejected``, ``stats.converged_at`` and ``stats.kidnaps_at``
+        (at the index of the next scan).
+        """
+        index = self.stats.scans
+        pose = np.asarray(pose_xyt, np.float64).reshape(3)
+        covariance = np.asarray(covariance, np.float64).reshape(3, 3)
+        self.stats.fixes += 1
+        hypothesis = _Hypothesis(pose.copy(), covariance.copy(), 0.0, self.config.good_score, self.config.min_scans)
+        if self.status != TRACKING or self._ekf is None:
+            self.stats.converged_at.append(index)
+            self._resume(hypothesis)
+            return self._report(converged=True)
+        if self._ekf.correct(pose, covariance, gate_chi2):
+            self._fix_misses = 0
+            self._hypotheses[0].pose, self._hypotheses[0].covariance = self._ekf.pose.copy(), self._ekf.covariance.copy()
+            return self._report()
+        self.stats.fixes_rejected += 1
+        self._fix_misses += 1
+        if self._fix_misses < self.config.lost_after:
+            return self._report()
+        self.stats.kidnaps_at.append(index)
+        self.stats.converged_at.append(index)
+        self._resume(hypothesis)
+        return self._report(converged=True, kidnapped=True)
+
     def _resume(self, best: _Hypothesis) -> LocalizationUpdate:
         """Track ``best`` from here on."""
         self.status = TRACKING
         self._ekf = PoseEKF(best.pose, best.covariance)
         self._hypotheses = [best]
         self._bad = 0
+        self._fix_misses = 0
         return self._report()
 
     def _same_place(self, a: np.ndarray, b: np.ndarray) -> bool:

@@ -11,14 +11,15 @@ from __future__ import annotations
 import csv
 import math
 import os
-import re
 from pathlib import Path
 
 import cv2
 import numpy as np
+from ruamel.yaml import YAML, YAMLError
 
 from trundle.logs.errors import UserError
 from trundle.logs.messages import OccupancyGrid
+from trundle.logs.paths import input_file, read_text
 
 OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.25
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205
@@ -46,41 +47,55 @@ def save_map(grid: OccupancyGrid, base: str | os.PathLike[str]) -> tuple[Path, P
     return pgm, yaml, png
 
 
-def _yaml_value(text: str, key: str) -> str:
-    found = re.search(rf"^\s*{key}\s*:\s*(.+?)\s*$", text, re.MULTILINE)
-    if not found:
-        raise UserError(f"map YAML has no {key!r}")
-    return found.group(1).strip().strip("'\"")
+def _map_number(data: dict, key: str, where: Path, low: float, high: float, default: float | None = None) -> float:
+    """The map YAML's number ``key``, finite and within [low, high]; otherwise a UserError naming it."""
+    value = data.get(key, default)
+    if value is None:
+        raise UserError(f"{where}: map YAML has no {key!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (low <= value <= high):
+        raise UserError(f"{where}: {key} = {value!r} must be a number in [{low:g}, {high:g}]")
+    return float(value)
 
 
 def load_map(yaml_path: str | os.PathLike[str], stamp_ns: int = 0, frame_id: str = "map") -> OccupancyGrid:
     """Read a map_server YAML + image as an OccupancyGrid (trinary: 100 occupied, 0 free, -1 unknown).
 
     Follows map_server: ``p = (255 - v) / 255`` (or ``v / 255`` with ``negate: 1``), occupied
-    above ``occupied_thresh``, free below ``free_thresh``, unknown between.
+    above ``occupied_thresh``, free below ``free_thresh``, unknown between. A missing, binary or
+    inconsistent file (resolution <= 0, thresholds outside [0, 1], an unreadable image) is a
+    UserError naming what is wrong.
     """
     yaml_path = Path(yaml_path)
-    if not yaml_path.is_file():
-        raise UserError(f"no such map file: {yaml_path}")
-    text = yaml_path.read_text()
+    if yaml_path.suffix.lower() in (".pgm", ".png", ".bmp", ".jpg", ".tif", ".tiff"):
+        raise UserError(f"{yaml_path} is a map image: give its YAML (map.yaml) or the folder holding both")
     try:
-        resolution = float(_yaml_value(text, "resolution"))
-        origin = [float(v) for v in _yaml_value(text, "origin").strip("[]").split(",")]
-        negate = int(_yaml_value(text, "negate")) if re.search(r"^\s*negate\s*:", text, re.MULTILINE) else 0
-        occupied = float(_yaml_value(text, "occupied_thresh"))
-        free = float(_yaml_value(text, "free_thresh"))
-    except ValueError as error:
-        raise UserError(f"{yaml_path}: bad value ({error})") from None
-    image_path = yaml_path.parent / _yaml_value(text, "image")
+        data = YAML(typ="safe", pure=True).load(read_text(yaml_path, "map YAML"))
+    except YAMLError as error:
+        raise UserError(f"{yaml_path} is not valid YAML: {str(error).splitlines()[0]}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("image"), str):
+        raise UserError(f"{yaml_path} is not a map_server map YAML (no image: line)")
+    resolution = _map_number(data, "resolution", yaml_path, 1e-6, 1e3)  # metres per cell
+    origin = data.get("origin")
+    if not (isinstance(origin, list) and len(origin) in (2, 3)
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in origin)):
+        raise UserError(f"{yaml_path}: origin = {origin!r} must be [x, y, yaw] (metres, radians)")
+    negate = data.get("negate", 0)
+    if negate not in (0, 1):
+        raise UserError(f"{yaml_path}: negate = {negate!r} must be 0 or 1")
+    occupied = _map_number(data, "occupied_thresh", yaml_path, 0.0, 1.0, OCCUPIED_THRESH)
+    free = _map_number(data, "free_thresh", yaml_path, 0.0, 1.0, FREE_THRESH)
+    if free > occupied:
+        raise UserError(f"{yaml_path}: free_thresh {free} is above occupied_thresh {occupied}")
+    image_path = input_file(yaml_path.parent / data["image"], "map image")
     image = cv2.imread(str(image_path), cv2.IMREAD_GRAYSCALE)
     if image is None:
         raise UserError(f"cannot read map image {image_path}")
     p = image.astype(np.float64) / 255.0 if negate else (255.0 - image) / 255.0
-    data = np.full(image.shape, -1, np.int8)
-    data[p > occupied] = 100
-    data[p < free] = 0
-    return OccupancyGrid(stamp_ns, frame_id, resolution, origin[0], origin[1], origin[2] if len(origin) > 2 else 0.0,
-                         data[::-1])
+    values = np.full(image.shape, -1, np.int8)
+    values[p > occupied] = 100
+    values[p < free] = 0
+    return OccupancyGrid(stamp_ns, frame_id, resolution, float(origin[0]), float(origin[1]),
+                         float(origin[2]) if len(origin) > 2 else 0.0, values[::-1])
 
 
 def write_trajectory_csv(path: str | os.PathLike[str], stamps_ns: np.ndarray, poses: np.ndarray) -> None:
@@ -108,13 +123,15 @@ def read_trajectory_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.nd
 
 def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajectories: list[np.ndarray],
                     colours: list[tuple[int, int, int]] | None = None, loops: list[tuple[np.ndarray, np.ndarray]] = (),
-                    min_size: int = 1000, highlights: list[np.ndarray] = ()) -> Path:
+                    min_size: int = 1000, highlights: list[np.ndarray] = (),
+                    landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Path:
     """PNG of the map with trajectories (each (N, 3), map frame) drawn over it, scaled up to ``min_size`` px.
 
     ``colours`` are BGR per trajectory (default red, then blue, green); ``loops`` are pairs of
     positions drawn as thin lines (loop-closure constraints); ``highlights`` are stretches of path
     drawn wide in magenta under the trajectories (e.g. where the map fails its self-check).
-    Start is a circle, end a square.
+    Start is a circle, end a square. ``landmarks`` (ids, positions (M, 2), covariances (M, 2, 2))
+    are drawn as a cross with its 3-sigma ellipse (at least a few pixels) and the id beside it, in magenta.
     """
     base = map_image(grid)
     scale = max(1, int(math.ceil(min_size / max(base.shape))))
@@ -145,6 +162,19 @@ def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajector
         cv2.circle(image, tuple(pts[0]), 4 * scale << shift, colour, 2, cv2.LINE_AA, shift)
         end = pts[-1] >> shift
         cv2.rectangle(image, tuple(end - 3 * scale), tuple(end + 3 * scale), colour, 2)
+    if landmarks is not None:
+        magenta = (200, 0, 200)
+        for name, xy, cov in zip(*landmarks):
+            centre = pixels(np.asarray(xy, np.float64).reshape(1, 2))[0]
+            values, vectors = np.linalg.eigh(np.nan_to_num(np.asarray(cov, np.float64).reshape(2, 2)))
+            axes = np.maximum(3.0 * np.sqrt(np.maximum(values, 0.0)) / grid.resolution * scale, 3.0)
+            angle = -math.degrees(math.atan2(vectors[1, 1], vectors[0, 1]))
+            cv2.ellipse(image, tuple(int(v) for v in centre), (int(axes[1] * (1 << shift)), int(axes[0] * (1 << shift))),
+                        angle, 0, 360, magenta, 1, cv2.LINE_AA, shift)
+            c = centre >> shift
+            cv2.drawMarker(image, (int(c[0]), int(c[1])), magenta, cv2.MARKER_CROSS, 4 * scale + 6, 1)
+            cv2.putText(image, str(name), (int(c[0]) + 6, int(c[1]) - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4, magenta, 1,
+                        cv2.LINE_AA)
     path = Path(path)
     if not cv2.imwrite(str(path), image):
         raise UserError(f"cannot write {path}")
@@ -176,3 +206,35 @@ def plot_scans(grid: OccupancyGrid, path: str | os.PathLike[str], points: list[n
     if not cv2.imwrite(str(path), image[::-1]):
         raise UserError(f"cannot write {path}")
     return path
+
+
+LANDMARKS_HEADER = ["id", "x", "y", "sx", "sy"]
+
+
+def write_landmarks_csv(path: str | os.PathLike[str], ids: list[str], positions: np.ndarray,
+                        sigmas: np.ndarray) -> None:
+    """``id,x,y,sx,sy`` per landmark: map-frame position (m) and its standard deviations in x and y (m)."""
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(LANDMARKS_HEADER)
+        for name, (x, y), (sx, sy) in zip(ids, np.asarray(positions, np.float64).reshape(-1, 2),
+                                          np.asarray(sigmas, np.float64).reshape(-1, 2)):
+            writer.writerow([name, f"{x:.6f}", f"{y:.6f}", f"{sx:.6f}", f"{sy:.6f}"])
+
+
+def read_landmarks_csv(path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Ids, positions (M, 2) and standard deviations (M, 2) from an ``id,x,y,sx,sy`` file."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"no such landmark file: {path}")
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows or [c.strip() for c in rows[0]] != LANDMARKS_HEADER:
+        raise UserError(f"{path}: not an {','.join(LANDMARKS_HEADER)} landmark file")
+    try:
+        values = np.array([[float(v) for v in row[1:5]] for row in rows[1:] if row], np.float64).reshape(-1, 4)
+    except (ValueError, IndexError):
+        raise UserError(f"{path}: a row is not id,x,y,sx,sy") from None
+    if not np.all(np.isfinite(values[:, :2])):
+        raise UserError(f"{path}: non-finite landmark position")
+    return [row[0] for row in rows[1:] if row], values[:, :2], values[:, 2:]

@@ -17,9 +17,11 @@ from typing import Callable, TypeVar
 import cv2
 import numpy as np
 
+from trundle.logs.errors import UserError
 from trundle.logs.messages import OccupancyGrid
 
 T = TypeVar("T")
+MAX_CELLS = 1 << 27  # 134 M cells (670 MB of log-odds and flags): 580 m square at 5 cm; beyond it, a mistake
 
 
 def log_odds(probability: float) -> float:
@@ -115,6 +117,10 @@ class LogOddsGrid:
             pad_lo = np.maximum(-lo, 0) + np.where(lo < 0, self.grow_cells, 0)
             pad_hi = np.maximum(hi - (width - 1, height - 1), 0) + np.where(hi >= (width, height), self.grow_cells, 0)
             new_w, new_h = width + pad_lo[0] + pad_hi[0], height + pad_lo[1] + pad_hi[1]
+        if int(new_h) * int(new_w) > MAX_CELLS:
+            raise UserError(f"the map would grow to {int(new_w)} x {int(new_h)} cells at {self.resolution:g} m per "
+                            f"cell ({int(new_w) * self.resolution:.0f} x {int(new_h) * self.resolution:.0f} m), over "
+                            f"the {MAX_CELLS:,} cell limit: use a coarser [slam] resolution")
         grown = np.zeros((int(new_h), int(new_w)), np.float32)
         seen = np.zeros((int(new_h), int(new_w)), bool)
         if height:

@@ -114,9 +114,12 @@ class SlamConfig:
     optimize_every_keyframes: int = 10
     robust_kernel: str = "cauchy"
 
+    POSITIVE = frozenset({"resolution", "scans_per_submap", "optimize_every_keyframes", "loop_every_keyframes"})
+
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> SlamConfig:
-        """A config from a TOML table; unknown keys or wrong types are a UserError."""
+        """A config from a TOML table; unknown keys, wrong types and impossible values (negative,
+        non-finite, a zero resolution) are a UserError."""
         known = {f.name: f for f in fields(cls)}
         config = cls()
         for key, value in values.items():
@@ -136,7 +139,14 @@ class SlamConfig:
                     converted = type(default)(value)
             except (TypeError, ValueError):
                 raise UserError(f"[slam] {key} = {value!r}: expected {type(default).__name__}") from None
+            numbers = converted if isinstance(converted, tuple) else (converted,)
+            if not isinstance(converted, (bool, str)) and not all(math.isfinite(v) and v >= 0 for v in numbers):
+                raise UserError(f"[slam] {key} = {value!r}: expected finite numbers >= 0")
+            if key in cls.POSITIVE and not converted > 0:
+                raise UserError(f"[slam] {key} = {value!r}: expected a number > 0")
             setattr(config, key, converted)
+        if config.max_range_m <= config.min_range_m:
+            raise UserError(f"[slam] max_range_m {config.max_range_m} must be above min_range_m {config.min_range_m}")
         return config
 
 
@@ -620,7 +630,7 @@ class Slam:
             return
         cfg = self.config
         kernel = cfg.robust_kernel if cfg.robust_kernel in ("huber", "cauchy") else None
-        self.graph.optimize(max_iterations=max_iterations, robust_kernel=kernel, kernel_width=3.0)
+        self._optimize_graph(max_iterations, kernel)
         chi2 = self.graph.edge_chi2()
         ij = self.graph.edges[0]
         loops = np.flatnonzero(np.abs(ij[:, 1] - ij[:, 0]) > 1)
@@ -629,13 +639,17 @@ class Slam:
             self.graph.remove_edges(bad)
             self.stats.loop_closures -= len(bad)
             self.stats.loop_rejected += len(bad)
-            self.graph.optimize(max_iterations=max_iterations, robust_kernel=kernel, kernel_width=3.0)
+            self._optimize_graph(max_iterations, kernel)
         self._loop_edges = list(np.flatnonzero(np.abs(self.graph.edges[0][:, 1] - self.graph.edges[0][:, 0]) > 1))
         self._nodes_at_last_optimization = len(self.graph)
         self._loops_at_last_optimization = len(self._loop_edges)
         self.stats.optimizations += 1
         last = len(self._kf_local) - 1
         self.map_from_local = compose(self.graph.poses[last], inverse(self._kf_local[last]))
+
+    def _optimize_graph(self, max_iterations: int, kernel: str | None) -> None:
+        """One robust optimisation of the pose graph (a subclass may optimise its own constraints with it)."""
+        self.graph.optimize(max_iterations=max_iterations, robust_kernel=kernel, kernel_width=3.0)
 
     def finish(self) -> None:
         """End of the run: a final optimisation when loops were added since the last one."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -376,3 +377,119 @@ class ImageMarker(Message):
         object.__setattr__(self, "position", tuple(float(v) for v in self.position))
         object.__setattr__(self, "outline_color", tuple(_float32(v) for v in self.outline_color))
         object.__setattr__(self, "fill_color", tuple(_float32(v) for v in self.fill_color))
+
+
+@dataclass(frozen=True, eq=False)
+class LandmarkObservation(Message):
+    """One landmark seen from the tracking frame (one entry of trundle_msgs/LandmarkList).
+
+    ``id`` is the landmark's identity when the sensor knows it (a marker or barcode number), ""
+    when it does not (a laser corner). ``range`` (m) and ``bearing`` (rad, counter-clockwise from
+    x) are in the tracking frame's x-y plane, ``covariance`` (2x2) is over (range, bearing).
+    ``translation`` (m) and ``rotation`` (quaternion x, y, z, w) are the landmark's full pose in
+    the tracking frame (default: the range-bearing point at z = 0, identity rotation); ``yaw_variance``
+    (rad^2) is that of the landmark's yaw about z, 0 when its orientation is not observed.
+    """
+
+    id: str
+    range: float
+    bearing: float
+    covariance: np.ndarray
+    translation: np.ndarray | None = None
+    rotation: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
+    yaw_variance: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "id", str(self.id))
+        object.__setattr__(self, "range", float(self.range))
+        object.__setattr__(self, "bearing", float(self.bearing))
+        object.__setattr__(self, "yaw_variance", float(self.yaw_variance))
+        object.__setattr__(self, "covariance", _frozen_array(_f64(self.covariance, (2, 2))))
+        translation = self.translation
+        if translation is None:
+            translation = (self.range * math.cos(self.bearing), self.range * math.sin(self.bearing), 0.0)
+        object.__setattr__(self, "translation", _frozen_array(_f64(translation, (3,))))
+        object.__setattr__(self, "rotation", _frozen_array(_f64(self.rotation, (4,))))
+
+    @property
+    def oriented(self) -> bool:
+        """Whether the landmark's orientation was observed (a marker's full pose)."""
+        return self.yaw_variance > 0.0
+
+    @classmethod
+    def from_position(cls, landmark_id: str, xy, covariance_xy, translation=None, rotation=(0.0, 0.0, 0.0, 1.0),
+                      yaw_variance: float = 0.0) -> LandmarkObservation:
+        """An observation from a position ``xy`` (m, tracking frame) and its 2x2 covariance, which
+        becomes the (range, bearing) covariance to first order; ``translation`` defaults to ``(x, y, 0)``."""
+        x, y = (float(v) for v in np.asarray(xy, np.float64).reshape(2))
+        q = max(x * x + y * y, 1e-18)
+        r = math.sqrt(q)
+        jac = np.array([[x / r, y / r], [-y / q, x / q]])
+        covariance = jac @ np.asarray(covariance_xy, np.float64).reshape(2, 2) @ jac.T
+        return cls(landmark_id, r, math.atan2(y, x), 0.5 * (covariance + covariance.T),
+                   (x, y, 0.0) if translation is None else translation, rotation, yaw_variance)
+
+    def position_covariance(self) -> np.ndarray:
+        """The 2x2 covariance (m^2) of the range-bearing point in the tracking frame (first order)."""
+        c, s = math.cos(self.bearing), math.sin(self.bearing)
+        jac = np.array([[c, -self.range * s], [s, self.range * c]])
+        return jac @ self.covariance @ jac.T
+
+    @property
+    def yaw(self) -> float:
+        """The landmark's yaw in the tracking frame (rad)."""
+        qx, qy, qz, qw = self.rotation
+        return math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+
+
+@dataclass(frozen=True, eq=False)
+class LandmarkList(Message):
+    """The landmarks seen at one instant from ``frame_id`` (trundle_msgs/LandmarkList, modelled on
+    cartographer_ros_msgs/LandmarkList), published on ``/landmarks``."""
+
+    stamp_ns: int
+    frame_id: str
+    landmarks: tuple[LandmarkObservation, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "landmarks", tuple(self.landmarks))
+
+
+@dataclass(frozen=True, eq=False)
+class SceneMarker(Message):
+    """A shape in a 3-D scene (visualization_msgs/Marker, action ADD): its pose in ``frame_id``
+    (x, y, z m, yaw rad), ``scale`` (3,) m, colour RGBA in [0, 1] and, for text, ``text``.
+
+    ``type`` is the ROS marker type; the ones trundle draws are class constants.
+    """
+
+    SPHERE: ClassVar[int] = 2
+    CYLINDER: ClassVar[int] = 3
+    TEXT_VIEW_FACING: ClassVar[int] = 9
+
+    stamp_ns: int
+    frame_id: str
+    ns: str
+    id: int
+    type: int
+    x: float
+    y: float
+    z: float = 0.0
+    yaw: float = 0.0
+    scale: np.ndarray = field(default_factory=lambda: np.ones(3))
+    color: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 1.0)
+    text: str = ""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "scale", _frozen_array(_f64(self.scale, (3,))))
+        object.__setattr__(self, "color", tuple(_float32(v) for v in self.color))
+
+
+@dataclass(frozen=True, eq=False)
+class SceneMarkers(Message):
+    """A batch of scene markers (visualization_msgs/MarkerArray), e.g. a landmark map."""
+
+    markers: tuple[SceneMarker, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "markers", tuple(self.markers))

@@ -12,15 +12,17 @@ import heapq
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO, Iterable, Iterator
+from typing import TYPE_CHECKING, BinaryIO, Iterable, Iterator
 
 from mcap.records import Attachment, Channel, Chunk, Header, Message, Metadata, Schema, Statistics
 from mcap.reader import SeekingReader
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from trundle.logs import messages as m
-from trundle.logs import ros2
 from trundle.logs.errors import UserError
+from trundle.logs.paths import input_file
+
+if TYPE_CHECKING:
+    from trundle.logs import messages as m
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -48,11 +50,14 @@ class LogMessage:
 
 @dataclass
 class TopicInfo:
+    """One topic of a log: its schema name, message encoding (``cdr``, ``json``, ...), counts and times."""
+
     ros_type: str
     count: int = 0
     first_ns: int | None = None
     last_ns: int | None = None
     latched: bool = False
+    encoding: str = "cdr"
 
     @property
     def rate_hz(self) -> float:
@@ -87,6 +92,17 @@ class LogInfo:
             return 0.0
         return (self.end_ns - self.start_ns) * 1e-9
 
+    def require(self, topic: str, ros_type: str) -> TopicInfo:
+        """The topic a job needs, of ``ros_type``; a UserError saying whether it is missing or of another type."""
+        found = self.topics.get(topic)
+        if found is None:
+            raise UserError(f"{self.path} has no topic {topic} ({ros_type}; topics: "
+                            f"{', '.join(sorted(self.topics)) or 'none'})")
+        if found.ros_type != ros_type:
+            raise UserError(f"{self.path}: {topic} carries {found.ros_type or 'messages without a schema'}, "
+                            f"not {ros_type}")
+        return found
+
 
 @dataclass
 class _Scan:
@@ -107,14 +123,10 @@ class LogReader:
     """Typed, time-windowed iteration over an MCAP log; salvages damaged files."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
-        self.path = Path(path)
-        if self.path.is_dir():
-            raise UserError(f"{self.path} is a folder, not an MCAP file")
-        if not self.path.exists():
-            raise UserError(f"no such file: {self.path}")
+        self.path = input_file(path, "MCAP log")
         self.size_bytes = self.path.stat().st_size
         if self.size_bytes == 0:
-            raise UserError(f"{self.path} is empty")
+            raise UserError(f"{self.path} is empty (0 bytes): no log was written into it")
         with open(self.path, "rb") as f:
             if f.read(len(MAGIC)) != MAGIC:
                 raise UserError(f"{self.path} is not an MCAP file (bad magic bytes)")
@@ -223,6 +235,8 @@ class LogReader:
     def messages(self, topics: Iterable[str] | None = None, start_ns: int | None = None,
                  end_ns: int | None = None) -> Iterator[LogMessage]:
         """Decoded messages of the types trundle maps, in log-time order; others are skipped."""
+        from trundle.logs import ros2  # numpy and the rosbags typestore: only to decode (not for info)
+
         for raw in self.raw_messages(topics, start_ns, end_ns):
             if ros2.is_supported(raw.ros_type):
                 yield LogMessage(raw.topic, raw.log_time_ns, ros2.decode(raw.ros_type, raw.data))
@@ -257,7 +271,8 @@ class LogReader:
                     schema = scan.schemas.get(channel.schema_id)
                     qos = channel.metadata.get("offered_qos_profiles", "")
                     topic = info.topics[channel.topic] = TopicInfo(schema.name if schema else "",
-                                                                   latched="durability: 1" in qos)
+                                                                   latched="durability: 1" in qos,
+                                                                   encoding=channel.message_encoding)
                 t = record.log_time
                 topic.count += 1
                 topic.first_ns = t if topic.first_ns is None else min(topic.first_ns, t)

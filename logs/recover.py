@@ -16,10 +16,8 @@ from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from trundle.logs.errors import UserError
+from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader
-
-
-Replace = Callable[[str, str, int, bytes], "bytes | None"]  # topic, schema name, log time ns, data
 
 
 @dataclass(frozen=True)
@@ -30,24 +28,50 @@ class RecoverResult:
     stopped_by: str
 
 
+Replace = Callable[[str, str, int, bytes], "bytes | None"]  # topic, schema name, log time ns, data
+
+
 def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> RecoverResult:
     """Copy every readable record of ``src`` into a complete MCAP at ``dst``.
 
-    Raises ``UserError`` when ``src`` is not MCAP or nothing at all could be read.
+    A folder ``dst`` gets the file under the input's name (without ``.active``). Raises
+    ``UserError`` when ``src`` is not MCAP, nothing at all could be read, or ``dst`` exists (a
+    file is never overwritten); nothing is left behind then.
     """
+    dst = Path(dst)
+    if dst.is_dir():
+        name = Path(src).name.removesuffix(".active")
+        dst = dst / (name if name.endswith(".mcap") else name + ".mcap")
     return copy_log(src, dst)
 
 
 def copy_log(src: str | os.PathLike[str], dst: str | os.PathLike[str], replace: Replace | None = None,
              metadata: dict[str, dict[str, str]] | None = None) -> RecoverResult:
-    """Copy every readable record of ``src`` to ``dst`` (as :func:`recover`), passing each message through
-    ``replace(topic, schema_name, log_time_ns, data)``, which returns the data to write or None to
-    drop it; ``metadata`` records (name -> key -> value) are added."""
+    """Copy every readable record of ``src`` to the new file ``dst`` (as :func:`recover`), passing each
+    message through ``replace(topic, schema_name, log_time_ns, data)``, which returns the data to write
+    or None to drop it; ``metadata`` records (name -> key -> value) are added."""
     reader = LogReader(src)
     dst = Path(dst)
     if dst.resolve() == reader.path.resolve():
         raise UserError("the output must be a different file from the input")
-    tmp = dst.with_name(dst.name + ".tmp")
+    new_file(dst, "output log")
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
+    try:
+        count, channel_ids = _copy(reader, tmp, replace, metadata)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    if count == 0 and not channel_ids:
+        tmp.unlink()
+        raise UserError(f"nothing could be recovered from {src}: {reader.last_scan_error or 'no messages'}")
+    os.replace(tmp, dst)
+    return RecoverResult(dst, count, reader.last_scan_corrupt_chunks, reader.last_scan_error)
+
+
+def _copy(reader: LogReader, tmp: Path, replace: Replace | None,
+          metadata: dict[str, dict[str, str]] | None) -> tuple[int, dict[int, int]]:
+    """Copy every readable record of ``reader``'s file into a complete MCAP at ``tmp`` (messages through
+    ``replace``, ``metadata`` added); the messages copied and the channel ids used."""
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
     pending_channels: dict[int, Channel] = {}
@@ -61,9 +85,9 @@ def copy_log(src: str | os.PathLike[str], dst: str | os.PathLike[str], replace: 
                 header = getattr(record, "profile", None)
                 writer.start(profile=header if header is not None else "ros2",
                              library=getattr(record, "library", "trundle recover"))
+                header_written = True
                 for name, values in (metadata or {}).items():
                     writer.add_metadata(name, values)
-                header_written = True
                 if header is not None:
                     continue
             if isinstance(record, Schema):
@@ -71,8 +95,8 @@ def copy_log(src: str | os.PathLike[str], dst: str | os.PathLike[str], replace: 
             elif isinstance(record, Channel):
                 pending_channels[record.id] = record
             elif isinstance(record, Message):
-                new_id = channel_ids.get(record.channel_id)
                 channel = pending_channels.get(record.channel_id)
+                new_id = channel_ids.get(record.channel_id)
                 if new_id is None:
                     if channel is None:
                         continue
@@ -93,11 +117,7 @@ def copy_log(src: str | os.PathLike[str], dst: str | os.PathLike[str], replace: 
         if not header_written:
             writer.start(profile="ros2", library="trundle recover")
         writer.finish()
-    if count == 0 and not channel_ids:
-        tmp.unlink()
-        raise UserError(f"nothing could be recovered from {src}: {reader.last_scan_error or 'no messages'}")
-    os.replace(tmp, dst)
-    return RecoverResult(dst, count, reader.last_scan_corrupt_chunks, reader.last_scan_error)
+    return count, channel_ids
 
 
 def _register(writer: Writer, channel: Channel, schemas: dict[int, Schema], schema_ids: dict[int, int]) -> int:

@@ -1,6 +1,7 @@
 """The one mapping between trundle's message types and standard ROS 2 messages, encoded as CDR.
 
-Encoding uses the ``rosbags`` typestore (Humble definitions plus ``can_msgs/msg/Frame``), so the
+Encoding uses the ``rosbags`` typestore (Humble definitions plus ``can_msgs/msg/Frame`` and
+``trundle_msgs/msg/LandmarkList``, registered from their ``.msg`` text), so the
 bytes are exactly what a ROS 2 node would publish, and the schema text handed to MCAP is the full
 ``ros2msg`` definition with every dependency.
 """
@@ -14,6 +15,7 @@ from typing import Any, Callable
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from trundle.logs import cdr
 from trundle.logs import messages as m
 
 CAN_FRAME_MSG = """\
@@ -26,8 +28,35 @@ uint8 dlc
 uint8[8] data
 """
 
+# One landmark observation, modelled on cartographer_ros_msgs/LandmarkEntry (its four fields come
+# first, with Cartographer's meaning) plus what a filter needs: range, bearing and their covariance.
+LANDMARK_ENTRY_MSG = """\
+# Identity of the landmark when the sensor knows it (marker or barcode number); empty when not.
+string id
+# Pose of the landmark in the tracking frame (header.frame_id).
+geometry_msgs/Pose tracking_from_landmark_transform
+# As cartographer_ros_msgs/LandmarkEntry: 1 / standard deviation of the translation (1/m) and of
+# the rotation (1/rad); rotation_weight 0 when the landmark's orientation is not observed.
+float64 translation_weight
+float64 rotation_weight
+# Range (m) and bearing (rad, counter-clockwise from x) in the tracking frame's x-y plane.
+float64 range
+float64 bearing
+# Row-major 2x2 covariance of (range, bearing): m^2, m rad, rad^2.
+float64[4] range_bearing_covariance
+# Variance (rad^2) of the landmark's yaw about z; 0 when its orientation is not observed.
+float64 yaw_variance
+"""
+
+LANDMARK_LIST_MSG = """\
+std_msgs/Header header
+trundle_msgs/LandmarkEntry[] landmarks
+"""
+
 TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
 TYPESTORE.register(get_types_from_msg(CAN_FRAME_MSG, "can_msgs/msg/Frame"))
+TYPESTORE.register(get_types_from_msg(LANDMARK_ENTRY_MSG, "trundle_msgs/msg/LandmarkEntry"))
+TYPESTORE.register(get_types_from_msg(LANDMARK_LIST_MSG, "trundle_msgs/msg/LandmarkList"))
 _T = TYPESTORE.types
 
 _Header = _T["std_msgs/msg/Header"]
@@ -277,6 +306,56 @@ def _marker_from(r: Any) -> m.ImageMarker:
                          bool(r.filled), rgba(r.fill_color), np.array([(p.x, p.y) for p in r.points]).reshape(-1, 2))
 
 
+def _landmark_entry_to(o: m.LandmarkObservation) -> Any:
+    planar = np.linalg.eigvalsh(o.position_covariance())
+    sigma = float(np.sqrt(max(planar.max(), 0.0)))
+    qx, qy, qz, qw = (float(v) for v in o.rotation)
+    tx, ty, tz = (float(v) for v in o.translation)
+    pose = _Pose(position=_Point(x=tx, y=ty, z=tz), orientation=_Quaternion(x=qx, y=qy, z=qz, w=qw))
+    return _T["trundle_msgs/msg/LandmarkEntry"](
+        id=o.id, tracking_from_landmark_transform=pose, translation_weight=1.0 / sigma if sigma > 0 else 0.0,
+        rotation_weight=1.0 / float(np.sqrt(o.yaw_variance)) if o.yaw_variance > 0 else 0.0,
+        range=o.range, bearing=o.bearing, range_bearing_covariance=o.covariance.reshape(-1),
+        yaw_variance=o.yaw_variance)
+
+
+def _landmarks_to(msg: m.LandmarkList) -> Any:
+    return _T["trundle_msgs/msg/LandmarkList"](header=header(msg.stamp_ns, msg.frame_id),
+                                               landmarks=[_landmark_entry_to(o) for o in msg.landmarks])
+
+
+def _landmarks_from(r: Any) -> m.LandmarkList:
+    def entry(e: Any) -> m.LandmarkObservation:
+        p, q = e.tracking_from_landmark_transform.position, e.tracking_from_landmark_transform.orientation
+        return m.LandmarkObservation(e.id, float(e.range), float(e.bearing), e.range_bearing_covariance,
+                                     (p.x, p.y, p.z), (q.x, q.y, q.z, q.w), float(e.yaw_variance))
+    return m.LandmarkList(stamp_ns(r), r.header.frame_id, tuple(entry(e) for e in r.landmarks))
+
+
+def _scene_marker_to(k: m.SceneMarker) -> Any:
+    return _T["visualization_msgs/msg/Marker"](
+        header=header(k.stamp_ns, k.frame_id), ns=k.ns, id=k.id, type=k.type, action=0,
+        pose=_Pose(position=_Point(x=float(k.x), y=float(k.y), z=float(k.z)), orientation=_quaternion(k.yaw)),
+        scale=_Vector3(x=float(k.scale[0]), y=float(k.scale[1]), z=float(k.scale[2])), color=_color(k.color),
+        lifetime=_Duration(sec=0, nanosec=0), frame_locked=False, points=[], colors=[], texture_resource="",
+        texture=_T["sensor_msgs/msg/CompressedImage"](header=header(0, ""), format="", data=_EMPTY_U8),
+        uv_coordinates=[], text=k.text, mesh_resource="",
+        mesh_file=_T["visualization_msgs/msg/MeshFile"](filename="", data=_EMPTY_U8), mesh_use_embedded_materials=False)
+
+
+def _scene_markers_to(msg: m.SceneMarkers) -> Any:
+    return _T["visualization_msgs/msg/MarkerArray"](markers=[_scene_marker_to(k) for k in msg.markers])
+
+
+def _scene_markers_from(r: Any) -> m.SceneMarkers:
+    def marker(k: Any) -> m.SceneMarker:
+        c = k.color
+        return m.SceneMarker(stamp_ns(k), k.header.frame_id, k.ns, int(k.id), int(k.type), float(k.pose.position.x),
+                             float(k.pose.position.y), float(k.pose.position.z), _yaw(k.pose.orientation),
+                             (k.scale.x, k.scale.y, k.scale.z), (float(c.r), float(c.g), float(c.b), float(c.a)), k.text)
+    return m.SceneMarkers(tuple(marker(k) for k in r.markers))
+
+
 @dataclass(frozen=True)
 class Mapping:
     """How one trundle type travels as one ROS 2 type."""
@@ -302,9 +381,13 @@ MAPPINGS: tuple[Mapping, ...] = (
     Mapping(m.Path, "nav_msgs/msg/Path", _path_to, _path_from),
     Mapping(m.DiagnosticArray, "diagnostic_msgs/msg/DiagnosticArray", _diag_to, _diag_from),
     Mapping(m.ImageMarker, "visualization_msgs/msg/ImageMarker", _marker_to, _marker_from),
+    Mapping(m.LandmarkList, "trundle_msgs/msg/LandmarkList", _landmarks_to, _landmarks_from),
+    Mapping(m.SceneMarkers, "visualization_msgs/msg/MarkerArray", _scene_markers_to, _scene_markers_from),
 )
 _BY_PYTHON = {mp.python_type: mp for mp in MAPPINGS}
 _BY_ROS = {mp.ros_type: mp for mp in MAPPINGS}
+# the types a laser logs with every scan: the same bytes as the typestore, without its objects
+_DIRECT: dict[type, Callable[[Any], bytes]] = {m.LaserScan: cdr.laser_scan, m.DiagnosticArray: cdr.diagnostic_array}
 
 
 def ros_type(python_type: type) -> str:
@@ -324,6 +407,9 @@ def encode(msg: m.Message) -> tuple[str, bytes]:
     mp = _BY_PYTHON.get(type(msg))
     if mp is None:
         raise UnsupportedType(f"no ROS 2 mapping for {type(msg).__name__}")
+    direct = _DIRECT.get(type(msg))
+    if direct is not None:
+        return mp.ros_type, direct(msg)
     return mp.ros_type, bytes(TYPESTORE.serialize_cdr(mp.to_ros(msg), mp.ros_type))
 
 

@@ -3,7 +3,9 @@
 Files are MCAP with the ``ros2`` profile, ``ros2msg`` schemas (full definition text) and CDR
 messages, so ``ros2 bag`` and Foxglove open them. While open a file is ``NAME.mcap.active``;
 a clean close renames it to ``NAME.mcap``. The open chunk is flushed at least every
-``flush_period_s`` (optionally fsynced), so a killed process loses at most that much. Files split
+``flush_period_s`` (optionally fsynced), so a killed process loses at most that much. The writer
+thread wakes once per ``batch_s`` at most while messages flow (a message wakes it, it lets the
+batch gather, then writes them all), not once per message. Files split
 by size and/or duration; latched topics (``/tf_static``, ``*/camera_info`` and any named) are
 repeated at the start of every split. Each topic counts messages written and dropped.
 """
@@ -12,9 +14,10 @@ from __future__ import annotations
 
 import collections
 import fcntl
-import json
+import glob
 import os
 import platform
+import struct
 import threading
 import time
 from dataclasses import dataclass, field
@@ -25,10 +28,12 @@ from mcap.writer import CompressionType, Writer
 
 from trundle import __version__
 from trundle.logs import messages as m
+from trundle.logs import metadata as log_metadata
 from trundle.logs import ros2
 from trundle.logs.errors import UserError
 
 ACTIVE_SUFFIX = ".active"
+_SPLIT = object()  # queued by Logger.split: the writer starts a new file at the next message
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 _QOS_LATCHED = (
@@ -38,6 +43,13 @@ _QOS_LATCHED = (
     "  liveliness_lease_duration:\n    sec: 2147483647\n    nsec: 4294967295\n"
     "  avoid_ros_namespace_conventions: false\n")
 _QOS_VOLATILE = _QOS_LATCHED.replace("durability: 1", "durability: 2").replace("depth: 1", "depth: 10")
+# MCAP record sizes (MCAP spec, records section), for keeping split files under their size limit:
+MESSAGE_RECORD_BYTES = 1 + 8 + 2 + 4 + 8 + 8  # opcode, length, channel id, sequence, log and publish time
+MESSAGE_INDEX_ENTRY_BYTES = 8 + 8  # each message's (log time, offset) in its chunk's message index
+MESSAGE_INDEX_BYTES = 1 + 8 + 2 + 4  # a message index record (one per channel and chunk), entries aside
+CHUNK_RECORD_BYTES = 1 + 8 + 8 + 8 + 8 + 4 + 4 + 8 + 4 + 8  # chunk header with a compression name
+CHUNK_INDEX_BYTES = 1 + 8 + 8 + 8 + 8 + 8 + 4 + 8 + 4 + 4 + 8 + 8  # + 10 per channel
+SUMMARY_FIXED_BYTES = 1024  # statistics, data end, summary offsets, metadata index, footer, magic
 
 
 class LoggerError(UserError):
@@ -75,10 +87,21 @@ class _OpenFile:
     schemas: dict[str, int] = field(default_factory=dict)
     sequence: dict[str, int] = field(default_factory=dict)
     first_log_time_ns: int | None = None
+    open_chunk_bytes: int = 0  # records in the chunk not yet written to the stream (uncompressed)
+    chunks: int = 0
+    summary_bytes: int = SUMMARY_FIXED_BYTES  # what finishing the file adds: summary, footer
 
     @property
     def active_path(self) -> Path:
         return self.path.with_name(self.path.name + ACTIVE_SUFFIX)
+
+    def finished_size(self, extra: int = 0) -> int:
+        """An upper bound on the file's size if it were finished after ``extra`` more bytes of records
+        (the open chunk counted uncompressed, with its record, message indexes and chunk index)."""
+        pending = self.open_chunk_bytes + extra
+        if pending:
+            pending += CHUNK_RECORD_BYTES + CHUNK_INDEX_BYTES + (MESSAGE_INDEX_BYTES + 10) * len(self.channels)
+        return self.stream.tell() + pending + self.summary_bytes
 
 
 class Logger:
@@ -86,13 +109,14 @@ class Logger:
 
     ``write`` returns False (and counts a drop for that topic) when the queue is full or the
     logger has failed. ``error`` holds the first write failure; ``close`` raises it.
+    ``metadata`` is the log's description, stored in every file (:mod:`trundle.logs.metadata`).
     """
 
     def __init__(self, path: str | os.PathLike[str], *, compression: str = "zstd",
                  chunk_size: int = 1 << 20, flush_period_s: float = 0.5, fsync: bool = False,
                  split_bytes: int | None = None, split_duration_s: float | None = None,
-                 queue_size: int = 10000, metadata: Mapping[str, str] | None = None,
-                 latched_topics: Iterable[str] = (), salvage: bool = True) -> None:
+                 queue_size: int = 10000, metadata: Mapping[str, object] | None = None,
+                 latched_topics: Iterable[str] = (), salvage: bool = True, batch_s: float = 0.1) -> None:
         if compression not in COMPRESSION:
             raise UserError(f"unknown compression {compression!r} (choose zstd, lz4 or none)")
         self.base_path = Path(path)
@@ -108,16 +132,24 @@ class Logger:
         self.split_duration_ns = int(split_duration_s * 1e9) if split_duration_s else None
         self._splitting = bool(split_bytes or split_duration_s)
         self.queue_size = queue_size
-        self.metadata = {"trundle_version": __version__, "host": platform.node(), **(metadata or {})}
+        self.batch_s = batch_s
+        self._urgent_at = max(1, min(queue_size // 4, 256))  # a batch this long is written at once
+        self.metadata = log_metadata.encode({"trundle_version": __version__, "host": platform.node(), **(metadata or {})})
         self.latched_topics = frozenset(latched_topics)
         self.stats: dict[str, TopicStats] = collections.defaultdict(TopicStats)
         self.files: list[Path] = []
         self.salvaged: list[Path] = salvage_folder(self.base_path.parent) if salvage else []
+        taken = self._taken()
+        if taken:
+            raise UserError(f"{taken[0]} exists: give another name, or move it away (a log is never overwritten)")
         self.error: LoggerError | None = None
+        self.bad_messages = 0  # messages MCAP could not hold (counted as drops of their topic too)
+        self.last_bad_message = ""
         self._latched: dict[str, _Item] = {}
         self._topic_latched: dict[str, bool] = {}
-        self._queue: collections.deque[_Item | None] = collections.deque()
+        self._queue: collections.deque = collections.deque()  # _Item, _SPLIT, or None to close
         self._wake = threading.Event()
+        self._urgent = threading.Event()
         self._split_requested = False
         self._closed = False
         self._split_index = 0
@@ -127,6 +159,15 @@ class Logger:
         self._thread = threading.Thread(target=self._run, name="mcap-logger", daemon=True)
         self._thread.start()
 
+    def _taken(self) -> list[Path]:
+        """Files this logger would write that exist already (the base name, or any split part)."""
+        base = self.base_path
+        names = [base, base.with_name(base.name + ACTIVE_SUFFIX)]
+        taken = [p for p in names if p.exists() or p.is_symlink()]
+        if self._splitting:
+            taken += sorted(base.parent.glob(glob.escape(base.stem) + "_[0-9]*.mcap*"))
+        return taken
+
     # --- producer side -------------------------------------------------------------------------
 
     def write(self, topic: str, msg: m.Message, log_time_ns: int | None = None) -> bool:
@@ -134,6 +175,10 @@ class Logger:
         ros_type, data = ros2.encode(msg)
         stamp = getattr(msg, "stamp_ns", None)
         log_time = time.time_ns() if log_time_ns is None else int(log_time_ns)
+        if not 0 <= log_time < 1 << 64:
+            raise ValueError(f"log time {log_time} ns of a {topic} message is outside MCAP's unsigned 64-bit range")
+        if stamp is not None and not 0 <= stamp < 1 << 64:  # e.g. a device clock near zero minus a sweep time
+            stamp = None  # the publish time is then the log time (the message keeps its own stamp)
         # Static transforms from several publishers are all kept for the next split, one per
         # set of child frames, as tf2's transient-local subscribers would see them.
         key = topic + "|" + ",".join(sorted(t.child_frame_id for t in msg.transforms)) \
@@ -155,12 +200,16 @@ class Logger:
         self._queue.append(item)
         if not self._wake.is_set():
             self._wake.set()
+        elif len(self._queue) >= self._urgent_at and not self._urgent.is_set():
+            self._urgent.set()
         return True
 
     def split(self) -> None:
-        """Start a new file at the next message (as SIGHUP does in the daemon)."""
-        self._split_requested = True
+        """Start a new file at the next message (as SIGHUP does in the daemon); the messages
+        queued before the request still go to the current file."""
+        self._queue.append(_SPLIT)
         self._wake.set()
+        self._urgent.set()
 
     def close(self) -> None:
         """Write everything queued, finish the file and rename it; raises the first write error."""
@@ -168,6 +217,7 @@ class Logger:
             self._closed = True
             self._queue.append(None)
             self._wake.set()
+            self._urgent.set()
             self._thread.join()
         if self.error is not None:
             raise self.error
@@ -194,6 +244,9 @@ class Logger:
         running = True
         while running:
             self._wake.wait(max(0.0, next_flush - time.monotonic()))
+            if self._wake.is_set():  # let the batch gather: producers do not wake a woken writer
+                self._urgent.wait(max(0.0, min(self.batch_s, next_flush - time.monotonic())))
+            self._urgent.clear()
             self._wake.clear()
             running = self._drain()
             if time.monotonic() >= next_flush:
@@ -208,12 +261,18 @@ class Logger:
             item = queue.popleft()
             if item is None:
                 return False
+            if item is _SPLIT:
+                self._split_requested = True
+                continue
             if self.error is None:
                 try:
                     self._write_item(item)
                     continue
                 except OSError as error:
                     self._fail(error)
+                except (ValueError, struct.error) as error:  # one message MCAP cannot hold: dropped, counted
+                    self.bad_messages += 1
+                    self.last_bad_message = f"{item.topic}: {error}"
             self.stats[item.topic].dropped += 1
         return True
 
@@ -257,28 +316,44 @@ class Logger:
             return False
         if self.split_duration_ns and item.log_time_ns - file.first_log_time_ns >= self.split_duration_ns:
             return True
-        return bool(self.split_bytes) and file.stream.tell() >= self.split_bytes  # type: ignore[operator]
+        # the file as it would be finished with this message in it: split before it would pass the limit
+        extra = MESSAGE_RECORD_BYTES + MESSAGE_INDEX_ENTRY_BYTES + len(item.data)
+        return bool(self.split_bytes) and file.finished_size(extra) > self.split_bytes
 
     def _add(self, file: _OpenFile, item: _Item) -> None:
         channel = file.channels.get(item.topic)
         if channel is None:
             schema = file.schemas.get(item.ros_type)
             if schema is None:
-                schema = file.writer.register_schema(item.ros_type, "ros2msg", ros2.schema_text(item.ros_type).encode())
+                text = ros2.schema_text(item.ros_type).encode()
+                schema = file.writer.register_schema(item.ros_type, "ros2msg", text)
                 file.schemas[item.ros_type] = schema
+                file.summary_bytes += 2 * (len(text) + len(item.ros_type) + 32)  # in the data and the summary
             qos = _QOS_LATCHED if is_latched(item.topic, self.latched_topics) else _QOS_VOLATILE
             channel = file.writer.register_channel(item.topic, "cdr", schema, {"offered_qos_profiles": qos})
             file.channels[item.topic] = channel
+            file.summary_bytes += 2 * (len(item.topic) + len(qos) + 64)
         sequence = file.sequence.get(item.topic, 0)
         file.sequence[item.topic] = sequence + 1
         file.writer.add_message(channel, item.log_time_ns, item.data, item.publish_time_ns, sequence)
+        file.open_chunk_bytes += MESSAGE_RECORD_BYTES + MESSAGE_INDEX_ENTRY_BYTES + len(item.data)
+        if file.open_chunk_bytes > self.chunk_size:  # the writer closed the chunk (it does past chunk_size)
+            self._chunk_written(file)
         if file.first_log_time_ns is None:
             file.first_log_time_ns = item.log_time_ns
+
+    def _chunk_written(self, file: _OpenFile) -> None:
+        """The open chunk went to the stream: its index joins the summary."""
+        file.open_chunk_bytes = 0
+        file.chunks += 1
+        file.summary_bytes += CHUNK_INDEX_BYTES + 10 * len(file.channels)
 
     def _flush(self) -> None:
         file = self._file
         if file is None:
             return
+        if file.open_chunk_bytes:
+            self._chunk_written(file)
         file.writer.flush()
         if self.fsync:
             os.fsync(file.stream.fileno())
@@ -290,11 +365,11 @@ class Logger:
             path = self.base_path
         self._split_index += 1
         active = path.with_name(path.name + ACTIVE_SUFFIX)
-        stream = open(active, "wb")
+        stream = open(active, "xb")  # exclusive: never truncates another writer's file
         fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # marks the file live for salvage_folder
         writer = Writer(stream, chunk_size=self.chunk_size, compression=COMPRESSION[self.compression])
         writer.start(profile="ros2", library=f"trundle/{__version__}")
-        writer.add_metadata("trundle", {k: str(v) for k, v in self.metadata.items()})
+        writer.add_metadata(log_metadata.RECORD, self.metadata)
         stream.flush()  # the header is on disk from the start: even an early kill leaves MCAP
         self._file = _OpenFile(path, stream, writer)
 
@@ -314,11 +389,6 @@ class Logger:
     def stats_dict(self) -> dict[str, dict[str, int]]:
         """Per-topic ``{"written": n, "dropped": n}`` (for status and diagnostics)."""
         return {topic: {"written": s.written, "dropped": s.dropped} for topic, s in sorted(self.stats.items())}
-
-
-def metadata_json(config: Mapping[str, object]) -> str:
-    """A config mapping as the JSON string stored in the file's metadata record."""
-    return json.dumps(config, sort_keys=True, default=str)
 
 
 def salvage_folder(folder: Path) -> list[Path]:

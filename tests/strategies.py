@@ -101,6 +101,23 @@ def image_markers(draw):
                          draw(colors), draw(f64_matrix((n, 2))))
 
 
+@st.composite
+def landmark_lists(draw):
+    observations = [m.LandmarkObservation(draw(names), draw(finite), draw(finite), draw(f64_matrix((2, 2))),
+                                          draw(st.none() | f64_matrix((3,))), draw(f64_matrix((4,))), draw(finite))
+                    for _ in range(draw(st.integers(0, 4)))]
+    return m.LandmarkList(draw(stamps), draw(names), tuple(observations))
+
+
+@st.composite
+def scene_markers(draw):
+    markers = [m.SceneMarker(draw(stamps), draw(names), draw(names), draw(st.integers(-2**31, 2**31 - 1)),
+                             draw(st.integers(0, 11)), draw(finite), draw(finite), draw(finite), draw(yaws),
+                             draw(f64_matrix((3,))), draw(colors), draw(names))
+               for _ in range(draw(st.integers(0, 4)))]
+    return m.SceneMarkers(tuple(markers))
+
+
 ALL_MESSAGES = {
     "LaserScan": laser_scans(),
     "CompressedImage": st.builds(m.CompressedImage, stamps, names, st.sampled_from(["jpeg", "png"]), st.binary(max_size=300)),
@@ -117,4 +134,6 @@ ALL_MESSAGES = {
     "Path": paths(),
     "DiagnosticArray": st.builds(m.DiagnosticArray, stamps, st.lists(statuses, max_size=3).map(tuple)),
     "ImageMarker": image_markers(),
+    "LandmarkList": landmark_lists(),
+    "SceneMarkers": scene_markers(),
 }

@@ -40,7 +40,7 @@ def test_not_mcap_and_empty_and_missing(tmp_path: Path, capsys: pytest.CaptureFi
     assert main([command, str(empty)]) == 2
     one_line_error(capsys, "is empty")
     assert main([command, str(tmp_path / "missing.mcap")]) == 2
-    one_line_error(capsys, "no such file")
+    one_line_error(capsys, "no such MCAP log")
 
 
 def test_file_cut_mid_record_is_salvaged(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

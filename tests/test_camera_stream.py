@@ -14,13 +14,15 @@ import pytest
 from camera_clips import avi_video_chunks, wait_for, write_clip
 from trundle.drivers.camera import CameraDriver, driver_from_url
 from trundle.logs import messages as m
+from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
 from trundle.tools.emulators.camera_emulator import BOUNDARY, CameraEmulator, synthetic_frame
 
 
 def start_driver(url: str, **options: object) -> tuple[CameraDriver, list[m.CompressedImage]]:
     logged: list[m.CompressedImage] = []
-    driver = driver_from_url(url, lambda topic, msg, t: logged.append(msg), dict(options))
+    driver = driver_from_url(url, lambda topic, msg, t: logged.append(msg) if topic.endswith("compressed") else None,
+                             dict(options))
     driver.start()
     return driver, logged
 
@@ -38,9 +40,23 @@ def test_stream_is_logged_byte_for_byte() -> None:
         sent = list(emulator.history)
     assert is_subsequence([msg.data for msg in logged], sent)
     assert driver.settings["pass_through"] == "true"
-    assert driver.counters["corrupt"] == 0 and driver.camera_info.width == 0  # size unknown until frames come
+    assert driver.counters["corrupt"] == 0
     stamps = [msg.stamp_ns for msg in logged]
     assert all(b > a for a, b in zip(stamps, stamps[1:]))
+
+
+def test_a_stream_without_a_size_gets_its_camera_info_from_the_first_frame(tmp_path: Path) -> None:
+    """MJPEG over HTTP says no size: the CameraInfo (never 0x0) comes with the first frame."""
+    with CameraEmulator(fps=30, width=320, height=240) as emulator:
+        driver = driver_from_url(emulator.url, lambda *a: None, {})
+        assert [topic for topic, _ in driver.static_messages()] == ["/tf_static"]  # the size is not known yet
+        out = tmp_path / "cam.mcap"
+        assert main(["record", "--camera", emulator.url, "--duration", "2", "-o", str(out)]) == 0
+    reader = LogReader(out)
+    infos = [x.msg for x in reader.messages(["/camera/camera_info"])]
+    first_image = next(reader.messages(["/camera/image_raw/compressed"]))
+    assert [(i.width, i.height) for i in infos] == [(320, 240)]
+    assert infos[0].stamp_ns <= first_image.msg.stamp_ns
 
 
 def test_stream_parts_parse_as_mime_multipart() -> None:

@@ -72,7 +72,7 @@ def test_v4l2_refuses_a_regular_file(tmp_path: Path) -> None:
     write_clip(clip, count=2)
     with pytest.raises(DeviceError, match="cannot open as a V4L2 camera"):
         V4L2Source(str(clip)).open()
-    with pytest.raises(DeviceError, match="no such device"):
+    with pytest.raises(DeviceError, match="no camera at .*video9 \\(unplugged"):
         V4L2Source(str(tmp_path / "video9")).open()
 
 
@@ -134,7 +134,7 @@ def test_driver_counts_drops_from_buffer_times(jpeg: bytes) -> None:
     wait_for(lambda: driver.counters["frames"] == 7, what="frames")
     driver.stop()
     assert driver.counters["dropped"] == 4
-    stamps = [msg.stamp_ns - driver.offset_ns for _, msg, _ in logged]
+    stamps = [msg.stamp_ns - driver.offset_ns for topic, msg, _ in logged if topic.endswith("compressed")]
     assert stamps == [int(t * 1e6) for t in script]  # stamped with the buffer time, not the arrival
 
 

@@ -15,7 +15,7 @@ import pytest
 from trundle.drivers.lifecycle import Backoff, DeviceError, Driver
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
-from trundle.tools.daemon.config import parse_config
+from trundle.tools.config.robot import parse_config
 from trundle.tools.daemon.service import Daemon
 from trundle.tools.daemon.status import StatusServer, format_status, query_status
 
@@ -56,7 +56,7 @@ class ScriptedDriver(Driver):
 
 def config(tmp_path, **tables):
     data = {"robot": {"name": "testbot"},
-            "lrf": {"url": "scripted://a"},
+            "lrf": {"url": "scip2:///dev/scripted-a"},  # a real URL (checked); the test makes its own driver
             "logger": {"folder": str(tmp_path / "logs"), "flush_period_s": 0.1},
             "status": {"socket": str(tmp_path / "status.sock"), "diagnostics_period_s": 0.2},
             "supervision": {"restart_delay_s": 0.1, "stop_timeout_s": 2.0},

@@ -1,4 +1,5 @@
-"""Daemon configuration: the example parses; every mistake is one line naming the key."""
+"""The robot configuration: the example parses; every mistake is one line naming the key, and
+`trundle daemon --check`, the daemon itself, `record --config` and `slam --config` refuse the same."""
 
 from __future__ import annotations
 
@@ -11,14 +12,21 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trundle.logs.errors import UserError
-from trundle.tools.daemon.config import default_socket_path, format_config, load_config, parse_config
+from trundle.tools.cli.main import main
+from trundle.tools.config.robot import check_daemon_config, default_socket_path, load_config, parse_config
+from trundle.tools.config.toml_text import format_config
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "tools" / "daemon" / "example.toml"
+EXAMPLE = Path(__file__).resolve().parents[1] / "tools" / "config" / "example.toml"
 
 
 def example() -> dict:
     with open(EXAMPLE, "rb") as f:
         return tomllib.load(f)
+
+
+def daemon_check(data: dict) -> None:
+    """What the daemon (and `trundle daemon --check`) runs on a config."""
+    check_daemon_config(parse_config(data, "robot.toml"))
 
 
 def test_example_config_parses_with_every_section():
@@ -52,23 +60,103 @@ def test_example_config_parses_with_every_section():
     (lambda d: d["live"].update(port=70000), "live.port = 70000"),
     (lambda d: d["slam"].update(resolutoin=0.1), "unknown [slam] option 'resolutoin'"),
     (lambda d: d["live"].update(adress="0.0.0.0"), "unknown key live.adress"),
-    (lambda d: d.update(camera=[{"url": "file:///a", "name": "cam"}, {"url": "file:///b", "name": "cam"}]),
-     "two devices are named 'cam'"),
+    (lambda d: d.update(camera=[{"url": "http://127.0.0.1:1/a", "name": "cam"},
+                                {"url": "http://127.0.0.1:1/b", "name": "cam"}]), "two devices are named 'cam'"),
     (lambda d: [d.pop(k) for k in ("lrf", "can", "camera")], "no device"),
+    # what --check once said "ok" to and the daemon then refused (or ran with, failing silently):
+    (lambda d: d["can"].update(wheel_radius_m=0), "wheel radius and track must be positive"),
+    (lambda d: d["can"].update(wheel_radius_m=-0.1), "wheel radius and track must be positive"),
+    (lambda d: d["can"].update(track_m=0), "wheel radius and track must be positive"),
+    (lambda d: d["can"].update(wheel_radus_m=0.1), "unknown [can] option(s) wheel_radus_m"),
+    (lambda d: d["lrf"].update(baud=9600), "unknown option(s) baud"),
+    (lambda d: d["lrf"].update(url="foo://x"), "unknown laser URL 'foo://x'"),
+    (lambda d: d["lrf"].update(url=5), "lrf.url = 5"),
+    (lambda d: d["camera"].update(url="v4l2:///dev/video0?width=abc&height=480"), "width='abc' must be an integer"),
+    (lambda d: d["can"].update(encoders="odrive:0,99"), "node id 0..63"),
+    (lambda d: d["processing"].update(aruco_dictionary="DICT_7X7_5"), "unknown ArUco dictionary 'DICT_7X7_5'"),
+    (lambda d: d["slam"].update(resolution=0), "[slam] resolution = 0"),
+    (lambda d: d["slam"].update(resolution=-0.05), "[slam] resolution = -0.05"),
+    (lambda d: d["slam"].update(resolution=float("nan")), "[slam] resolution = nan"),
+    (lambda d: d["slam"].update(resolution=float("inf")), "[slam] resolution = inf"),
+    (lambda d: d["logger"].update(flush_period_s=0), "logger.flush_period_s = 0"),
+    (lambda d: d["logger"].update(folder="/proc/trundle"), "/proc is on a virtual file system"),
+    (lambda d: d["logger"].update(folder="/proc"), "/proc is on a virtual file system"),
+    (lambda d: d.update(odometry={"wheel_radius_m": 0.1}), "odometry: odometry needs both wheel_radius_m and track_m"),
+    (lambda d: d.update(laser={"x_m": "front"}), "laser.x_m = 'front'"),
 ])
-def test_mistakes_name_the_key(edit, message):
+def test_mistakes_name_the_key(edit, message, tmp_path):
     data = example()
+    data["logger"]["folder"] = str(tmp_path / "logs")
     edit(data)
     with pytest.raises(UserError) as error:
-        parse_config(data, "robot.toml")
+        daemon_check(data)
     text = str(error.value)
     assert text.startswith("robot.toml: ") and message in text and "\n" not in text
 
 
+def test_a_log_folder_that_is_a_file_is_refused(tmp_path):
+    data = example()
+    (tmp_path / "logs").write_text("not a folder")
+    for folder, fragment in ((tmp_path / "logs", "is not a folder"), (tmp_path / "logs" / "sub", "cannot be made")):
+        data["logger"]["folder"] = str(folder)
+        with pytest.raises(UserError, match=fragment):
+            daemon_check(data)
+
+
+def test_live_view_without_the_extra_is_refused(tmp_path, monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "foxglove" else real(name, *a))
+    data = example()
+    data["logger"]["folder"] = str(tmp_path)
+    data["live"]["enabled"] = True
+    with pytest.raises(UserError, match=r"pip install 'trundle\[live\]'"):
+        daemon_check(data)
+
+
+def test_daemon_check_runs_the_daemons_validation(tmp_path, capsys):
+    """`--check` says ok only to what the daemon accepts; a mistake is one line and exit code 2."""
+    data = example()
+    data["logger"]["folder"] = str(tmp_path / "logs")
+    good = tmp_path / "robot.toml"
+    good.write_text(format_config(data))
+    assert main(["daemon", "--config", str(good), "--check"]) == 0
+    assert ": ok; devices: lrf" in capsys.readouterr().out
+    data["can"]["wheel_radius_m"] = 0
+    bad = tmp_path / "bad.toml"
+    bad.write_text(format_config(data))
+    assert main(["daemon", "--config", str(bad), "--check"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "wheel radius and track must be positive" in err
+    assert main(["daemon", "--config", str(bad)]) == 2  # the daemon refuses the same, before it logs anything
+    assert capsys.readouterr().err == err
+    assert not (tmp_path / "logs").exists()
+
+
+@pytest.mark.parametrize("command", [["record", "--lrf", "scip2:///dev/null", "--duration", "1", "-o", "{tmp}/r.mcap"],
+                                     ["slam", "{log}", "-o", "{tmp}/out"],
+                                     ["localize", "{log}", "--map", "{tmp}"]])
+def test_record_and_slam_refuse_misspelt_tables_as_the_daemon_does(command, tmp_path, capsys):
+    config = tmp_path / "robot.toml"
+    config.write_text("[slma]\nresolution = 0.1\n")
+    log = Path(__file__).resolve().parent / "data" / "demo_short" / "demo.mcap"
+    argv = [a.format(tmp=tmp_path, log=log) for a in command] + ["--config", str(config)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "unknown key slma" in err
+    assert not (tmp_path / "r.mcap").exists() and not (tmp_path / "out").exists()
+
+
+def test_print_example_config_is_the_shipped_example(capsys):
+    assert main(["daemon", "--print-example-config"]) == 0
+    assert capsys.readouterr().out == EXAMPLE.read_text()
+
+
 def test_device_lists_and_disabled_devices():
     data = example()
-    data["camera"] = [{"url": "file:///front.avi", "name": "front"}, {"url": "file:///rear.avi", "name": "rear",
-                                                                      "enabled": False}]
+    data["camera"] = [{"url": "http://127.0.0.1:1/front", "name": "front"},
+                      {"url": "http://127.0.0.1:1/rear", "name": "rear", "enabled": False}]
     data["lrf"]["enabled"] = False
     config = parse_config(data)
     assert [d.name for d in config.devices] == ["can", "front"]

@@ -16,7 +16,7 @@ import pytest
 
 from trundle.logs.reader import LogReader
 from trundle.tools.sim.camera_render import project
-from trundle.tools.daemon.config import format_config
+from trundle.tools.config.toml_text import format_config
 from trundle.tools.daemon.status import query_status
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.emulators.sim_devices import SimDevices

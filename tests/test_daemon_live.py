@@ -52,3 +52,26 @@ def test_foxglove_client_receives_logged_topics(tmp_path):
     assert isinstance(got[7], m.LaserScan) and got[7].frame_id == "laser" and got[7].ranges.size == 5
     assert {t.child_frame_id for t in got[8].transforms} == {"laser", "camera"}  # latched, merged
     assert status["live"]["sent"] >= 2 and status["live"]["errors"] == 0
+
+
+def test_the_minimum_client_offers_the_sdk_subprotocol(tmp_path):
+    """What a client needs (documented in tools/daemon/live_view.py and README): the Foxglove SDK
+    server speaks the Foxglove WebSocket protocol under the subprotocol name ``foxglove.sdk.v1``
+    only; a client offering just the older name ``foxglove.websocket.v1`` (older Foxglove and
+    Lichtblick, tools on @foxglove/ws-protocol) is refused with HTTP 400. If an SDK release
+    accepts the old name, this test fails and the documentation should say so."""
+    from websockets.exceptions import InvalidStatus
+
+    port = free_port()
+    with Running(config(tmp_path, live={"enabled": True, "port": port})):
+        with websockets_client.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"],
+                                       open_timeout=10) as ws:
+            assert ws.subprotocol == "foxglove.sdk.v1"
+            assert json.loads(ws.recv(timeout=5))["op"] == "serverInfo"
+        try:
+            websockets_client.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"],
+                                      open_timeout=10).close()
+        except InvalidStatus as refused:
+            assert refused.response.status_code == 400
+        else:
+            raise AssertionError("the SDK now accepts foxglove.websocket.v1: update the live view's documentation")

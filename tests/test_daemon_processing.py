@@ -11,12 +11,13 @@ import cv2
 import numpy as np
 import pytest
 
+from trundle.drivers.camera import OPTICAL_ROTATION
 from trundle.drivers.lifecycle import Driver
 from trundle.fusion.geometry import compose, inverse
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
 from trundle.tools.sim.camera_render import optical_rotation
-from trundle.tools.daemon.config import parse_config
+from trundle.tools.config.robot import parse_config
 from trundle.tools.daemon.service import Daemon
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
@@ -41,9 +42,11 @@ class SimRobotDriver(Driver):
     def open(self) -> None:
         self.wall0 = time.time_ns()
         self.origin = self.sim.pose_at(START_S)
-        mount = self.sim.model.laser
-        self.publish("/tf_static", m.TFMessage((m.TransformStamped.planar(0, "base_link", "laser", mount.x, mount.y,
-                                                                          mount.yaw),)))
+        mount, camera = self.sim.model.laser, self.sim.model.camera
+        self.publish("/tf_static", m.TFMessage((
+            m.TransformStamped.planar(0, "base_link", "laser", mount.x, mount.y, mount.yaw),
+            m.TransformStamped.planar(0, "base_link", "camera", camera.x, camera.y, camera.yaw, z=camera.z),
+            m.TransformStamped(0, "camera", "camera_optical", (0.0, 0.0, 0.0), OPTICAL_ROTATION))))
         self.publish("/camera/camera_info", self.info)
 
     def read_once(self) -> None:
@@ -74,7 +77,7 @@ def sim():
 @pytest.mark.flaky(reruns=1)
 def test_online_slam_and_markers_follow_the_ground_truth(tmp_path, sim):
     config = parse_config({
-        "robot": {"name": "proc"}, "lrf": {"url": "sim://robot"},
+        "robot": {"name": "proc"}, "lrf": {"url": "scip2:///dev/sim-robot"},
         "logger": {"folder": str(tmp_path / "logs")}, "status": {"socket": str(tmp_path / "s.sock")},
         "disk": {"min_free_mb": 1.0},
         "processing": {"slam": True, "markers": True, "map_period_s": 1.0, "markers_hz": 5.0,
@@ -109,6 +112,7 @@ def test_online_slam_and_markers_follow_the_ground_truth(tmp_path, sim):
         tf = [x.msg for x in reader.messages(topics=["/tf"])]
         markers = [x.msg for x in reader.messages(topics=["/camera/markers"])]
         marker_poses = [x.msg for x in reader.messages(topics=["/camera/marker_poses"])]
+        landmarks = [x.msg for x in reader.messages(topics=["/landmarks"])]
     # the motion SLAM estimates since its first pose is the true motion
     assert len(poses) >= 10 and maps and all(t.transforms[0].child_frame_id == "odom" for t in tf)
     first = np.array([poses[0].x, poses[0].y, poses[0].theta])
@@ -135,3 +139,17 @@ def test_online_slam_and_markers_follow_the_ground_truth(tmp_path, sim):
         # MJPEG-over-HTTP frames are stamped on arrival (no capture clock): on a loaded machine the
         # stamp lags the render by up to ~0.1 s, i.e. ~0.1 m of robot motion at the route's speed.
         assert error < 0.02 + 0.02 * distance + 0.1, (transform.child_frame_id, distance, error)
+
+    # the same markers as landmark observations in base_link: placed by the true robot pose, each is where
+    # the world file has it, within three of its own standard deviations (plus the arrival-stamp lag)
+    assert processing["landmark_messages"] >= 1 and landmarks and all(s.frame_id == "base_link" for s in landmarks)
+    for sighting in landmarks:
+        robot = sim.pose_at(driver.sim_time(sighting.stamp_ns))
+        for o in sighting.landmarks:
+            world_marker = sim.world.marker(int(o.id))
+            if o.range > 6.0:
+                continue
+            where = compose(robot, np.array([o.translation[0], o.translation[1], 0.0]))[:2]
+            error = float(np.hypot(where[0] - world_marker.x, where[1] - world_marker.y))
+            sigma = math.sqrt(np.linalg.eigvalsh(o.position_covariance()).max())
+            assert o.oriented and error < 3 * sigma + 0.1, (o.id, o.range, error, sigma)

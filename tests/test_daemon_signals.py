@@ -160,6 +160,39 @@ def test_notify_status_sighup_and_sigterm(tmp_path, clip, capsys):
     assert code == 2 and "no trundle daemon" in err
 
 
+def test_signals_in_quick_succession_still_stop_it(tmp_path, clip):
+    """A second signal landing inside the first one's handler once deadlocked the daemon (the
+    handler took the wake event's lock): SIGHUP then SIGTERM twice, as fast as they can be sent."""
+    notify = Notify(tmp_path / "notify.sock")
+    proc = start(tmp_path, write_config(tmp_path, clip), notify)
+    try:
+        assert notify.wait_for("READY=1")
+        for sig in (signal.SIGHUP, signal.SIGTERM, signal.SIGTERM, signal.SIGINT):
+            proc.send_signal(sig)
+        assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        notify.close()
+    assert not list((tmp_path / "logs").glob("*.active"))
+
+
+def test_the_signal_handlers_take_no_lock(tmp_path):
+    """What made two quick SIGTERMs freeze the daemon: its handler called ``Event.set``, and the
+    second handler waited for the lock the first held. Now a handler returns even while that lock is held."""
+    from tests.test_daemon import ScriptedDriver, config
+    from trundle.tools.daemon.service import Daemon
+
+    daemon = Daemon(config(tmp_path), make_driver=lambda family, url, sink, options: ScriptedDriver(family, sink))
+    for handler in (daemon._on_stop_signal, daemon._on_split_signal):
+        with daemon._wake._cond:  # as when the first handler is inside Event.set
+            caller = threading.Thread(target=handler, args=(signal.SIGTERM, None), daemon=True)
+            caller.start()
+            caller.join(2.0)
+            assert not caller.is_alive(), f"{handler.__name__} waits for the wake event's lock"
+    assert daemon._stop_requested and daemon._split_requested
+
+
 def test_sigkill_leaves_a_log_that_recover_restores(tmp_path, clip, capsys):
     notify = Notify(tmp_path / "notify.sock")
     proc = start(tmp_path, write_config(tmp_path, clip), notify)

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from trundle.logs.reader import LogReader
-from trundle.tools.daemon.config import format_config
+from trundle.tools.config.toml_text import format_config
 from trundle.tools.daemon.status import query_status
 from trundle.tools.emulators.faults import FaultPlan
 from trundle.tools.sim.robot import RobotSim

@@ -17,7 +17,7 @@ from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
 from trundle.tools.cli.demo import camera_size
-from trundle.tools.demo.report import ATE_LIMIT_M
+from trundle.tools.demo.report import ATE_LIMIT_M, MARKER_MAP_LIMIT_M
 from trundle.tools.sim.world import load_world
 
 DURATION_S = 8.0
@@ -35,13 +35,20 @@ def test_demo_writes_every_output_and_passes_its_checks(demo):
     out, code = demo
     report = json.loads((out / "report.json").read_text())
     checks = dict(report["checks"])
+    # The 5 cm marker check is the full loop's: on this 8 s straight run the map-to-world alignment's heading
+    # (fitted to an 8 m line of poses with ~2 cm ATE) is uncertain by ~0.3 deg, which alone moves a marker
+    # 10 m from the path by 5 cm. Here the mapped markers are held to 10 cm (test_report_numbers...).
+    checks.pop(f"every marker mapped within {MARKER_MAP_LIMIT_M * 100:.0f} cm")
     if report["starved"]:  # a machine too busy for real time: the accuracy is not the code's (the report warns)
         assert "too busy for real time" in (out / "report.md").read_text()
-        checks.pop(f"ate_rmse_m <= {ATE_LIMIT_M}")
+        for accuracy in (f"ate_rmse_m <= {ATE_LIMIT_M}", "SLAM ATE with markers no worse than without"):
+            checks.pop(accuracy)
     assert all(checks.values()), report["checks"]
     assert code == (0 if all(report["checks"].values()) else 1)
+    assert set(report["checks"]) >= {f"every marker mapped within {MARKER_MAP_LIMIT_M * 100:.0f} cm",
+                                     "SLAM ATE with markers no worse than without"}
     for name in ("demo.mcap", "robot.toml", "camera.yaml", "daemon.log", "map.png", "map.pgm", "map.yaml",
-                 "trajectory.png", "trajectory.csv", "ground_truth.csv", "frames_ground_truth.csv",
+                 "trajectory.png", "trajectory.csv", "landmarks.csv", "ground_truth.csv", "frames_ground_truth.csv",
                  "camera_detections.png", "report.md"):
         assert (out / name).is_file(), name
     assert not list(out.glob("*.active")) and not list(out.glob(".daemon-logs-*"))
@@ -75,6 +82,14 @@ def test_report_numbers_are_computed_from_the_log_and_the_ground_truth(demo):
     for row in report["markers_detected"]:
         assert row["false_detections"] == 0 and row["in_world"]
         assert row["position_error_m"]["median"] < 0.1 * row["distance_m"]["max"]
+    # the markers the daemon saw are SLAM landmarks: each mapped one is a world marker, its error the
+    # distance from the world file's position with the map placed by the trajectory's alignment
+    mapped = report["marker_map"]
+    assert mapped["mapped"] >= 1 and not mapped["not_in_world"] and set(mapped["errors_m"]) <= {str(i) for i in world_ids}
+    assert mapped["max_error_m"] == max(mapped["errors_m"].values())
+    assert mapped["max_error_m"] < 0.10 or report["starved"]
+    assert report["log"]["topics"]["/landmarks"] >= 1
+    assert report["ate_rmse_without_markers_m"] is not None
     # each driver's counters come from the daemon's last /diagnostics in the log
     drivers = report["drivers"]
     assert {"trundle-demo/lrf", "trundle-demo/can", "trundle-demo/camera"} <= set(drivers)

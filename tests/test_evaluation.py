@@ -147,7 +147,7 @@ def test_trajectory_csv_and_carmen_references(tmp_path):
     path.write_text("t_ns,x,y,theta\n1,2,x,4\n")
     with pytest.raises(UserError, match="trajectory"):
         read_reference(path)
-    with pytest.raises(UserError, match="no such file"):
+    with pytest.raises(UserError, match="no such reference or trajectory file"):
         read_reference(tmp_path / "absent.csv")
     carmen = tmp_path / "run.clf"
     carmen.write_text("FLASER 3 1.0 2.0 3.0 0.5 0.25 0.1 0.5 0.25 0.1 1232658478.161285 host 0.5\n"

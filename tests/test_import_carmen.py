@@ -149,3 +149,26 @@ def test_import_command_user_errors(tmp_path, capsys) -> None:
         assert main(["import", *argv, "-o", str(tmp_path / "o.mcap")]) == 2
         stderr = capsys.readouterr().err
         assert len(stderr.strip().splitlines()) == 1 and "Traceback" not in stderr
+
+
+def test_odometry_source_auto_falls_back_to_the_laser_lines() -> None:
+    """Many benchmark logs carry odometry only in their FLASER / ROBOTLASER1 lines."""
+    from trundle.logs.importers.carmen import choose_odometry
+
+    flaser = [f"FLASER 3 1 2 3 {k} 0 0 {k + 0.5} 0.1 0 {k}.0 h {k}.0" for k in range(5)]
+    log = read_lines(flaser)
+    assert choose_odometry(log) == ("laser", "no ODOM lines: the FLASER lines' odometry fields (5 poses)")
+    odom = list(messages(log, odometry="laser"))
+    poses = [(msg.x, msg.y) for topic, msg, _ in odom if topic == "/odom"]
+    assert poses == [(k + 0.5, 0.1) for k in range(5)]  # the odometry fields, not the (corrected) pose
+    head = "ROBOTLASER1 0 -1.5708 3.1416 0.0174533 81.9 0.01 0 3 1.0 2.0 81.9"  # the variant without remissions
+    robot = read_lines([f"{head} {x} 0 0 {x} 0 0 0.1 0.2 0.3 0.4 {x}.0 host {x}.1" for x in range(3)])
+    assert choose_odometry(robot)[0] == "laser"
+    with_odom = read_lines(flaser + ["ODOM 0 0 0 0 0 0 9.0 h 9.0"])
+    assert choose_odometry(with_odom) == ("odom", "1 ODOM lines")
+    standing = read_lines(["FLASER 3 1 2 3 0 0 0 0 0 0 1.0 h 1.0"] * 3)
+    assert choose_odometry(standing) == ("none", "no odometry: no ODOM lines and the laser lines' odometry fields "
+                                                 "never change")
+    assert choose_odometry(with_odom, "laser")[0] == "laser" and choose_odometry(with_odom, "none")[0] == "none"
+    with pytest.raises(Exception, match="unknown odometry source"):
+        choose_odometry(log, "wheels")

@@ -124,4 +124,4 @@ def test_a_log_without_odometry_or_the_same_file_is_refused(odometry_log, tmp_pa
                               "--scale", "0.1")
     assert code == 2 and "has no odometry" in stderr
     code, _, stderr = trundle(capsys, "inject-faults", str(odometry_log), "-o", str(odometry_log), "--scale", "0.1")
-    assert code == 2 and "different file" in stderr
+    assert code == 2 and "exists" in stderr and "never overwritten" in stderr

@@ -1,5 +1,5 @@
 """Imports point one way (DESIGN.md): tools -> {drivers, perception, fusion} -> logs, and inside
-tools: cli -> {demo, fleet, bench} -> {jobs, daemon, emulators} and emulators -> sim. Read from the source with ast,
+tools: cli -> {demo, fleet, bench} -> {jobs, daemon, emulators} -> config, and emulators -> sim. Read from the source with ast,
 so a new arrow back up fails here instead of becoming a circle later."""
 
 from __future__ import annotations
@@ -15,16 +15,17 @@ MAY_IMPORT = {
     "perception": {"logs"},
     "fusion": {"logs"},
     "tools/sim": {"logs", "drivers", "perception", "fusion"},
-    "tools/emulators": {"logs", "drivers", "perception", "fusion", "tools/sim"},
-    "tools/daemon": {"logs", "drivers", "perception", "fusion"},
+    "tools/emulators": {"logs", "drivers", "perception", "fusion", "tools/sim", "tools/config"},
+    "tools/config": {"logs", "drivers", "perception", "fusion"},
+    "tools/daemon": {"logs", "drivers", "perception", "fusion", "tools/config"},
     "tools/demo": {"logs", "drivers", "perception", "fusion", "tools/sim", "tools/emulators", "tools/daemon",
-                   "tools/jobs"},
-    "tools/jobs": {"logs", "drivers", "perception", "fusion"},
-    "tools/fleet": {"logs", "drivers", "perception", "fusion", "tools/jobs"},
+                   "tools/jobs", "tools/config"},
+    "tools/jobs": {"logs", "drivers", "perception", "fusion", "tools/config"},
+    "tools/fleet": {"logs", "drivers", "perception", "fusion", "tools/jobs", "tools/config"},
     "tools/bench": {"logs", "drivers", "perception", "fusion", "tools/sim", "tools/emulators", "tools/daemon",
-                    "tools/jobs"},
+                    "tools/jobs", "tools/config"},
     "tools/cli": {"logs", "drivers", "perception", "fusion", "tools/sim", "tools/emulators", "tools/daemon",
-                  "tools/demo", "tools/jobs", "tools/fleet"},
+                  "tools/demo", "tools/jobs", "tools/fleet", "tools/config"},
 }
 
 

@@ -17,6 +17,7 @@ from trundle.logs import messages as m
 from trundle.logs import ros2
 from trundle.logs.reader import LogReader
 from trundle.logs.replay import replay
+from trundle.logs.metadata import read_metadata
 from trundle.logs.writer import Logger
 from trundle.tools.cli.main import main
 
@@ -81,7 +82,8 @@ def test_file_is_ros2_profile_with_statistics_and_latched_qos(tmp_path: Path) ->
         assert all(s.encoding == "ros2msg" for s in summary.schemas.values())
         assert {c.message_encoding for c in channels.values()} == {"cdr"}
         meta = {r.name: r.metadata for r in reader.iter_metadata()}
-        assert meta["trundle"]["robot"] == "r2" and "trundle_version" in meta["trundle"]
+        assert read_metadata(meta).robot_name == "r2" and "trundle_version" in meta["trundle"]
+        assert json.loads(meta["trundle"]["robot"]) == {"name": "r2"}  # structured, as every reader expects
 
 
 def test_info_counts_match(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -232,3 +234,52 @@ def test_static_transforms_of_every_publisher_repeat_in_each_split(tmp_path: Pat
     for path in logger.files:
         children = {t.child_frame_id for x in LogReader(path).messages(["/tf_static"]) for t in x.msg.transforms}
         assert children == {"laser", "camera"}
+
+
+def test_a_split_keeps_what_was_queued_before_it_in_the_old_file(tmp_path: Path) -> None:
+    """The writer takes messages in batches: a split request waits its turn in the queue."""
+    with Logger(tmp_path / "b.mcap", batch_s=5.0) as logger:  # nothing is written until the split or close
+        for i in range(3):
+            logger.write("/scan", scan(i), i)
+        logger.split()
+        for i in range(3, 5):
+            logger.write("/scan", scan(i), i)
+    assert [[x.log_time_ns for x in LogReader(p).messages()] for p in logger.files] == [[0, 1, 2], [3, 4]]
+
+
+@pytest.mark.parametrize("limit_mb, compression", [(0.25, "zstd"), (0.1, "none"), (0.05, "lz4")])
+def test_split_files_stay_under_the_size_limit(tmp_path: Path, limit_mb: float, compression: str) -> None:
+    """`--split-size 0.25` once wrote 297 kB files: the open chunk and the summary were not counted."""
+    path = tmp_path / "run.mcap"
+    with Logger(path, split_bytes=int(limit_mb * 1e6), compression=compression, flush_period_s=0.2) as logger:
+        for i in range(2400):  # 1 kB scans, 60 s of them at 40 Hz: several splits
+            t = T0 + i * 25_000_000
+            logger.write("/scan", scan(t, 120), t)
+            if i % 100 == 0:
+                time.sleep(0.05)  # flushes happen between messages, as in a live recording
+    parts = sorted(tmp_path.glob("run_*.mcap"), key=lambda p: int(p.stem.split("_")[1]))
+    sizes = [p.stat().st_size for p in parts]
+    assert len(parts) >= 3 and max(sizes) <= limit_mb * 1e6, sizes
+    assert min(sizes[:-1]) >= 0.5 * limit_mb * 1e6, sizes  # and not split needlessly early
+    assert sum(LogReader(p).info().topics["/scan"].count for p in parts) == 2400
+
+
+def test_a_stamp_outside_mcaps_range_never_kills_the_writer(tmp_path: Path) -> None:
+    """A scan stamped before the epoch (a device clock near zero, minus its sweep) once raised
+    struct.error in the writer thread: nothing after it was written. Its publish time is now its
+    log time; a log time outside MCAP's range is the caller's mistake, refused at once."""
+    path = tmp_path / "clock.mcap"
+    with Logger(path) as logger:
+        early = scan(1000)
+        early = m.LaserScan(-5_000_000, *[getattr(early, f) for f in ("frame_id", "angle_min", "angle_max",
+                                                                     "angle_increment", "time_increment",
+                                                                     "scan_time", "range_min", "range_max",
+                                                                     "ranges", "intensities")])
+        assert logger.write("/scan", early, 1000)
+        with pytest.raises(ValueError, match="outside MCAP"):
+            logger.write("/scan", scan(2000), -1)
+        assert logger.write("/scan", scan(3000), 3000)
+    with open(path, "rb") as f:
+        messages = [(c.topic, msg.log_time, msg.publish_time) for _, c, msg in make_reader(f).iter_messages()]
+    assert messages == [("/scan", 1000, 1000), ("/scan", 3000, 3000)]
+    assert [x.msg.stamp_ns for x in LogReader(path).messages()][0] == -5_000_000

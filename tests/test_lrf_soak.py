@@ -40,7 +40,7 @@ def test_scip2_soak(tmp_path):
 def test_rplidar_soak(tmp_path):
     plan = FaultPlan({"checksum": 0.1, "truncate": 0.05, "garbage": 0.05, "stall": 0.02}, stall_s=0.2,
                      unplug_s=0.5, seed=12)
-    device, server, driver, sink = make_rplidar(tmp_path, "a2", "standard", faults=plan)
+    device, server, driver, sink = make_rplidar(tmp_path, "a2", "Standard", faults=plan)
     with running(server, driver):
         end = time.monotonic() + SOAK_S
         while time.monotonic() < end:
@@ -48,4 +48,4 @@ def test_rplidar_soak(tmp_path):
             inject(server, "unplug")
             time.sleep(SOAK_S / 6)
     assert driver.counters["scans"] > 3 * SOAK_S and driver.counters["reconnects"] >= 3
-    match_rplidar(device, sink.scans(), stamps=False)
+    match_rplidar(device, driver, sink.scans(), stamps=False)

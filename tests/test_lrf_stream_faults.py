@@ -8,14 +8,17 @@ emulator meant to send, and the drivers' counters must match the faults the emul
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings, strategies as st
 
 from trundle.drivers import rplidar as rp
-from trundle.drivers.rplidar_driver import RevolutionAssembler, revolution_scan
+from trundle.drivers import rplidar_capsules as rc
+from trundle.drivers.rplidar_driver import RevolutionAssembler, Revolution, revolution_scan
 from trundle.drivers.scip2 import Measure
 from trundle.drivers.scip2_driver import ScipScanStream
 from trundle.drivers.sensor_clock import SensorClock
 from tests.lrf_harness import MUTATIONS, mutate
+from tests.test_rplidar_driver import OTHER_TYPES
 from trundle.tools.emulators import rplidar_emulator, scip2_emulator
 from trundle.tools.emulators.faults import FaultPlan
 from trundle.tools.emulators.scene import load_scene
@@ -90,17 +93,17 @@ def test_scip2_stream_survives_thousands_of_faults():
         assert abs(scan.stamp_ns - (want.rear_ns + first_beam)) <= tolerance
 
 
-def rplidar_run(model_name: str, mode: str, rates: dict[str, float], revolutions: int, seed: int):
-    model = rplidar_emulator.MODELS[model_name]
+def rplidar_run(model: rplidar_emulator.RplidarModel, mode_name: str, rates: dict[str, float], revolutions: int,
+                seed: int):
     device = rplidar_emulator.RplidarDevice(model, load_scene().range_source(model.angles, seed=seed),
                                             FaultPlan(rates, seed=seed), now_ns=T0)
-    express = mode == "express"
+    mode = model.mode(mode_name)
     device.receive(rp.request(rp.SET_MOTOR_PWM, (660).to_bytes(2, "little")), T0)
-    head = device.receive(rp.request(rp.EXPRESS_SCAN, bytes(5)) if express else rp.request(rp.SCAN), T0)
-    assert head == (rp.EXPRESS_DESCRIPTOR if express else rp.SCAN_DESCRIPTOR).encode()
-    decoder = rp.ExpressNodeDecoder() if express else rp.NodeDecoder()
-    sample_ns = (model.express_us if express else model.standard_us) * 1000
-    assembler = RevolutionAssembler(sample_ns, monotonic=not express, lag_samples=64 if express else 0)
+    fmt = rc.FORMATS.get(mode.mode.answer_type)
+    start = rp.request(rp.EXPRESS_SCAN, bytes((mode.mode.id, 0, 0, 0, 0))) if fmt else rp.request(rp.SCAN)
+    assert device.receive(start, T0) == (fmt.descriptor if fmt else rp.SCAN_DESCRIPTOR).encode()
+    decoder = rc.CapsuleNodeDecoder(fmt) if fmt else rp.NodeDecoder()
+    assembler = RevolutionAssembler(mode.sample_ns, lag_samples=fmt.hold * fmt.samples if fmt else 0)
     rng = np.random.default_rng(seed)
     out = []
     t = T0
@@ -111,7 +114,7 @@ def rplidar_run(model_name: str, mode: str, rates: dict[str, float], revolutions
     return device, decoder, assembler, out
 
 
-def check_rplidar(device, assembler, out, express: bool):
+def check_rplidar(device, assembler, out):
     beams = device.n
     by_start = {rev.start_ns: rev for rev in device.sent}
     dropped = assembler.counters["corrupt_revolutions"] + assembler.counters["incomplete_revolutions"]
@@ -124,32 +127,37 @@ def check_rplidar(device, assembler, out, express: bool):
         assert not want.faults and abs(rev.start_ns - want.start_ns) <= 8 * MS
         np.testing.assert_array_equal(rev.angle_q6, want.angle_q6)
         np.testing.assert_array_equal(rev.distance_q2, want.distance_q2)
-        scan = revolution_scan(rev, beams, 0.15, 12.0, intensities=not express)
-        expected = np.where(want.distance_q2 == 0, np.inf, want.distance_q2 / 4000.0).astype(np.float32)[::-1]
-        np.testing.assert_array_equal(scan.ranges, expected)
+        scan = revolution_scan(rev, beams, 0.15, 12.0)
+        expected = revolution_scan(Revolution(want.angle_q6, want.distance_q2, want.quality, 0, 1), beams, 0.15, 12.0)
+        np.testing.assert_array_equal(scan.ranges, expected.ranges)
 
 
 def test_rplidar_standard_stream_survives_thousands_of_faults():
     device, decoder, assembler, out = rplidar_run(
-        "a2", "standard", {"checksum": 0.45, "truncate": 0.2, "garbage": 0.2}, 1300, seed=5)
+        rplidar_emulator.MODELS["a2"], "Standard", {"checksum": 0.45, "truncate": 0.2, "garbage": 0.2}, 1300, seed=5)
     assert sum(device.injected.values()) >= 1000
     assert decoder.bad_nodes >= device.injected["checksum"]
-    check_rplidar(device, assembler, out, express=False)
+    check_rplidar(device, assembler, out)
 
 
-def test_rplidar_express_stream_survives_faults():
-    device, decoder, assembler, out = rplidar_run(
-        "a2", "express", {"checksum": 0.4, "truncate": 0.2, "garbage": 0.2}, 150, seed=6)
+CAPSULE_MODES = [("a2", "Express"), ("a1", "Boost"), ("s2", "DenseBoost"), ("other", "UltraDense"), ("other", "HQ")]
+
+
+@pytest.mark.parametrize("model, mode", CAPSULE_MODES, ids=[m for _, m in CAPSULE_MODES])
+def test_rplidar_capsule_streams_survive_faults(model, mode):
+    spec = OTHER_TYPES if model == "other" else rplidar_emulator.MODELS[model]
+    device, decoder, assembler, out = rplidar_run(spec, mode, {"checksum": 0.4, "truncate": 0.2, "garbage": 0.2},
+                                                  150, seed=6)
     assert sum(device.injected.values()) >= 100
     assert decoder.bad_capsules >= device.injected["checksum"]
-    check_rplidar(device, assembler, out, express=True)
+    check_rplidar(device, assembler, out)
 
 
 @settings(max_examples=100, deadline=None)
-@given(st.binary(max_size=5000), st.booleans())
-def test_rplidar_assembler_never_raises_on_noise(noise, express):
-    decoder = rp.ExpressNodeDecoder() if express else rp.NodeDecoder()
-    assembler = RevolutionAssembler(500_000, monotonic=not express)
+@given(st.binary(max_size=5000), st.sampled_from([None, *rc.FORMATS.values()]))
+def test_rplidar_assembler_never_raises_on_noise(noise, fmt):
+    decoder = rc.CapsuleNodeDecoder(fmt) if fmt else rp.NodeDecoder()
+    assembler = RevolutionAssembler(500_000)
     for i in range(0, len(noise), 333):
         for rev in assembler.feed(decoder.feed(noise[i:i + 333]), T0 + i):
             revolution_scan(rev, 360, 0.15, 12.0)

@@ -140,7 +140,7 @@ def test_pyrplidar_reads_standard_and_express_scans(tmp_path):
             lidar.disconnect()
     assert (info.model, info.firmware_major, info.firmware_minor, info.hardware) == (0x18, 1, 29, 7)
     assert (health.status, health.error_code) == (0, 0)
-    assert (rate.t_standard, rate.t_express) == (500, 250)
+    assert (rate.t_standard, rate.t_express) == (508, 254)
     # The SDK's capsule decoding (which pyrplidar ports) flags the sample just before the 360 deg
     # crossing as the first of a revolution, and pyrplidar's angle conversion rounds down by up to
     # 1/64 deg; legacy nodes carry their start flag and angle as sent.
@@ -151,6 +151,34 @@ def test_pyrplidar_reads_standard_and_express_scans(tmp_path):
         assert len(revolution) == device_angles.size
         np.testing.assert_allclose(angle, device_angles, atol=tolerance)
         np.testing.assert_array_equal(distance, rplidar_expected_mm(device_angles, step))
+
+
+def test_pyrplidar_lists_the_scan_modes_and_reads_ultra_capsules(tmp_path):
+    """pyrplidar's GET_LIDAR_CONF client reads the emulated A1's mode table, and its port of the
+    SDK's ultra-capsule decoder reads a Sensitivity revolution: the distances the emulator sent
+    after its variable-bit-scale compression, at the angles after the optical compensation."""
+    model = rplidar_emulator.MODELS["a1"]
+    device = rplidar_emulator.RplidarDevice(model, EXACT.range_source(model.angles), now_ns=time.time_ns())
+    with DeviceServer(device, link_path=tmp_path / "ttyUSB0"):
+        lidar = pyrplidar.PyRPlidar()
+        lidar.connect(port=str(tmp_path / "ttyUSB0"), baudrate=115200, timeout=3)
+        try:
+            modes = lidar.get_scan_modes()
+            typical = lidar.get_scan_mode_typical()
+            revolution = take_revolution(lidar.start_scan_express(3)())
+            lidar.stop()
+        finally:
+            lidar.disconnect()
+    table = [(m.name, m.us_per_sample / 256, m.max_distance / 256, m.ans_type) for m in modes]  # pyrplidar keeps Q8
+    assert table == [(e.mode.name, e.mode.us_per_sample, e.mode.max_distance, e.mode.answer_type) for e in model.modes]
+    assert typical == model.typical == 3
+    distance = np.array([m.distance for m in revolution])
+    angle = np.array([m.angle for m in revolution])
+    assert len(revolution) == 1440
+    sent = next(r for r in device.sent if np.array_equal(np.roll(r.distance_q2, 1) / 4.0, distance))
+    np.testing.assert_allclose(angle, np.roll(sent.angle_q6, 1) / 64.0, atol=1 / 32)
+    np.testing.assert_allclose(distance[distance > 0] / 1000, EXACT.ranges(math.pi - np.radians(
+        np.roll(np.arange(1440) * 0.25, 1)))[distance > 0], atol=0.008)  # within the compression's step
 
 
 def take_revolution(measurements) -> list:

@@ -22,7 +22,7 @@ NOT_SOURCES = shutil.ignore_patterns(".git", ".venv", "build", "*.egg-info", "__
                                      ".hypothesis", "bench-results", "trundle-demo", "*.mcap.active")
 DATA_FILES = ("trundle/drivers/data/vesc_status.dbc", "trundle/drivers/data/cia406_encoder.eds",
               "trundle/tools/sim/worlds/office.json", "trundle/tools/emulators/room.toml",
-              "trundle/tools/daemon/example.toml")
+              "trundle/tools/config/example.toml")
 
 
 @pytest.fixture(scope="module")

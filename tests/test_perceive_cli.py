@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+from trundle.drivers.camera import OPTICAL_ROTATION
 from trundle.logs import messages as m
-from trundle.logs.reader import read_messages
+from trundle.logs.reader import LogReader, read_messages
 from trundle.logs.writer import Logger
 from trundle.perception.markers import dictionary_by_name
 from trundle.tools.cli.main import main
@@ -127,6 +129,29 @@ def test_markers_pipeline_with_poses(log: Path, tmp_path: Path, capsys) -> None:
     assert pose.translation[0] == pytest.approx((200 + 30 - 0.5 - 160) / FOCAL, abs=0.01)
 
 
+def test_markers_become_landmarks_in_the_robot_frame(log: Path, tmp_path: Path, capsys) -> None:
+    """With the camera's mount on /tf_static (0.2 m ahead, 0.5 m up, looking forward) each frame's markers
+    are one LandmarkList in base_link: the optical (x right, z forward) pose turned into (x forward, y left)."""
+    mounted = tmp_path / "mounted.mcap"
+    with LogReader(log) as reader, Logger(mounted, salvage=False) as logger:
+        logger.write("/tf_static", m.TFMessage((
+            m.TransformStamped.planar(T0, "base_link", "camera", 0.2, 0.0, 0.0, z=0.5),
+            m.TransformStamped(T0, "camera", "camera_optical", (0, 0, 0), OPTICAL_ROTATION))), T0)
+        for raw in reader.raw_messages():
+            logger.write_encoded(raw.topic, raw.ros_type, raw.data, raw.log_time_ns)
+    out = tmp_path / "landmarks.mcap"
+    code, summary = _run(capsys, str(mounted), "--pipeline", "markers", "--dictionary", "DICT_4X4_50",
+                         "--marker-size", "0.12", "-o", str(out))
+    assert code == 0 and summary["landmark_messages"] == 3 and summary["poses_without_camera_mount"] == 0
+    topics = _by_topic(out)
+    lists = [item.msg for item in topics["/landmarks"]]
+    assert len(lists) == 3 and all(s.frame_id == "base_link" for s in lists) and "/tf_static" in topics
+    by_id = {o.id: o for o in lists[0].landmarks}
+    optical = {t.child_frame_id: t.translation for t in topics["/tf"][0].msg.transforms}["aruco_3"]
+    np.testing.assert_allclose(by_id["3"].translation, [0.2 + optical[2], -optical[0], 0.5 - optical[1]], atol=1e-9)
+    assert by_id["3"].oriented and by_id["3"].range == pytest.approx(math.hypot(0.2 + optical[2], optical[0]))
+
+
 def test_markers_without_camera_info_count_missing_poses(log: Path, tmp_path: Path, capsys) -> None:
     code, summary = _run(capsys, str(log), "--pipeline", "markers", "--dictionary", "4x4_50", "--marker-size",
                          "0.1", "--camera-info", "/nowhere/camera_info", "-o", str(tmp_path / "x.mcap"))
@@ -160,9 +185,9 @@ def test_text_summary(log: Path, tmp_path: Path, capsys) -> None:
     (["--pipeline", "color", "--lower", "1,2"], "three comma-separated numbers"),
     (["--pipeline", "color", "--lower", "1,2,3"], "--lower and --upper go together"),
     (["--pipeline", "markers", "--dictionary", "DICT_99"], "unknown ArUco dictionary"),
-    (["--pipeline", "markers", "--marker-size", "-1"], "--marker-size must be positive"),
+    (["--pipeline", "markers", "--marker-size", "-1"], "--marker-size: -1 must be above 0"),
     (["--pipeline", "markers", "--topics", "/camera/camera_info"], "not an image topic"),
-    (["--pipeline", "color", "--template", "/no/such.png"], "cannot read image"),
+    (["--pipeline", "color", "--template", "/no/such.png"], "no such image: /no/such.png"),
 ])
 def test_user_errors_are_one_line(log: Path, tmp_path: Path, capsys, extra: list[str], message: str) -> None:
     assert main(["perceive", str(log), "-o", str(tmp_path / "e.mcap"), *extra]) == 2

@@ -14,11 +14,17 @@ from trundle.logs import ros2
 from strategies import ALL_MESSAGES
 
 # Planar yaw travels as a quaternion, so it comes back equal only to rounding.
-ANGLE_FIELDS = {"theta", "origin_theta"}
+ANGLE_FIELDS = {"theta", "origin_theta", "yaw"}
 
 
 def assert_same(a: m.Message, b: m.Message) -> None:
     assert type(a) is type(b)
+    if isinstance(a, m.LandmarkList | m.SceneMarkers):
+        inner = "landmarks" if isinstance(a, m.LandmarkList) else "markers"
+        assert len(getattr(a, inner)) == len(getattr(b, inner))
+        for x, y in zip(getattr(a, inner), getattr(b, inner)):
+            assert_same(x, y)
+        a, b = (dataclasses.replace(v, **{inner: ()}) for v in (a, b))
     for f in dataclasses.fields(a):
         x, y = getattr(a, f.name), getattr(b, f.name)
         if f.name in ANGLE_FIELDS:

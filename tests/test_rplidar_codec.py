@@ -1,14 +1,15 @@
-"""RPLIDAR codec against the protocol's byte examples and the SDK's capsule arithmetic, plus fuzzing."""
+"""RPLIDAR codec against the protocol's byte examples: requests, descriptors, info, health,
+the scan-mode configuration entries and legacy nodes (capsules: test_rplidar_capsules.py)."""
 
 from __future__ import annotations
 
+import struct
+
 import numpy as np
-import pyrplidar_protocol
 import pytest
 from hypothesis import given, settings, strategies as st
 
 from trundle.drivers import rplidar as rp
-from tests.lrf_harness import MUTATIONS, mutate
 
 
 def test_request_bytes_from_the_protocol_document():
@@ -26,7 +27,6 @@ def test_descriptors_from_the_protocol_document():
     assert rp.SCAN_DESCRIPTOR.encode() == bytes.fromhex("A5 5A 05 00 00 40 81")
     assert rp.INFO_DESCRIPTOR.encode() == bytes.fromhex("A5 5A 14 00 00 00 04")
     assert rp.HEALTH_DESCRIPTOR.encode() == bytes.fromhex("A5 5A 03 00 00 00 06")
-    assert rp.EXPRESS_DESCRIPTOR.encode() == bytes.fromhex("A5 5A 54 00 00 40 82")
     assert rp.Descriptor.parse(bytes.fromhex("A5 5A 05 00 00 40 81")) == rp.Descriptor(5, rp.MULTIPLE, 0x81)
     with pytest.raises(rp.RplidarError):
         rp.Descriptor.parse(bytes.fromhex("A5 5B 05 00 00 40 81"))
@@ -82,58 +82,6 @@ def test_node_decoder_skips_inserted_garbage():
     assert decoder.bad_nodes == 1 and nodes.broken.sum() == 1
 
 
-def random_capsule(rng: np.random.Generator, start_q6: int) -> bytes:
-    return rp.encode_capsule(start_q6, rng.integers(0, 16000, 32) * 4, rng.integers(0, 16, 32))
-
-
-def test_capsule_round_trip_and_checksum():
-    rng = np.random.default_rng(5)
-    dist = rng.integers(0, 16000, 32) * 4
-    dth = rng.integers(0, 64, 32)
-    raw = rp.encode_capsule(1234, dist, dth, new_scan=True)
-    assert len(raw) == 84 and raw[0] >> 4 == 0xA and raw[1] >> 4 == 0x5
-    (capsule,) = rp.CapsuleDecoder().feed(raw)
-    assert capsule.start_angle_q6 == 1234 and capsule.new_scan
-    np.testing.assert_array_equal(capsule.distance_q2, dist)
-    np.testing.assert_array_equal(capsule.dtheta_q3, dth)
-
-
-def test_capsule_angles_match_the_sdk_port_in_pyrplidar():
-    rng = np.random.default_rng(11)
-    for start, nxt in [(0, 2048), (22000, 1000), (100, 100 + 5 * 64), (23000, 40)]:
-        first, second = random_capsule(rng, start), random_capsule(rng, nxt)
-        a, b = rp.CapsuleDecoder().feed(first + second)
-        angle, dist, sync = rp.capsule_nodes(a, b.start_angle_q6)
-        nodes = pyrplidar_protocol.PyRPlidarScanCapsule._parse_capsule(
-            pyrplidar_protocol.PyRPlidarScanCapsule(first), pyrplidar_protocol.PyRPlidarScanCapsule(second))
-        assert dist.tolist() == [n.dist_mm_q2 for n in nodes]
-        assert sync.astype(int).tolist() == [n.start_flag & 1 for n in nodes]
-        # pyrplidar stores angle_q6 as (q6 << 8) // 90 (q14 of a quarter turn) and back
-        assert [((int(q) << 8) // 90 * 90) >> 8 for q in angle] == [(n.angle_z_q14 * 90) >> 8 for n in nodes]
-
-
-def test_capsule_sample_angles_by_hand():
-    # start 10 deg, next capsule at 42 deg: 1 deg per sample; sample 3 with dtheta 1.5 deg (12 q3)
-    dth = np.zeros(32, np.int64)
-    dth[3] = 12
-    a, b = rp.CapsuleDecoder().feed(rp.encode_capsule(640, np.full(32, 4000), dth) +
-                                    rp.encode_capsule(42 * 64, np.full(32, 4000), np.zeros(32)))
-    angle, _, _ = rp.capsule_nodes(a, b.start_angle_q6)
-    assert angle[:5].tolist() == [640, 704, 768, 832 - 96, 896]
-
-
-def test_capsule_decoder_resyncs_after_a_bad_checksum():
-    rng = np.random.default_rng(2)
-    caps = [random_capsule(rng, (i * 2048) % rp.FULL_CIRCLE_Q6) for i in range(10)]
-    stream = bytearray(b"".join(caps))
-    stream[4 * 84 + 40] ^= 0x10
-    decoder = rp.CapsuleDecoder()
-    out = decoder.feed(bytes(stream[:500])) + decoder.feed(bytes(stream[500:]))
-    assert [c.start_angle_q6 for c in out] == [(i * 2048) % rp.FULL_CIRCLE_Q6 for i in range(10) if i != 4]
-    assert [c.broken for c in out].index(True) == 4
-    assert decoder.bad_capsules == 1
-
-
 def test_request_parser_round_trip():
     parser = rp.RequestParser()
     stream = rp.request(rp.STOP) + b"\x00" + rp.request(rp.SET_MOTOR_PWM, b"\x94\x02") + rp.request(rp.GET_INFO)
@@ -142,39 +90,59 @@ def test_request_parser_round_trip():
     assert parser.bad_bytes == 1
 
 
+def test_model_names_follow_the_sdk():
+    # SDK 2.1 GetModelNameStringByModelID: A<major>M<minor>, C<major-3>, S<major-5>, T<major-8>, M<major-11>
+    names = {0x18: "A1M8", 0x28: "A2M8", 0x2C: "A2M12", 0x31: "A3M1", 0x41: "C1M1", 0x61: "S1M1", 0x71: "S2M1",
+             0x81: "S3M1", 0x91: "T1M1", 0xC1: "M1M1"}
+    for model, name in names.items():
+        assert rp.DeviceInfo(model, (1, 0), 0, bytes(16)).model_name == name
+    # configuration entries: firmware 1.24+, and every new-design (C, S, ...) model whatever its firmware
+    assert not rp.DeviceInfo(0x28, (1, 23), 5, bytes(16)).supports_conf
+    assert rp.DeviceInfo(0x28, (1, 24), 5, bytes(16)).supports_conf
+    assert rp.DeviceInfo(0x81, (1, 2), 18, bytes(16)).supports_conf
+
+
+def test_configuration_entries_by_hand():
+    # protocol: "LIDAR returns 64000 for Express scan mode, which means 250 microseconds" (Q8)
+    assert rp.conf_request(rp.CONF_SCAN_MODE_COUNT) == bytes.fromhex("70 00 00 00")
+    assert rp.conf_request(rp.CONF_SCAN_MODE_US_PER_SAMPLE, 3) == bytes.fromhex("71 00 00 00 03 00")
+    request = rp.request(rp.GET_LIDAR_CONF, rp.conf_request(rp.CONF_SCAN_MODE_TYPICAL))
+    assert request == bytes.fromhex("A5 84 04 7C 00 00 00") + bytes((0xA5 ^ 0x84 ^ 0x04 ^ 0x7C,))
+    values = {rp.CONF_SCAN_MODE_US_PER_SAMPLE: struct.pack("<I", 64000),
+              rp.CONF_SCAN_MODE_MAX_DISTANCE: struct.pack("<I", 12 * 256),
+              rp.CONF_SCAN_MODE_ANS_TYPE: bytes((0x82,)), rp.CONF_SCAN_MODE_NAME: b"Express\0"}
+    mode = rp.ScanMode.from_conf(1, values)
+    assert mode == rp.ScanMode(1, "Express", 250.0, 12.0, 0x82)
+    assert mode.conf_values() == values
+    assert rp.ScanMode(1, "DenseBoost", 31.25, 30.0, 0x85).conf_values()[rp.CONF_SCAN_MODE_US_PER_SAMPLE] == \
+        struct.pack("<I", 8000)
+    assert rp.parse_conf(0x70, bytes.fromhex("70 00 00 00 05 00")) == b"\x05\x00"
+    with pytest.raises(rp.RplidarError):
+        rp.parse_conf(0x70, bytes.fromhex("71 00 00 00 05 00"))
+    with pytest.raises(rp.RplidarError):
+        rp.ScanMode.from_conf(0, {rp.CONF_SCAN_MODE_NAME: b"Standard\0"})
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 0xFFFF), st.text("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz", min_size=1, max_size=24),
+       st.integers(1, 1 << 24), st.integers(1, 1 << 20), st.integers(0, 255))
+def test_scan_mode_entries_round_trip(mode_id, name, us_q8, distance_q8, kind):
+    mode = rp.ScanMode(mode_id, name, us_q8 / 256, distance_q8 / 256, kind)
+    assert rp.ScanMode.from_conf(mode_id, mode.conf_values()) == mode
+
+
 @settings(max_examples=200, deadline=None)
 @given(st.binary(max_size=4000), st.integers(1, 500))
 def test_random_bytes_never_raise(noise, chunk):
-    nodes, caps, reqs = rp.NodeDecoder(), rp.CapsuleDecoder(), rp.RequestParser()
+    nodes, reqs = rp.NodeDecoder(), rp.RequestParser()
     for i in range(0, len(noise), chunk):
         out = nodes.feed(noise[i:i + chunk])
         assert np.all(out.angle_q6 < rp.FULL_CIRCLE_Q6)
-        for capsule in caps.feed(noise[i:i + chunk]):
-            rp.capsule_nodes(capsule, 0)
         reqs.feed(noise[i:i + chunk])
-
-
-@settings(max_examples=200, deadline=None)
-@given(st.integers(0, 1000), st.sampled_from(MUTATIONS), st.integers(0, 255), st.integers(0, 2**32))
-def test_one_mutation_never_yields_a_wrong_express_sample(seed, how, value, where):
-    rng = np.random.default_rng(seed)
-    stream = bytearray(b"".join(random_capsule(rng, (i * 2048) % rp.FULL_CIRCLE_Q6) for i in range(8)))
-    original = rp.ExpressNodeDecoder().feed(bytes(stream))
-    mutate(stream, how, where, value)
-    nodes = rp.ExpressNodeDecoder().feed(bytes(stream))
-    assert set(zip(nodes.angle_q6.tolist(), nodes.distance_q2.tolist())) <= set(
-        zip(original.angle_q6.tolist(), original.distance_q2.tolist()))
-
-
-def test_express_nodes_follow_the_capsules_and_mark_revolutions():
-    n = 720  # 0.5 deg per sample, 32 samples per capsule: 16 deg per capsule
-    rng = np.random.default_rng(4)
-    dist = rng.integers(1, 16000, 3 * n) * 4
-    stream = b"".join(rp.encode_capsule((i * 1024) % rp.FULL_CIRCLE_Q6, dist[32 * i:32 * i + 32], np.zeros(32))
-                      for i in range(3 * n // 32))
-    decoder = rp.ExpressNodeDecoder()
-    nodes = decoder.feed(stream)
-    assert len(nodes) == (3 * n // 32 - 2) * 32  # the last two capsules wait for their successors
-    np.testing.assert_array_equal(nodes.angle_q6, (np.arange(len(nodes)) * 32) % rp.FULL_CIRCLE_Q6)
-    np.testing.assert_array_equal(nodes.distance_q2, dist[:len(nodes)])
-    assert np.flatnonzero(nodes.start).tolist() == [n, 2 * n]
+        try:
+            rp.Descriptor.parse(noise[i:i + 7])
+            rp.DeviceInfo.parse(noise[i:i + 20])
+            rp.Health.parse(noise[i:i + 3])
+            rp.parse_conf(rp.CONF_SCAN_MODE_NAME, noise[i:i + chunk])
+        except rp.RplidarError:
+            pass

@@ -94,7 +94,7 @@ def test_slam_command_user_errors(simulated_log, tmp_path, capsys) -> None:
     scans_only = tmp_path / "no_scan.mcap"
     write_log([("/odom", m.Odometry(1, "odom", "base_link", 0.0, 0.0, 0.0), 1)], scans_only, metadata={})
     code, _, stderr = trundle(capsys, "slam", str(scans_only), "-o", str(tmp_path / "o"))
-    assert code == 2 and "no LaserScan topic /scan" in stderr
+    assert code == 2 and "has no topic /scan (sensor_msgs/msg/LaserScan" in stderr
 
 
 def test_wheel_model_sources_in_order() -> None:

@@ -124,8 +124,11 @@ def test_bad_floor_plans_are_one_line_user_errors(tmp_path):
     path.write_text("{\"walls\": [")
     with pytest.raises(UserError, match="not valid JSON"):
         load_world(path)
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(UserError, match="no such floor-plan JSON file"):
         load_world(tmp_path / "missing.json")
+    path.write_bytes(bytes(range(256)))
+    with pytest.raises(UserError, match="binary data"):
+        load_world(path)
 
 
 @settings(max_examples=100, deadline=None)

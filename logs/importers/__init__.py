@@ -6,14 +6,17 @@ Odometry, static transforms), so public data runs through exactly the code path 
 
 from __future__ import annotations
 
+import gzip
 import os
 import time
+import zlib
 from pathlib import Path
 from typing import Iterable
 
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-from trundle.logs.writer import Logger, metadata_json
+from trundle.logs.paths import input_file
+from trundle.logs.writer import Logger
 
 Item = tuple[str, m.Message, int]  # topic, message, log time (ns)
 
@@ -23,14 +26,13 @@ def write_log(items: Iterable[Item], out: str | os.PathLike[str], *, metadata: d
     """Write ``(topic, message, log_time_ns)`` items to the MCAP file ``out``; returns messages per topic.
 
     Waits for the logger's queue instead of dropping, so an import is always complete.
-    ``metadata`` values that are not strings are stored as JSON.
+    ``metadata`` is the log's description (:mod:`trundle.logs.metadata`).
     """
     out = Path(out)
     if out.suffix != ".mcap":
         raise UserError(f"output must be an .mcap file, got {out}")
-    text = {k: v if isinstance(v, str) else metadata_json(v) for k, v in metadata.items()}  # type: ignore[arg-type]
     counts: dict[str, int] = {}
-    logger = Logger(out, compression=compression, metadata=text, latched_topics=("/tf_static",), salvage=False)
+    logger = Logger(out, compression=compression, metadata=metadata, latched_topics=("/tf_static",), salvage=False)
     try:
         for topic, msg, log_time_ns in items:
             while logger.queue_length >= logger.queue_size // 2:
@@ -46,16 +48,17 @@ def write_log(items: Iterable[Item], out: str | os.PathLike[str], *, metadata: d
 
 
 def open_text(path: str | os.PathLike[str]) -> list[str]:
-    """Lines of a text dataset file (``.gz`` transparently); a missing or binary file is a UserError."""
-    path = Path(path)
-    if path.is_dir():
-        raise UserError(f"{path} is a folder, not a log file")
-    if not path.exists():
-        raise UserError(f"no such file: {path}")
-    raw = path.read_bytes()
-    if raw[:2] == b"\x1f\x8b":
-        import gzip
-        raw = gzip.decompress(raw)
-    if b"\x00" in raw[:4096]:
-        raise UserError(f"{path} is not a text log (binary data)")
+    """Lines of a text dataset file (``.gz`` transparently); a missing, binary or non-regular file
+    (a device such as /dev/zero would be read forever) is a UserError, said before it is read whole."""
+    path = input_file(path, "log file")
+    with open(path, "rb") as f:
+        gzipped = f.read(2) == b"\x1f\x8b"
+    try:
+        with (gzip.open(path, "rb") if gzipped else open(path, "rb")) as f:
+            head = f.read(65536)
+            if b"\x00" in head:
+                raise UserError(f"{path} is not a text log (binary data)")
+            raw = head + f.read()
+    except (OSError, EOFError, zlib.error) as error:
+        raise UserError(f"cannot read {path}: {error}") from None
     return raw.decode("utf-8", errors="replace").splitlines()

@@ -187,6 +187,32 @@ def _ns(seconds: float) -> int:
     return int(round(seconds * 1e9))
 
 
+ODOMETRY_SOURCES = ("auto", "odom", "laser", "none")
+
+
+def choose_odometry(log: CarmenLog, requested: str = "auto") -> tuple[str, str]:
+    """The odometry source to import (``odom``, ``laser`` or ``none``) and a sentence saying what it is.
+
+    ``auto`` takes the ODOM lines when there are any, else the odometry fields of the laser lines
+    (many benchmark logs carry odometry only there: FLASER ``odom_x odom_y odom_theta``,
+    ROBOTLASER1's robot pose), else none; laser fields that never change count as none.
+    """
+    if requested not in ODOMETRY_SOURCES:
+        raise UserError(f"unknown odometry source {requested!r} (choose {', '.join(ODOMETRY_SOURCES)})")
+    front = [laser for laser in log.lasers if laser.kind != "RLASER"]
+    moving = len({laser.odom_pose for laser in front}) > 1
+    kinds = "/".join(sorted({laser.kind for laser in front})) or "laser"
+    if requested == "auto":
+        requested = "odom" if log.odometry else "laser" if moving else "none"
+    if requested == "odom":
+        return "odom", f"{len(log.odometry)} ODOM lines"
+    if requested == "laser":
+        return "laser", (f"no ODOM lines: the {kinds} lines' odometry fields ({len(front)} poses)" if not log.odometry
+                         else f"the {kinds} lines' odometry fields ({len(front)} poses)")
+    return "none", ("no odometry: no ODOM lines and the laser lines' odometry fields never change" if not moving
+                    else "no odometry (as asked)")
+
+
 def messages(log: CarmenLog, *, odometry: str = "odom", laser_odometry: np.ndarray | None = None,
              max_range_m: float | None = None) -> Iterator[Item]:
     """The log as ``(topic, message, log_time_ns)``: /scan, /scan_rear, /odom, /tf_static.
@@ -243,12 +269,21 @@ def to_scan(laser: CarmenLaser, frame_id: str, no_return_m: float | None) -> m.L
                        laser.angle_increment, 0.0, 0.0, 0.0, range_max, ranges)
 
 
-def import_carmen(path: str | os.PathLike[str], out: str | os.PathLike[str], *, odometry: str = "odom",
+def import_carmen(path: str | os.PathLike[str], out: str | os.PathLike[str], *, odometry: str = "auto",
                   laser_odometry: np.ndarray | None = None, max_range_m: float | None = None,
-                  log: CarmenLog | None = None) -> dict[str, int]:
-    """Convert a CARMEN log to MCAP; returns messages written per topic."""
+                  log: CarmenLog | None = None, description: str = "") -> dict[str, int]:
+    """Convert a CARMEN log to MCAP; returns messages written per topic.
+
+    ``odometry`` is a source of :func:`choose_odometry` (default ``auto``); with ``laser_odometry``
+    (poses per front-laser line) give ``odometry="laser"`` and the ``description`` of those poses.
+    The source and its description are stored in the log's metadata (``odometry``,
+    ``odometry_description``), so ``trundle slam`` can say what it ran on.
+    """
     log = read_carmen(path) if log is None else log
+    if laser_odometry is None or odometry != "laser":
+        odometry, description = choose_odometry(log, odometry)
     metadata = {"command": "import carmen", "source": os.fspath(path), "odometry": odometry,
-                "malformed_lines": str(log.malformed), "skipped_lines": log.skipped}
+                "odometry_description": description, "malformed_lines": str(log.malformed),
+                "skipped_lines": log.skipped}
     return write_log(messages(log, odometry=odometry, laser_odometry=laser_odometry, max_range_m=max_range_m),
                      out, metadata=metadata)

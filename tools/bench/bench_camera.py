@@ -48,7 +48,9 @@ def cpu_per_frame(jpegs: list[bytes], to_message: Callable[[bytes, int], m.Compr
     ``compression`` is None."""
     best = float("inf")
     for run in range(3):
-        logger = None if compression is None else Logger(folder / f"cpu{run}.mcap", compression=compression,
+        path = folder / f"cpu{run}.mcap"
+        path.unlink(missing_ok=True)  # the bench's own scratch file (a logger never overwrites)
+        logger = None if compression is None else Logger(path, compression=compression,
                                                           queue_size=len(jpegs) + 1, salvage=False)
         start = time.process_time()
         for i, data in enumerate(jpegs):
@@ -108,6 +110,7 @@ def main() -> None:
             cap.release()
 
         def end_to_end(compression: str) -> None:
+            (folder / "e2e.mcap").unlink(missing_ok=True)  # the bench's own scratch file (never overwritten)
             with Logger(folder / "e2e.mcap", compression=compression, salvage=False) as logger:
                 driver = driver_from_url(f"file://{clip}?pace=0", logger, {})
                 driver.start()

@@ -72,8 +72,8 @@ def main() -> None:
     pool = [ros2.encode(scan(seed))[1] for seed in range(200)]
     with tempfile.TemporaryDirectory() as tmp:
         for compression in ("none", "zstd"):
-            rounds = [(bare(Path(tmp) / f"bare{i}.mcap", pool, args.messages, compression),
-                       ours(Path(tmp) / f"ours{i}.mcap", pool, args.messages, compression)) for i in range(7)]
+            rounds = [(bare(Path(tmp) / f"bare-{compression}{i}.mcap", pool, args.messages, compression),
+                       ours(Path(tmp) / f"ours-{compression}{i}.mcap", pool, args.messages, compression)) for i in range(7)]
             b, o = min(r[0] for r in rounds), min(r[1] for r in rounds)  # interleaved: load drift hits both
             figures[f"bare_mcap_msgs_per_cpu_s_{compression}"] = args.messages / b
             figures[f"logger_msgs_per_cpu_s_{compression}"] = args.messages / o

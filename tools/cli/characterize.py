@@ -11,6 +11,7 @@ import argparse
 import json
 from pathlib import Path
 
+from trundle.tools.config.arguments import finite, non_negative_int, positive, positive_int
 from trundle.tools.jobs.characterize import characterize_log
 from trundle.tools.jobs.sensor_report import markdown
 
@@ -18,15 +19,32 @@ from trundle.tools.jobs.sensor_report import markdown
 def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("log")
     p.add_argument("--topic", required=True, help="sensor topic, e.g. /scan, /wheels, /camera/image/compressed")
-    p.add_argument("--reference", type=Path, help="CSV of true values over time: columns t_ns (or t_s) and value")
-    p.add_argument("--beam", default="all", help="laser beam index compared with --reference, or 'all' (default)")
-    p.add_argument("--stated-min", type=float, help="device's stated lower limit (default: from the messages)")
-    p.add_argument("--stated-max", type=float, help="device's stated upper limit (default: from the messages)")
-    p.add_argument("--bits", type=int, help="A/D bits, for the range / 2^bits resolution")
-    p.add_argument("--min-still", type=float, default=1.0, help="shortest standing-still stretch used, s")
+    p.add_argument("--reference", type=reference,
+                   help="the true value: a number (m, e.g. a wall at a known distance) or a CSV of values over "
+                        "time with columns t_ns (or t_s) and value")
+    p.add_argument("--beam", type=beam, default="all", help="laser beam index compared with --reference, or 'all' (default)")
+    p.add_argument("--stated-min", type=finite, help="device's stated lower limit (default: from the messages)")
+    p.add_argument("--stated-max", type=finite, help="device's stated upper limit (default: from the messages)")
+    p.add_argument("--bits", type=positive_int, help="A/D bits, for the range / 2^bits resolution")
+    p.add_argument("--min-still", type=positive, default=1.0, help="shortest standing-still stretch used, s")
     p.add_argument("-o", "--output", type=Path, help="report folder (report.md, report.json, plots)")
     p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     p.set_defaults(func=run)
+
+
+def reference(text: str) -> Path | float:
+    """``--reference``: a number (a constant true value, m) unless a file of that name exists, else a CSV path."""
+    if not Path(text).exists():
+        try:
+            return finite(text)
+        except argparse.ArgumentTypeError:
+            pass
+    return Path(text)
+
+
+def beam(text: str) -> int | str:
+    """``--beam``: ``all`` or a beam index >= 0."""
+    return text if text == "all" else non_negative_int(text)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -9,9 +9,11 @@ truth. See ``tools/demo/``.
 from __future__ import annotations
 
 import argparse
+import signal
 from pathlib import Path
 
 from trundle.logs.errors import UserError
+from trundle.tools.config.arguments import non_negative_int, number_in, percent, positive
 from trundle.tools.cli.progress import Progress
 from trundle.tools.demo.report import ATE_LIMIT_M
 from trundle.tools.demo.run import LOG_NAME, DemoSettings, run_demo
@@ -24,14 +26,14 @@ def register(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("-o", "--output", type=Path, default=Path("trundle-demo"),
                    help="output folder (default ./trundle-demo)")
-    p.add_argument("--duration", type=float, help="robot time to record, s (default: the whole route, about a minute)")
-    p.add_argument("--camera-fps", type=float, default=DemoSettings.camera_fps,
-                   help="camera frame rate (default %(default)s)")
+    p.add_argument("--duration", type=positive, help="robot time to record, s (default: the whole route, about a minute)")
+    p.add_argument("--camera-fps", type=number_in(0.0, 60.0, low_open=True), default=DemoSettings.camera_fps,
+                   help="camera frame rate, above 0 and at most 60 (default %(default)s)")
     p.add_argument("--camera-size", default="x".join(map(str, DemoSettings.camera_size)),
                    help="camera frame size WIDTHxHEIGHT (default %(default)s)")
-    p.add_argument("--camera-quality", type=int, default=DemoSettings.camera_quality,
+    p.add_argument("--camera-quality", type=percent, default=DemoSettings.camera_quality,
                    help="JPEG quality 1-100 (default %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed of wheel slip and sensor noise (default 0)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed of wheel slip and sensor noise (default 0)")
     p.add_argument("--world", type=Path, default=DEFAULT_WORLD, help="floor-plan JSON (default: the office)")
     p.set_defaults(func=run)
 
@@ -47,14 +49,16 @@ def camera_size(text: str) -> tuple[int, int]:
     return width, height
 
 
+def _interrupted(signum: int, frame: object) -> None:
+    """SIGTERM, SIGHUP (the terminal closed): end as Ctrl-C does, so the daemon is stopped and the
+    partial log kept (``trundle.tools.demo.run.record``) instead of both being left behind."""
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the demo with the options in ``args``, print its figures and checks; 0 if every check passed."""
-    if args.duration is not None and not args.duration > 0:
-        raise UserError("--duration must be a positive number of seconds")
-    if not 0 < args.camera_fps <= 60:
-        raise UserError("--camera-fps must be above 0 and at most 60")
-    if not 1 <= args.camera_quality <= 100:
-        raise UserError("--camera-quality must be 1-100")
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, _interrupted)
     settings = DemoSettings(world=args.world, duration_s=args.duration, camera_fps=args.camera_fps,
                             camera_size=camera_size(args.camera_size), camera_quality=args.camera_quality,
                             seed=args.seed)

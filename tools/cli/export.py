@@ -11,6 +11,7 @@ import sys
 import numpy as np
 
 from trundle.logs.errors import UserError
+from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader
 
 
@@ -18,7 +19,7 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("file")
     p.add_argument("--topic", required=True)
     p.add_argument("--format", choices=("csv", "ndjson"), default="csv")
-    p.add_argument("-o", "--output", help="output file (default: stdout)")
+    p.add_argument("-o", "--output", help="output file (default: stdout; must not exist)")
     p.set_defaults(func=run)
 
 
@@ -57,6 +58,8 @@ def flatten(msg: object) -> dict[str, object]:
 
 def run(args: argparse.Namespace) -> int:
     reader = LogReader(args.file)
+    if args.output:
+        new_file(args.output, "-o")
     items = reader.messages([args.topic])
     out = open(args.output, "w", newline="") if args.output else sys.stdout
     count = 0

@@ -6,7 +6,8 @@ import argparse
 import json
 from datetime import datetime, timezone
 
-from trundle.logs.reader import LogInfo, LogReader
+from trundle.logs.reader import LogReader
+from trundle.tools.jobs.info import as_dict
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -28,18 +29,6 @@ def _size(n: int) -> str:
             return f"{n:.1f} {unit}" if unit != "B" else f"{n} B"
         n /= 1024
     return f"{n} B"
-
-
-def as_dict(info: LogInfo) -> dict:
-    return {
-        "file": str(info.path), "size_bytes": info.size_bytes, "profile": info.profile,
-        "library": info.library, "compression": sorted(info.compression), "duration_s": info.duration_s,
-        "start_ns": info.start_ns, "end_ns": info.end_ns, "messages": info.message_count,
-        "chunks": info.chunks, "corrupt_chunks": info.corrupt_chunks, "complete": info.complete,
-        "error": info.error, "metadata": info.metadata,
-        "topics": {name: {"type": t.ros_type, "count": t.count, "rate_hz": t.rate_hz, "latched": t.latched}
-                   for name, t in sorted(info.topics.items())},
-    }
 
 
 def run(args: argparse.Namespace) -> int:
@@ -66,6 +55,6 @@ def run(args: argparse.Namespace) -> int:
         head = "Topic information: " if i == 0 else "                   "
         latched = " | latched" if t.latched else ""
         lines.append(f"{head}Topic: {name:<{width}} | Type: {t.ros_type:<{type_width}} | Count: {t.count:>7} | "
-                     f"Rate: {t.rate_hz:8.2f} Hz | Serialization Format: cdr{latched}")
+                     f"Rate: {t.rate_hz:8.2f} Hz | Serialization Format: {t.encoding}{latched}")
     print("\n".join(lines))
     return 0 if info.message_count or info.complete else 1

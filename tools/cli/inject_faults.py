@@ -20,7 +20,8 @@ from pathlib import Path
 from trundle.fusion.odometry_faults import OdometryFault, random_glitches
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
-from trundle.tools.jobs.config import load_config
+from trundle.tools.config.arguments import finite, non_negative_int, positive
+from trundle.tools.config.robot import load_config
 from trundle.tools.jobs.inject_faults import inject_faults
 
 
@@ -31,13 +32,13 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="output .mcap")
     p.add_argument("--heading-glitch", action="append", default=[], metavar="T:DEG[:S]")
     p.add_argument("--slip", action="append", default=[], metavar="T:S:FRACTION")
-    p.add_argument("--scale", type=float, metavar="FRACTION", help="distance scale error over the whole log")
+    p.add_argument("--scale", type=finite, metavar="FRACTION", help="distance scale error over the whole log")
     p.add_argument("--dropout", action="append", default=[], metavar="T:S")
-    p.add_argument("--glitches", type=int, default=0, metavar="N", help="N heading glitches at random times")
-    p.add_argument("--glitch-deg", type=float, default=20.0, help="size of each random glitch (default 20 deg)")
-    p.add_argument("--glitch-s", type=float, default=0.6, help="duration of each random glitch (default 0.6 s)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random glitches' times and signs")
-    p.add_argument("--config", type=Path, help="TOML with an [odometry] table (wheel model for wheel logs)")
+    p.add_argument("--glitches", type=non_negative_int, default=0, metavar="N", help="N heading glitches at random times")
+    p.add_argument("--glitch-deg", type=finite, default=20.0, help="size of each random glitch (default 20 deg)")
+    p.add_argument("--glitch-s", type=positive, default=0.6, help="duration of each random glitch (default 0.6 s)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the random glitches' times and signs")
+    p.add_argument("--config", type=Path, help="robot TOML: its [odometry] table is the wheel model of a wheel log")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
 

@@ -5,7 +5,9 @@ is only read. Odometry comes from the log's ``Odometry`` messages or its wheel `
 (wheel model from the log's ``robot`` metadata or the config's ``[odometry]`` table, as for
 ``trundle slam``); without either, the localizer runs on the scans alone. The laser mount comes
 from ``/tf_static`` or the config's ``[laser]`` table. Prints when the pose converged, each
-kidnapping detected (and the recovery), and writes the tracked poses with ``-o``.
+kidnapping detected (and the recovery), and writes the tracked poses with ``-o``. A map folder with
+``landmarks.csv`` and a log with marker sightings (``/landmarks``) add landmark fixes: global
+localisation from two mapped landmarks, and kidnap recovery.
 """
 
 from __future__ import annotations
@@ -16,8 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
+from trundle.logs.paths import new_file
 from trundle.tools.cli.progress import Progress
-from trundle.tools.jobs.config import load_config
+from trundle.tools.config.arguments import positive
+from trundle.tools.config.robot import load_config
 from trundle.tools.jobs.localize import localize_log
 
 
@@ -28,15 +32,17 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--map", type=Path, required=True, help="folder with map.yaml + map.pgm, or the map YAML itself")
     p.add_argument("--config", type=Path, help="TOML with [odometry] and [laser] tables (as for trundle slam)")
     p.add_argument("--scan-topic", default="/scan", help="LaserScan topic (default /scan)")
-    p.add_argument("--max-range", type=float, default=30.0, help="ignore returns farther than this (m, default 30)")
+    p.add_argument("--max-range", type=positive, default=30.0, help="ignore returns farther than this (m, default 30)")
     p.add_argument("--no-odometry", action="store_true", help="ignore the log's odometry (scans alone)")
-    p.add_argument("-o", "--output", type=Path, help="write the tracked poses as t_ns,x,y,theta CSV")
+    p.add_argument("-o", "--output", type=Path, help="write the tracked poses as t_ns,x,y,theta CSV (must not exist)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the localize job and print its report; exit code 1 if the pose never converged (text mode)."""
+    if args.output is not None:
+        new_file(args.output, "-o")
     report = localize_log(args.log, args.map, load_config(args.config), scan_topic=args.scan_topic,
                           max_range_m=args.max_range, use_odometry=not args.no_odometry,
                           trajectory_csv=args.output, progress=Progress)
@@ -50,7 +56,9 @@ def run(args: argparse.Namespace) -> int:
           f"{len(converged) - 1 if converged else 0} recovery(ies); {report['global_searches']} global search(es), "
           f"{report['false_alarms']} false alarm(s); {report['tracked_scans']} scans tracked"
           + (f", mean match score {report['match_score_tracking']['mean']:.2f}"
-             if report["match_score_tracking"] else ""))
+             if report["match_score_tracking"] else "")
+          + (f"; {report['landmark_fixes']} landmark fix(es) from {report['landmarks_in_map']} mapped landmarks "
+             f"({report['landmark_fixes_rejected']} disagreeing)" if report["landmarks_in_map"] else ""))
     if report["final_pose"]:
         x, y, theta = report["final_pose"]
         print(f"final pose x {x:.3f} m, y {y:.3f} m, theta {np.degrees(theta):.1f} deg; "

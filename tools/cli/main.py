@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from typing import NoReturn
 
 from trundle import __version__
 from trundle.logs.errors import UserError
@@ -35,9 +36,10 @@ COMMANDS = {
     "localize": "localise a log on a saved map (unknown start, kidnap recovery)",
     "perceive": "run an image-feature pipeline over a log's images",
     "match": "match local features between two images (keypoints, matches, RANSAC model)",
-    "import": "convert a public dataset (CARMEN, BreezySLAM) to an MCAP log",
+    "import": "convert a public dataset (CARMEN, BreezySLAM, UTIAS MRCLAM) to an MCAP log",
     "emulate": "start a device emulator",
     "characterize": "sensor characteristics (range, resolution, precision, ...) from a log",
+    "fleet": "run a one-log job over many logs on a Ray cluster -> results table and summary",
 }
 MODULES = {"import": "import_data"}
 
@@ -47,9 +49,16 @@ def module_name(command: str) -> str:
     return "trundle.tools.cli." + MODULES.get(command, command.replace("-", "_"))
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with a usage mistake said in one line (what, and where the help is), exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USER_ERROR, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The parser; only the command named in ``argv`` (if any) gets its arguments and module."""
-    parser = argparse.ArgumentParser(prog="trundle", description="Onboard software of a wheeled mobile robot.")
+    parser = Parser(prog="trundle", description="Onboard software of a wheeled mobile robot.")
     parser.add_argument("--version", action="version", version=f"trundle {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
@@ -62,7 +71,11 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser(argv).parse_args(argv)
+    """Run the command in ``argv`` (default: the process's arguments); returns the exit code."""
+    try:
+        args = build_parser(argv).parse_args(argv)
+    except SystemExit as done:  # --help, --version, or a usage mistake (said in one line by Parser)
+        return done.code if isinstance(done.code, int) else 0
     try:
         return int(args.func(args) or 0)
     except UserError as error:

@@ -16,9 +16,11 @@ import cv2
 import numpy as np
 
 from trundle.logs.errors import UserError
+from trundle.logs.paths import input_file, new_file
 from trundle.perception.features import DESCRIPTORS, EDGES, METHODS, available
 from trundle.perception.image_matching import PairMatch, match_images
 from trundle.perception.keypoints import to_cv
+from trundle.tools.config.arguments import non_negative, non_negative_int, number_in, positive, positive_int
 
 FEATURES = [m for m in METHODS if m not in EDGES]
 
@@ -29,25 +31,24 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--features", default="sift", choices=FEATURES, help="detector (default sift)")
     p.add_argument("--descriptor", choices=sorted(DESCRIPTORS),
                    help="descriptor (default: the detector's own, SIFT for detectors without one)")
-    p.add_argument("--max-keypoints", type=int, help="keep the strongest N keypoints per image")
-    p.add_argument("--ratio", type=float, default=0.8, help="Lowe's ratio test, best/second best (1 = off; 0.8)")
-    p.add_argument("--min-difference", type=float, default=0.0,
+    p.add_argument("--max-keypoints", type=positive_int, help="keep the strongest N keypoints per image")
+    p.add_argument("--ratio", type=number_in(0.0, 1.0, low_open=True), default=0.8, help="Lowe's ratio test, best/second best (1 = off; 0.8)")
+    p.add_argument("--min-difference", type=non_negative, default=0.0,
                    help="reject when second best - best distance is below this (0 = off)")
-    p.add_argument("--max-distance", type=float, default=math.inf, help="reject matches farther than this")
+    p.add_argument("--max-distance", type=positive, default=math.inf, help="reject matches farther than this")
     p.add_argument("--no-cross-check", action="store_true", help="keep one-way nearest neighbours")
     p.add_argument("--flann", action="store_true", help="approximate FLANN search (randomised) instead of brute force")
     p.add_argument("--model", choices=("homography", "fundamental"), default="homography",
                    help="model fitted by RANSAC (homography for planar scenes or pure rotation)")
-    p.add_argument("--threshold", type=float, default=3.0, help="RANSAC inlier band in pixels (3)")
-    p.add_argument("--seed", type=int, default=0, help="RANSAC random seed (results are reproducible)")
+    p.add_argument("--threshold", type=positive, default=3.0, help="RANSAC inlier band in pixels (3)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="RANSAC random seed (results are reproducible)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--draw", metavar="OUT.png", help="write a picture of the matches")
     p.set_defaults(func=run)
 
 
 def _read(path: str) -> np.ndarray:
-    if not Path(path).is_file():
-        raise UserError(f"no such image: {path}")
+    input_file(path, "image")
     image = cv2.imread(path, cv2.IMREAD_COLOR)
     if image is None:
         raise UserError(f"cannot decode image: {path}")
@@ -70,11 +71,14 @@ def draw(image1: np.ndarray, image2: np.ndarray, result: PairMatch) -> np.ndarra
 def run(args: argparse.Namespace) -> int:
     if not available(args.features):
         raise UserError(f"{args.features} is not available in this OpenCV build (cv2 {cv2.__version__})")
-    if args.max_keypoints is not None and args.max_keypoints < 1:
-        raise UserError("--max-keypoints must be at least 1")
-    if not 0 < args.ratio <= 1:
-        raise UserError("--ratio must be in (0, 1]")
     image1, image2 = _read(args.image1), _read(args.image2)
+    out = Path(args.draw) if args.draw else None
+    if out is not None:  # before the work: a picture that cannot be written is said at once
+        new_file(out, "--draw")
+        if not out.parent.is_dir():
+            raise UserError(f"no such directory for --draw: {out.parent}")
+        if not cv2.haveImageWriter(str(out)):
+            raise UserError(f"--draw {out}: OpenCV writes no picture with that extension (use .png or .jpg)")
     try:
         result = match_images(image1, image2, args.features, args.descriptor, args.max_keypoints,
                               model=args.model, cross_check=not args.no_cross_check, max_ratio=args.ratio,
@@ -85,12 +89,13 @@ def run(args: argparse.Namespace) -> int:
     summary = {"image1": args.image1, "image2": args.image2, "features": args.features,
                "descriptor": args.descriptor or (args.features if args.features in DESCRIPTORS else "sift"),
                **result.summary()}
-    if args.draw:
-        out = Path(args.draw)
-        if not out.parent.is_dir():
-            raise UserError(f"no such directory for --draw: {out.parent}")
-        if not cv2.imwrite(str(out), draw(image1, image2, result)):
-            raise UserError(f"cannot write picture (unknown image extension?): {out}")
+    if out is not None:
+        try:
+            written = cv2.imwrite(str(out), draw(image1, image2, result))
+        except cv2.error as error:
+            raise UserError(f"cannot write picture {out}: {str(error).strip().splitlines()[-1]}") from None
+        if not written:
+            raise UserError(f"cannot write picture {out}")
         summary["picture"] = str(out)
     if args.json:
         print(json.dumps(summary, indent=2))

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from trundle.logs.errors import UserError
+from trundle.tools.config.arguments import non_negative, non_negative_int, number_in, positive, positive_int
 from trundle.tools.cli.progress import Progress
 from trundle.tools.jobs.perceive import perceive_log
 
@@ -35,7 +36,7 @@ def register(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("file", help="MCAP log with images")
     p.add_argument("--pipeline", required=True, choices=("color", "markers", "features"))
-    p.add_argument("-o", "--output", required=True, help="output MCAP file")
+    p.add_argument("-o", "--output", required=True, help="output MCAP file (must not exist)")
     p.add_argument("--topics", nargs="+", help="image topics (default: every Image and CompressedImage topic)")
     p.add_argument("--no-images", action="store_true", help="write only the detections, not the images")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
@@ -44,18 +45,18 @@ def register(p: argparse.ArgumentParser) -> None:
     c.add_argument("--upper", help="fast path: upper HSV bound, e.g. 45,1,1 (H below lower wraps through 0)")
     c.add_argument("--template", help="image of the colour (back-projection path)")
     c.add_argument("--template-mask", help="mask image selecting the template's pixels (non-zero)")
-    c.add_argument("--bins", type=int, default=32, help="histogram bins per channel (default 32)")
+    c.add_argument("--bins", type=number_in(1, 180, whole=True), default=32, help="histogram bins per channel (default 32)")
     c.add_argument("--weights", default="0.5,0.3,0.2", help="H,S,V back-projection weights (default 0.5,0.3,0.2)")
-    c.add_argument("--level", type=int, default=128, help="likeness threshold 0..255 (default 128)")
-    c.add_argument("--blur", type=float, default=2.0, help="Gaussian blur sigma of the likeness, px (default 2)")
-    c.add_argument("--min-area", type=int, default=50, help="smallest region, px (default 50)")
-    c.add_argument("--max-area", type=int, help="largest region, px")
-    c.add_argument("--max-aspect", type=float, help="largest ellipse axis ratio a/b")
-    c.add_argument("--min-extent", type=float, default=0.0, help="smallest fraction of its box a region fills")
+    c.add_argument("--level", type=number_in(0, 255, whole=True), default=128, help="likeness threshold 0..255 (default 128)")
+    c.add_argument("--blur", type=non_negative, default=2.0, help="Gaussian blur sigma of the likeness, px (default 2)")
+    c.add_argument("--min-area", type=non_negative_int, default=50, help="smallest region, px (default 50)")
+    c.add_argument("--max-area", type=positive_int, help="largest region, px")
+    c.add_argument("--max-aspect", type=number_in(1.0), help="largest ellipse axis ratio a/b (>= 1)")
+    c.add_argument("--min-extent", type=number_in(0.0, 1.0), default=0.0, help="smallest fraction of its box a region fills")
     k = p.add_argument_group("markers pipeline")
     k.add_argument("--dictionary", default="DICT_6X6_250", help="ArUco dictionary (default DICT_6X6_250)")
     k.add_argument("--refinement", default="subpix", help="corner refinement: subpix, none, contour, apriltag")
-    k.add_argument("--marker-size", type=float, help="printed marker side in metres (enables poses)")
+    k.add_argument("--marker-size", type=positive, help="printed marker side in metres (enables poses)")
     k.add_argument("--camera-info", help="CameraInfo topic (default: <camera namespace>/camera_info)")
     f = p.add_argument_group("features pipeline")
     f.add_argument("--method", default="orb", help="detector name known to trundle.perception.features (default orb)")

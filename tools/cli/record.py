@@ -1,25 +1,36 @@
-"""`trundle record`: devices -> MCAP, until --duration elapses or Ctrl-C / SIGTERM."""
+"""`trundle record`: devices -> MCAP, until --duration elapses or Ctrl-C / SIGTERM.
+
+Devices come from ``--lrf``/``--can``/``--camera`` URLs and the ``url`` of the tables in
+``--config`` (a robot config, checked as the daemon checks it; a table without a url gives the
+options of the device named on the command line). Every device is built, so every URL and
+option checked, before the log is created. A device that cannot be opened or gives no usable
+data is said on stderr in one line (and its recovery too); if a device gave no data at all, the
+command ends with exit code 1.
+"""
 
 from __future__ import annotations
 
 import argparse
 import signal
-import threading
+import sys
 import time
-import tomllib
 from pathlib import Path
 from typing import Any
 
 from trundle.drivers.devices import FAMILIES, make_driver
-from trundle.drivers.lifecycle import Driver
+from trundle.drivers.health import HealthReporter
+from trundle.drivers.lifecycle import Driver, SignalFlag
 from trundle.fusion.odometry import OdometrySink, odometry_from_config
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.writer import Logger
-
+from trundle.tools.config.arguments import positive
+from trundle.tools.config.robot import Device, RobotConfig, load_config
 
 
 def register(p: argparse.ArgumentParser) -> None:
+    p.description = __doc__
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("--lrf", action="append", default=[], metavar="URL",
                    help="laser: scip2:///dev/ttyACM0, scip2+tcp://host:10940, rplidar:///dev/ttyUSB0")
     p.add_argument("--can", action="append", default=[], metavar="URL",
@@ -27,77 +38,108 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--encoders", metavar="SPEC", help="wheel encoders on the CAN bus, e.g. odrive:0,1")
     p.add_argument("--camera", action="append", default=[], metavar="URL",
                    help="camera: v4l2:///dev/video0?width=1280&height=720&fps=30&fourcc=MJPG, file:///clip.avi")
-    p.add_argument("--config", type=Path, help="TOML with [lrf], [can], [camera] tables of driver options; "
+    p.add_argument("--config", type=Path, help="robot TOML with [lrf], [can], [camera] tables of driver options; "
                    "wheel_radius_m and track_m in [can] add wheel odometry (/odom, /tf)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds")
-    p.add_argument("-o", "--output", required=True, type=Path, help="output .mcap")
+    p.add_argument("--duration", type=positive, help="stop after this many seconds")
+    p.add_argument("-o", "--output", required=True, type=Path, help="output .mcap (must not exist)")
     p.add_argument("--compression", choices=("zstd", "lz4", "none"),
                    help="chunk compression (default zstd; lz4 when a camera is recorded, since JPEG "
                         "does not compress and zstd would cost ~1 ms a 720p frame)")
-    p.add_argument("--split-size", type=float, metavar="MB", help="start a new file every MB megabytes")
-    p.add_argument("--split-duration", type=float, metavar="S", help="start a new file every S seconds")
+    p.add_argument("--split-size", type=positive, metavar="MB", help="start a new file every MB megabytes")
+    p.add_argument("--split-duration", type=positive, metavar="S", help="start a new file every S seconds")
     p.set_defaults(func=run)
 
 
-def load_config(path: Path | None) -> dict[str, Any]:
-    if path is None:
-        return {}
-    try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
-    except tomllib.TOMLDecodeError as error:
-        raise UserError(f"{path} is not valid TOML: {error}") from None
+def devices_to_record(args: argparse.Namespace, config: RobotConfig) -> list[Device]:
+    """The command line's devices (with their family's options from the config), then the config's
+    devices of the families the command line does not name."""
+    urls = {"lrf": args.lrf, "can": args.can, "camera": args.camera}
+    devices: list[Device] = []
+    for family in FAMILIES:
+        if urls[family]:
+            options = config.options(family)
+            for i, url in enumerate(urls[family]):
+                devices.append(Device(family, family if len(urls[family]) == 1 else f"{family}{i}", url, dict(options)))
+            continue
+        for device in (d for d in config.devices if d.family == family):
+            if not device.url:
+                raise UserError(f"{config.source}: [{family}] has no url: add one, or give --{family} URL")
+            devices.append(device)
+    if not devices:
+        raise UserError("no device given: use --lrf, --can or --camera (or url keys in --config)")
+    if args.encoders:
+        if not any(d.family == "can" for d in devices):
+            raise UserError("--encoders needs a CAN bus (--can URL)")
+        for d in devices:
+            if d.family == "can":
+                d.options["encoders"] = args.encoders
+    return devices
 
 
 def diagnostics(drivers: list[Driver]) -> m.DiagnosticArray:
     return m.DiagnosticArray(time.time_ns(), tuple(d.diagnostics() for d in drivers))
 
 
+class _Deferred:
+    """The drivers' sink until the logger exists (drivers are built, so checked, before the file is made)."""
+
+    def __init__(self) -> None:
+        self.target: Any = None
+
+    def __call__(self, topic: str, msg: m.Message, log_time_ns: int) -> object:
+        return self.target(topic, msg, log_time_ns)
+
+
+def say(text: str) -> None:
+    print(f"trundle record: {text}", file=sys.stderr, flush=True)
+
+
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    specs = [("lrf", url) for url in args.lrf] + [("can", url) for url in args.can] + [("camera", url) for url in args.camera]
-    for family in FAMILIES:
-        if not any(f == family for f, _ in specs) and isinstance(config.get(family), dict) and "url" in config[family]:
-            specs.append((family, config[family]["url"]))
-    if not specs:
-        raise UserError("no device given: use --lrf, --can or --camera (or url keys in --config)")
-    if args.encoders and not any(f == "can" for f, _ in specs):
-        raise UserError("--encoders needs a CAN bus (--can URL)")
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    compression = args.compression or ("lz4" if any(f == "camera" for f, _ in specs) else "zstd")
+    devices = devices_to_record(args, config)
+    if args.output.is_dir():
+        raise UserError(f"-o {args.output} is a folder: give a file name such as {args.output / 'run.mcap'}")
+    sink = _Deferred()
+    drivers: list[Driver] = []
+    for device in devices:
+        target: Any = sink
+        odometry = odometry_from_config(device.options) if device.family == "can" else None
+        if odometry is not None:  # wheel_radius_m + track_m in [can]: /odom and /tf
+            target = OdometrySink(sink, odometry)
+        try:
+            drivers.append(make_driver(device.family, device.url, target, device.options))
+        except UserError as error:
+            raise UserError(f"{device.family} {device.url}: {error}") from None
+    args.output.parent.mkdir(parents=True, exist_ok=True)  # the logger refuses to overwrite a recording
+    compression = args.compression or ("lz4" if any(d.family == "camera" for d in devices) else "zstd")
+    metadata = {"command": "record", "robot": {"name": config.robot},
+                "devices": {d.name: {"family": d.family, "url": d.url, **d.options} for d in devices}}
+    if config.source:
+        metadata["config_file"] = config.source
     logger = Logger(args.output, compression=compression,
                     split_bytes=int(args.split_size * 1e6) if args.split_size else None,
-                    split_duration_s=args.split_duration,
-                    metadata={"command": "record", "devices": " ".join(f"{f}={u}" for f, u in specs)})
-    drivers = []
+                    split_duration_s=args.split_duration, metadata=metadata)
+    sink.target = logger
+    health = HealthReporter(say)
     try:
-        for family, url in specs:
-            options = dict(config.get(family, {}))
-            sink: Any = logger
-            if family == "can":
-                if args.encoders:
-                    options["encoders"] = args.encoders
-                odometry = odometry_from_config(options)  # wheel_radius_m + track_m in [can]: /odom and /tf
-                if odometry is not None:
-                    sink = OdometrySink(logger, odometry)
-            drivers.append(make_driver(family, url, sink, options))
-        stop = threading.Event()
+        stop = SignalFlag()
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+            signal.signal(sig, stop.raise_)
         for driver in drivers:
             for topic, msg in driver.static_messages():
                 logger.write(topic, msg)
             driver.start()
         deadline = time.monotonic() + args.duration if args.duration else None
         while not stop.wait(1.0 if deadline is None else max(0.0, min(1.0, deadline - time.monotonic()))):
-            logger.write("/diagnostics", diagnostics(drivers))
+            status = diagnostics(drivers)
+            logger.write("/diagnostics", status)
+            health.update(status.status)
             if logger.error is not None or (deadline is not None and time.monotonic() >= deadline):
                 break
     finally:
         for driver in drivers:
             driver.stop()
-        if drivers:
-            logger.write("/diagnostics", diagnostics(drivers))
+        logger.write("/diagnostics", diagnostics(drivers))
         logger.close()
     for path in logger.files:
         print(f"wrote {path}")
@@ -105,4 +147,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {topic:<24} written {counts['written']:>7}  dropped {counts['dropped']:>5}")
     for driver in drivers:
         print(f"  {driver.name}: " + ", ".join(f"{k}={v}" for k, v in sorted(driver.counters.items())))
-    return 0
+    silent = [d for d in drivers if not d.counters[d.usable]]
+    for driver in silent:
+        why = driver.open_error or driver.silence_reason() or driver.last_error or "no data"
+        say(f"{driver.name}: recorded no {driver.usable.replace('_', ' ')}: {why}")
+    return 1 if silent else 0

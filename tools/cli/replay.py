@@ -9,11 +9,12 @@ import time
 from trundle.logs.reader import LogMessage, LogReader
 from trundle.logs.replay import replay
 from trundle.tools.cli.progress import Progress
+from trundle.tools.config.arguments import non_negative
 
 
 def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("file")
-    p.add_argument("--rate", type=float, default=1.0, help="time scale: 1 real time, 0 as fast as possible")
+    p.add_argument("--rate", type=non_negative, default=1.0, help="time scale: 1 real time, 0 as fast as possible")
     p.add_argument("--topics", nargs="+", help="only these topics")
     p.set_defaults(func=run)
 

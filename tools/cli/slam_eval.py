@@ -4,7 +4,9 @@ RESULT is the ``trajectory.csv`` (``t_ns,x,y,theta``) written by ``trundle slam`
 Freiburg ``.relations`` file (relation error only), or a reference trajectory: a
 ``t_ns,x,y,theta`` CSV or a CARMEN log (its laser lines' poses, e.g. GMapping's corrected
 ``.gfs.log``), from which the relations between scans ``--step`` apart are taken and ATE and RPE
-are computed as well. Poses are paired by timestamp within ``--tolerance-ms``.
+are computed as well. Poses are paired by timestamp within ``--tolerance-ms``. With
+``--landmarks REF.csv`` (``id,x,y,sx,sy``, e.g. a survey) the ``landmarks.csv`` beside RESULT is
+scored too, in the frame of the ATE alignment.
 """
 
 from __future__ import annotations
@@ -13,9 +15,13 @@ import argparse
 import json
 from dataclasses import asdict
 
-from trundle.fusion.evaluation import (Trajectory, absolute_trajectory_error, read_reference, relation_error,
-                                       relative_pose_error, trajectory_relations)
+from pathlib import Path
+
+from trundle.fusion.evaluation import (Trajectory, absolute_trajectory_error, landmark_error, read_reference,
+                                       relation_error, relative_pose_error, trajectory_relations)
+from trundle.fusion.map_io import read_landmarks_csv
 from trundle.logs.errors import UserError
+from trundle.tools.config.arguments import non_negative, positive_int
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -23,10 +29,11 @@ def register(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("result", help="trajectory.csv from `trundle slam` (t_ns,x,y,theta)")
     p.add_argument("reference", help=".relations file, t_ns,x,y,theta CSV or CARMEN log")
-    p.add_argument("--step", type=int, default=1,
+    p.add_argument("--step", type=positive_int, default=1,
                    help="relations and RPE between reference poses this many scans apart (default 1: consecutive)")
-    p.add_argument("--tolerance-ms", type=float, default=1.0,
+    p.add_argument("--tolerance-ms", type=non_negative, default=1.0,
                    help="largest time difference when pairing poses (default 1 ms)")
+    p.add_argument("--landmarks", help="reference landmarks id,x,y,sx,sy: score the landmarks.csv beside RESULT")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.set_defaults(func=run)
 
@@ -63,6 +70,11 @@ def _text(report: dict) -> str:
                   f" max {a['max_m']:.4f} m, heading rmse {a['rotation_rmse_deg']:.3f} deg over {a['count']} poses",
                   f"RPE ({r['step']} scan{'s' if r['step'] > 1 else ''}):"
                   f"         translation rmse {r['translation_rmse_m']:.4f} m, rotation rmse {r['rotation_rmse_deg']:.3f} deg"]
+    if "landmarks" in report:
+        k = report["landmarks"]
+        lines.append(f"Landmarks (same alignment): mean {k['mean_m']:.4f} m, rmse {k['rmse_m']:.4f} m, "
+                     f"max {k['max_m']:.4f} m over {k['count']} ({len(k['missing'])} not mapped, "
+                     f"{len(k['extra'])} not in the reference)")
     return "\n".join(lines)
 
 
@@ -71,5 +83,12 @@ def run(args: argparse.Namespace) -> int:
     if not isinstance(result, Trajectory):
         raise UserError(f"{args.result}: RESULT must be a trajectory (t_ns,x,y,theta CSV or CARMEN log)")
     report = evaluate(result, read_reference(args.reference), args.step, int(round(args.tolerance_ms * 1e6)))
+    if args.landmarks:
+        if "ate" not in report:
+            raise UserError("--landmarks needs a reference trajectory (its ATE alignment places the map)")
+        mapped = read_landmarks_csv(Path(args.result).parent / "landmarks.csv")
+        reference = read_landmarks_csv(args.landmarks)
+        report["landmarks"] = asdict(landmark_error(mapped[0], mapped[1], reference[0], reference[1],
+                                                    report["ate"]["alignment_xyt"]))
     print(json.dumps(report, indent=2) if args.json else _text(report))
     return 0

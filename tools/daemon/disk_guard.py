@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Callable
 from trundle.logs import messages as m
 
 if TYPE_CHECKING:
-    from trundle.tools.daemon.config import DiskConfig, LoggerConfig
+    from trundle.tools.config.robot import DiskConfig, LoggerConfig
 
 
 class DiskGuard:

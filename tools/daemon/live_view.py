@@ -5,6 +5,13 @@ Foxglove or Lichtblick shows the robot live exactly as they show its logs.
 Each topic becomes a channel on first use; a message is encoded only while a client subscribes.
 Latched topics (``/tf_static``, camera info) are sent again every ``repeat_latched`` call so a
 client that connects later still gets them. Bound to 127.0.0.1 unless configured otherwise.
+
+The minimum client: the SDK's server speaks the Foxglove WebSocket protocol under the subprotocol
+name ``foxglove.sdk.v1`` and refuses (HTTP 400) a client that offers only the older name
+``foxglove.websocket.v1`` (the protocol is the same; the SDK has no setting to accept the old
+name). Current Foxglove (web and desktop) offers the new name; Lichtblick does from the release
+after 1.21 (lichtblick-suite/lichtblick#819); a tool built on ``@foxglove/ws-protocol`` connects
+once it offers ``foxglove.sdk.v1`` (it may offer both). ``tests/test_daemon_live.py`` checks this.
 """
 
 from __future__ import annotations

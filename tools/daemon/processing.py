@@ -3,8 +3,10 @@ the camera images.
 
 The daemon offers every message to ``wants``; the chosen ones go through a bounded queue to one
 processing thread (a full queue drops and counts), and the results (``/slam/pose``, map -> odom
-on ``/tf``, ``/map``, ``.../markers``, ``.../marker_poses``) go back through ``publish``. SLAM
-and the marker detector (both bring SciPy) are imported only when configured.
+on ``/tf``, ``/map``, ``.../markers``, ``.../marker_poses``, and the markers as landmark
+observations in the robot frame on ``/landmarks`` once ``/tf_static`` places the camera) go back
+through ``publish``. With both SLAM and markers on, the markers are landmarks of the SLAM's pose
+graph. SLAM and the marker detector (both bring SciPy) are imported only when configured.
 """
 
 from __future__ import annotations
@@ -23,8 +25,9 @@ from trundle.logs import messages as m
 
 if TYPE_CHECKING:
     from trundle.fusion.slam import Slam
+    from trundle.perception.landmarks import StaticFrames
     from trundle.perception.markers import MarkerDetector
-    from trundle.tools.daemon.config import FramesConfig, ProcessingConfig
+    from trundle.tools.config.robot import FramesConfig, ProcessingConfig
 
 Publish = Callable[[str, m.Message], None]  # (topic, message): log a result as the daemon's own
 
@@ -43,18 +46,26 @@ class Processing:
         self.errors = 0
         self.last_error = ""
         self.markers_seen: collections.Counter[int] = collections.Counter()
+        self.landmarks_published = 0
         self._next_marker_t = 0.0
         self._next_map_t = 0.0
         self._camera_info: dict[str, m.CameraInfo] = {}
         self.slam: Slam | None = None
         self.detector: MarkerDetector | None = None
+        self.static_frames: StaticFrames | None = None
         if config.slam:
             from trundle.fusion.slam import Slam, SlamConfig
-            self.slam = Slam(SlamConfig.from_mapping(slam))
+            if config.markers:
+                from trundle.fusion.landmark_grid_slam import LandmarkGridSlam
+                self.slam = LandmarkGridSlam(SlamConfig.from_mapping(slam))
+            else:
+                self.slam = Slam(SlamConfig.from_mapping(slam))
         self.scan_topic = self.slam.config.scan_topic if self.slam is not None else ""
         if config.markers:
+            from trundle.perception.landmarks import StaticFrames
             from trundle.perception.markers import MarkerDetector
             self.detector = MarkerDetector(config.aruco_dictionary)
+            self.static_frames = StaticFrames()
         self.thread = threading.Thread(target=self._run, name="processing", daemon=True)
 
     @property
@@ -65,6 +76,8 @@ class Processing:
     def wants(self, topic: str, msg: m.Message) -> bool:
         """Whether to ``put`` this message; images are rate-limited to ``markers_hz`` here, camera
         info is kept for the marker poses."""
+        if self.static_frames is not None and topic == "/tf_static" and isinstance(msg, m.TFMessage):
+            self.static_frames.add(msg)  # where the camera is on the robot, for the markers' landmark poses
         if self.slam is not None and (topic == self.scan_topic or isinstance(msg, m.Odometry) or topic == "/tf_static"):
             return True
         if self.detector is not None:
@@ -131,16 +144,19 @@ class Processing:
             self.publish("/map", self.slam.build_map().to_message(now, frames.map))
 
     def _detect_markers(self, topic: str, msg: m.CompressedImage | m.Image) -> None:
-        from trundle.perception.markers import marker_pose  # loaded with the detector
+        from trundle.perception.landmarks import marker_observation  # loaded with the detector
+        from trundle.perception.markers import marker_pose
         if isinstance(msg, m.CompressedImage):
             image = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE)
         else:
             image = msg.to_array()
         if image is None:
             return
-        assert self.detector is not None
+        assert self.detector is not None and self.static_frames is not None
         info = self._camera_info.get(msg.frame_id)
         base = topic.rsplit("/image_raw", 1)[0]
+        camera_in_base = self.static_frames.pose_in(msg.frame_id, self.frames.base)
+        observations = []
         for marker in self.detector.detect(image):
             self.markers_seen[marker.id] += 1
             self.publish(f"{base}/markers", m.ImageMarker(
@@ -150,6 +166,25 @@ class Processing:
                 pose = marker_pose(marker, info, self.config.marker_size_m)
                 self.publish(f"{base}/marker_poses", m.TFMessage((m.TransformStamped(
                     msg.stamp_ns, msg.frame_id, f"aruco_{marker.id}", pose.translation, pose.quaternion()),)))
+                landmark = None if camera_in_base is None else marker_observation(
+                    marker, pose, info, self.config.marker_size_m, camera_in_base)
+                if landmark is not None:
+                    observations.append(landmark)
+        if observations:
+            landmarks = m.LandmarkList(msg.stamp_ns, self.frames.base, tuple(observations))
+            self.publish("/landmarks", landmarks)
+            self.landmarks_published += 1
+            if self.slam is not None:
+                self.slam.process("/landmarks", landmarks)
+
+    def diagnostics(self, robot: str) -> m.DiagnosticStatus:
+        """The ``robot/processing`` entry of ``/diagnostics``: ERROR once a message failed to process
+        (SLAM or marker detection raised), with the last error; OK otherwise."""
+        values = (("errors", str(self.errors)), ("dropped", str(self.dropped)), ("skipped_scans", str(self.skipped_scans)))
+        if self.errors:
+            return m.DiagnosticStatus(m.ERROR, f"{robot}/processing",
+                                      f"{self.errors} message(s) failed to process: {self.last_error}", "", values)
+        return m.DiagnosticStatus(m.OK, f"{robot}/processing", "ok", "", values)
 
     def status(self) -> dict[str, Any]:
         """The ``processing`` entry of the status answer: queue, drops, errors, SLAM and marker counts."""
@@ -161,4 +196,5 @@ class Processing:
                            "loop_closures": s.loop_closures}
         if self.detector is not None:
             out["markers"] = {str(k): v for k, v in sorted(self.markers_seen.items())}
+            out["landmark_messages"] = self.landmarks_published
         return out

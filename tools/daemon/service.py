@@ -34,12 +34,13 @@ from pathlib import Path
 from typing import Any, Callable
 
 from trundle.drivers import devices
+from trundle.drivers.health import HealthReporter
 from trundle.drivers.lifecycle import Driver, wall_ns
 from trundle.fusion.odometry import OdometrySink, odometry_from_config
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-from trundle.logs.writer import Logger, LoggerError, metadata_json
-from trundle.tools.daemon.config import DaemonConfig
+from trundle.logs.writer import Logger, LoggerError
+from trundle.tools.config.robot import RobotConfig, check_daemon_config
 from trundle.tools.daemon.disk_guard import DiskGuard
 from trundle.tools.daemon.live_view import LiveView
 from trundle.tools.daemon.processing import Processing
@@ -50,6 +51,7 @@ from trundle.tools.daemon.systemd import sd_notify, watchdog_period_s
 DriverFactory = Callable[[str, str, Any, dict[str, Any]], Driver]  # (family, url, sink, options) -> driver
 NO_SPLIT_BYTES = 1 << 62  # split only on request: the logger then numbers its files
 LOGGER_RETRY_S = 5.0  # after a logger failure, try a new log this much later
+SIGNAL_POLL_S = 0.1  # the supervision loop's longest sleep: how soon a signal's request is acted on
 
 
 def static_transform(stamp_ns: int, parent: str, child: str, xyz: tuple[float, float, float],
@@ -64,7 +66,7 @@ def static_transform(stamp_ns: int, parent: str, child: str, xyz: tuple[float, f
 class Daemon:
     """The service. ``run()`` blocks until SIGTERM/SIGINT (or ``stop()``); see the module doc."""
 
-    def __init__(self, config: DaemonConfig, *, make_driver: DriverFactory | None = None) -> None:
+    def __init__(self, config: RobotConfig, *, make_driver: DriverFactory | None = None) -> None:
         self.config = config
         self._make_driver = make_driver or devices.make_driver
         self.supervised: list[Supervised] = []
@@ -90,11 +92,14 @@ class Daemon:
         self.odometry: dict[str, OdometrySink] = {}
         self.live: LiveView | None = None
         self.live_errors = 0
+        self.health = HealthReporter(lambda text: print(f"trundle daemon: {text}", file=sys.stderr, flush=True))
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> None:
-        """Build drivers, open the log, start everything, tell systemd we are ready."""
+        """Check the config, build drivers, take the status socket (one daemon per config), open the
+        log, start everything, tell systemd we are ready."""
         cfg = self.config
+        check_daemon_config(cfg)
         for transform in cfg.transforms:
             self._static_tf[transform.child] = static_transform(wall_ns(), transform.parent, transform.child,
                                                                 transform.xyz, transform.rpy)
@@ -116,10 +121,13 @@ class Daemon:
                                               on_crash=lambda sup: self.publish("/diagnostics", self._diagnostics())))
             for topic, msg in driver.static_messages():
                 self._remember_latched(topic, msg)
+        self._server = StatusServer(cfg.status.socket, self.status)  # refuses a second daemon before it logs
+        folder = cfg.logger.folder
+        assert folder is not None  # check_daemon_config
         try:
-            cfg.logger.folder.mkdir(parents=True, exist_ok=True)
+            folder.mkdir(parents=True, exist_ok=True)
         except OSError as error:
-            raise UserError(f"cannot create the log folder {cfg.logger.folder}: {error.strerror or error}") from None
+            raise UserError(f"cannot create the log folder {folder}: {error.strerror or error}") from None
         if cfg.live.enabled:
             self.live = LiveView(cfg.live.host, cfg.live.port, name=f"trundle {cfg.robot}")
             for topic, msg in list(self._latched.items()):
@@ -127,11 +135,13 @@ class Daemon:
         processing = Processing(cfg.processing, cfg.slam, cfg.frames, self.publish)
         if processing.active:
             self.processing = processing
+            for topic, msg in list(self._latched.items()):  # the drivers' static transforms and calibrations
+                if processing.wants(topic, msg):
+                    processing.put(topic, msg)
             processing.thread.start()
         self.disk_guard.check()
         if cfg.logger.record and not self.recording_paused:
             self._open_logger()
-        self._server = StatusServer(cfg.status.socket, self.status)
         self._server.start()
         for sup in self.supervised:
             sup.start()
@@ -154,7 +164,8 @@ class Daemon:
             while not self._stop_requested:
                 now = time.monotonic()
                 deadlines = [next_diag, next_disk] + ([next_watchdog] if watchdog else [])
-                self._wake.wait(max(0.0, min(deadlines) - now))
+                # short waits: a signal handler only sets a flag (see _on_stop_signal), seen here at once
+                self._wake.wait(min(SIGNAL_POLL_S, max(0.0, min(deadlines) - now)))
                 self._wake.clear()
                 now = time.monotonic()
                 if self._split_requested:
@@ -191,12 +202,13 @@ class Daemon:
         self._wake.set()
 
     def _on_stop_signal(self, signum: int, frame: Any) -> None:
-        """SIGTERM, SIGINT: stop."""
-        self.stop()
+        """SIGTERM, SIGINT: stop. Only a flag: a handler that took the wake event's lock deadlocked
+        when a second signal came while it held it (SIGTERM twice froze the daemon)."""
+        self._stop_requested = True
 
     def _on_split_signal(self, signum: int, frame: Any) -> None:
-        """SIGHUP: a new log file."""
-        self.request_split()
+        """SIGHUP: a new log file (a flag, as for stop)."""
+        self._split_requested = True
 
     def shutdown(self) -> None:
         """Stop drivers and processing, write the last diagnostics, close the log, close the socket."""
@@ -273,9 +285,8 @@ class Daemon:
         while any(cfg.folder.glob(f"{path.stem}*")):
             path = cfg.folder / f"{cfg.prefix}_{stamp}-{n}.mcap"
             n += 1
-        metadata = {"command": "daemon", "robot": self.config.robot, "config_file": self.config.source,
-                    "devices": metadata_json({d.name: {"family": d.family, "url": d.url, **d.options}
-                                              for d in self.config.devices})}
+        metadata = {"command": "daemon", "robot": {"name": self.config.robot}, "config_file": self.config.source,
+                    "devices": {d.name: {"family": d.family, "url": d.url, **d.options} for d in self.config.devices}}
         try:
             logger = Logger(path, compression=cfg.compression, chunk_size=cfg.chunk_size_kb * 1024,
                             flush_period_s=cfg.flush_period_s, fsync=cfg.fsync,
@@ -348,6 +359,8 @@ class Daemon:
     def _diagnostics(self) -> m.DiagnosticArray:
         """One ``/diagnostics`` message: every device, the logger, the disk."""
         statuses = [sup.diagnostics(self.config.robot) for sup in self.supervised]
+        if self.processing is not None:
+            statuses.append(self.processing.diagnostics(self.config.robot))
         log = self._logger_status()
         level = m.OK if log["recording"] else m.WARN
         if not self.config.logger.record:
@@ -363,7 +376,10 @@ class Daemon:
         live view, tell systemd the summary."""
         for sup in self.supervised:
             sup.rates.update(now)
-        self.publish("/diagnostics", self._diagnostics())
+        diagnostics = self._diagnostics()
+        self.publish("/diagnostics", diagnostics)
+        if self.state == "running":  # devices going bad or well again, one line each on stderr (the journal)
+            self.health.update([s for s in diagnostics.status if not s.name.endswith(("/logger", "/disk"))], now)
         if self.live is not None:
             self.live.repeat_latched()
         sd_notify("STATUS=" + self._summary())

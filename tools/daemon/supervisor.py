@@ -19,7 +19,7 @@ from trundle.logs import messages as m
 
 if TYPE_CHECKING:
     from trundle.drivers.lifecycle import Driver
-    from trundle.tools.daemon.config import Device
+    from trundle.tools.config.robot import Device
 
 STABLE_RUN_S = 60.0  # a driver that ran this long before crashing starts its back-off afresh
 

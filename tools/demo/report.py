@@ -15,7 +15,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from trundle.fusion.evaluation import Trajectory, poses_at
+from trundle.fusion.evaluation import Trajectory, landmark_error, poses_at
+from trundle.fusion.landmark_grid_slam import LandmarkGridSlam
 from trundle.fusion.map_io import plot_trajectory
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
@@ -32,6 +33,8 @@ from trundle.tools.sim.world import World
 
 ATE_LIMIT_M = 0.05          # acceptance: SLAM trajectory error against ground truth ...
 LOOP_MIN_M = 50.0           # ... over a loop (the whole route) at least this long
+MARKER_MAP_LIMIT_M = 0.05   # acceptance: every marker mapped (as a SLAM landmark) within this of the world file
+NO_WORSE_M = 0.001          # "no worse": two runs' ATE of a minute of driving differ by this much for nothing
 STARVED_MS = 100.0          # an emulator later than this could not keep real time
 
 
@@ -72,13 +75,32 @@ def _stats(values: np.ndarray) -> dict[str, float]:
     return {"median": float(np.median(values)), "p95": float(np.percentile(values, 95)), "max": float(values.max())}
 
 
+def marker_map(run: SlamRun, world: World, map_to_world) -> dict[str, Any]:
+    """The markers SLAM mapped (landmarks) against the world file: each one's position error (m) with
+    the map placed in the world by ``map_to_world`` (the trajectory's ATE alignment)."""
+    mapped = run.slam.landmarks() if isinstance(run.slam, LandmarkGridSlam) else None
+    known = [d for d in world.markers if mapped is not None and str(d.marker_id) in mapped.ids]
+    if mapped is None or not known:
+        return {"mapped": 0, "errors_m": {}}
+    error = landmark_error(mapped.ids, mapped.positions, [str(d.marker_id) for d in known],
+                           np.array([[d.x, d.y] for d in known]), map_to_world)
+    sightings = dict(zip(mapped.ids, mapped.sightings.tolist()))
+    return {"mapped": len(mapped.ids), "errors_m": error.per_landmark_m, "mean_error_m": error.mean_m,
+            "max_error_m": error.max_m, "not_in_world": error.extra,
+            "sightings": {k: int(v) for k, v in sorted(sightings.items())},
+            "sighting_time_offset_s": run.slam.landmark_stats.time_offset_s,
+            "revisited": run.slam.landmark_stats.revisited}
+
+
 def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, score: MarkerScore, world: World,
-                 seconds: dict[str, float]) -> dict[str, Any]:
+                 seconds: dict[str, float], plain: SlamRun | None = None) -> dict[str, Any]:
     """Every figure of the run, computed from the log, the SLAM output and the simulator's truth.
 
     ``settings``: what the run simulated, as JSON values (``duration_s`` None: the whole route,
     which must be a loop); ``seconds``: wall-clock time of each stage (s), kept by reference so
-    a stage timed after this call is in the report too.
+    a stage timed after this call is in the report too. ``run`` is SLAM with the markers as
+    landmarks when ``plain`` (the same log without them) is given: the report then has the marker
+    map's error against the world file and the two trajectory errors side by side.
     """
     truth = recording.scans
     errors = score_trajectory(run.trajectory, run.odometry, truth)
@@ -91,13 +113,18 @@ def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, s
     detected = {row["id"] for row in detected_rows if row["frames_detected"] > row["false_detections"]}
     in_view_pairs = sum(score.in_view.values())
     stats = run.slam.stats
+    plain_ate = score_trajectory(plain.trajectory, plain.odometry, truth).ate if plain is not None else None
+    markers = marker_map(run, world, ate.alignment_xyt)
     report: dict[str, Any] = {
         "ate_rmse_m": ate.rmse_m,
+        "ate_rmse_without_markers_m": plain_ate.rmse_m if plain_ate is not None else None,
+        "marker_map": markers,
         "path_length_m": path_length(truth.poses),
         "markers_expected": expected,
         "markers_detected": detected_rows,
         "checks": {
             f"ate_rmse_m <= {ATE_LIMIT_M}": ate.rmse_m <= ATE_LIMIT_M,
+            **(marker_checks(markers, ate.rmse_m, plain_ate.rmse_m) if plain_ate is not None else {}),
             "every marker in view detected": set(expected) <= detected,
             "no false marker ids": all(row["false_detections"] == 0 for row in detected_rows),
             "every logged scan and frame has ground truth": not any(recording.unmatched.values()),
@@ -139,6 +166,16 @@ def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, s
     return report
 
 
+def marker_checks(markers: dict[str, Any], ate_m: float, plain_ate_m: float) -> dict[str, bool]:
+    """The acceptance checks of the markers as landmarks: every marker mapped (each marker the daemon
+    placed, i.e. seen large enough in the image) lies within ``MARKER_MAP_LIMIT_M`` of the world file,
+    and SLAM with them is no worse than without (by more than ``NO_WORSE_M``)."""
+    errors = markers["errors_m"]
+    return {f"every marker mapped within {MARKER_MAP_LIMIT_M * 100:.0f} cm":
+            bool(errors) and max(errors.values()) <= MARKER_MAP_LIMIT_M,
+            "SLAM ATE with markers no worse than without": ate_m <= plain_ate_m + NO_WORSE_M}
+
+
 def report_markdown(report: dict[str, Any]) -> str:
     """``report.md``: the report's figures for a reader, with the pictures and files."""
     tr, mp, mk = report["trajectory"], report["map"], report["markers"]
@@ -175,6 +212,13 @@ def report_markdown(report: dict[str, Any]) -> str:
         f"| wheel odometry alone, ATE RMSE (max) | {odo['rmse_m'] * 100:.1f} cm ({odo['max_m'] * 100:.1f} cm); "
         f"heading RMSE {odo['rotation_rmse_deg']:.2f} deg |",
     ]
+    if report["ate_rmse_without_markers_m"] is not None:
+        lines.append(f"| SLAM without the markers as landmarks, ATE RMSE | {report['ate_rmse_without_markers_m'] * 100:.1f} cm |")
+    if report["marker_map"]["errors_m"]:
+        mm = report["marker_map"]
+        each = ", ".join(f"{k}: {v * 100:.1f}" for k, v in sorted(mm["errors_m"].items(), key=lambda kv: int(kv[0])))
+        lines.append(f"| marker map against the world file (mean, max; per id, cm) | {mm['mean_error_m'] * 100:.1f} cm, "
+                     f"{mm['max_error_m'] * 100:.1f} cm; {each} |")
     if tr["rpe"]:
         rpe = tr["rpe"]
         lines.append(f"| SLAM relative error over {rpe['step']} scans (RMSE) | "
@@ -253,13 +297,16 @@ TRUTH_BGR, SLAM_BGR, ODOMETRY_BGR = (200, 90, 0), (0, 0, 230), (0, 140, 255)   #
 
 
 def plot_run(grid: m.OccupancyGrid, path: Path, truth: np.ndarray, estimate: np.ndarray, odometry: np.ndarray,
-             loops: list[tuple[np.ndarray, np.ndarray]]) -> Path:
-    """The trajectory-over-map plot (map frame): ground truth, SLAM estimate, wheel odometry, with a legend."""
-    plot_trajectory(grid, path, [truth, odometry, estimate], colours=[TRUTH_BGR, ODOMETRY_BGR, SLAM_BGR], loops=loops)
+             loops: list[tuple[np.ndarray, np.ndarray]],
+             landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Path:
+    """The trajectory-over-map plot (map frame): ground truth, SLAM estimate, wheel odometry and the
+    mapped markers (landmarks with their 3-sigma ellipses), with a legend."""
+    plot_trajectory(grid, path, [truth, odometry, estimate], colours=[TRUTH_BGR, ODOMETRY_BGR, SLAM_BGR], loops=loops,
+                    landmarks=landmarks)
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     scale = max(1.0, image.shape[1] / 1000.0)
     entries = [("ground truth (simulator)", TRUTH_BGR), ("wheel odometry", ODOMETRY_BGR), ("SLAM estimate", SLAM_BGR),
-               ("loop closure", (0, 200, 0))]
+               ("loop closure", (0, 200, 0))] + ([("marker (landmark, 3 sigma)", (200, 0, 200))] if landmarks else [])
     for k, (text, colour) in enumerate(entries):
         y = int((24 + 22 * k) * scale)
         mid = y - int(5 * scale)

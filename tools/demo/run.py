@@ -10,8 +10,9 @@ Stages (what ``trundle demo`` runs, one function each so tests can run them alon
    stands at its start until every device streams. Each logged scan and frame then gets its ground
    truth from what the emulators made (``trundle.tools.demo.ground_truth``).
 2. ``trundle.tools.demo.slam.run_slam``: the log replayed through SLAM with wheel odometry from
-   ``/wheels`` (the wheel model of the daemon's config, stored in the log) and the laser mount
-   from ``/tf_static``.
+   ``/wheels`` (the wheel model of the daemon's config, stored in the log), the laser mount
+   from ``/tf_static`` and the markers the daemon saw (``/landmarks``) as landmarks; and again
+   without the markers, for the report to compare.
 3. ``trundle.tools.demo.scoring.score_markers``: ArUco detection and pose on every logged frame,
    against the markers the simulator had in view and their known poses in the world file.
 4. :func:`run_demo`: all of it, writing the log, map, plots and ``report.md`` / ``report.json``
@@ -24,9 +25,9 @@ Long stages show their progress on the display a ``progress`` factory makes (non
 from __future__ import annotations
 
 import resource
+import shutil
 import signal
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -38,16 +39,19 @@ import numpy as np
 from trundle.fusion.geometry import compose, inverse
 from trundle.fusion.map_io import save_map, write_trajectory_csv
 from trundle.logs.errors import UserError
+from trundle.logs.paths import output_folder
+from trundle.tools.demo import daemon_process
 from trundle.tools.demo.ground_truth import FrameTimes, Recording, frame_ground_truth, scan_ground_truth
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 from trundle.tools.demo.report import build_report, draw_detections, plot_run, write_report
 from trundle.tools.demo.scoring import score_markers, sensor_mount
 from trundle.tools.demo.slam import run_slam
 from trundle.tools.daemon.status import query_status
-from trundle.tools.daemon.config import format_config
+from trundle.tools.config.toml_text import format_config
+from trundle.tools.jobs.landmark_slam import write_landmarks
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.emulators.sim_devices import SimDevices
-from trundle.tools.sim.world import DEFAULT_WORLD, load_world
+from trundle.tools.sim.world import DEFAULT_WORLD, World, load_world
 
 LOG_NAME = "demo.mcap"
 STREAM_TIMEOUT_S = 90.0     # daemon start-up to every device streaming, on a loaded machine
@@ -55,6 +59,7 @@ STOP_TIMEOUT_S = 60.0       # SIGTERM to a closed log
 LEAD_S = 1.0                # the robot stands this long in the log before it drives
 LRF_TIMEOUT_S = 2.0         # laser silence before the driver reconnects: a busy machine delays the emulators ...
 WHEEL_TIMEOUT_S = 1.5       # ... and wheel silence before a wheel counts as stale (its motion is then lost)
+MARKERS_HZ = 10.0           # camera frames a second the daemon looks for markers in (every frame: landmarks for SLAM)
 
 
 Say = Callable[[str], None]
@@ -86,7 +91,7 @@ class DemoSettings:
 # ---------------------------------------------------------------------------------- recording
 
 def daemon_config(devices: SimDevices, folder: Path, socket_path: Path, calibration: Path) -> dict[str, Any]:
-    """The daemon's configuration tables for the emulated robot (see ``tools/daemon/example.toml``)."""
+    """The daemon's configuration tables for the emulated robot (see ``tools/config/example.toml``)."""
     tables = devices.device_tables()
     tables["lrf"]["timeout_s"] = LRF_TIMEOUT_S
     tables["can"]["odrive"] = {"heartbeat_timeout_s": WHEEL_TIMEOUT_S, "data_timeout_s": WHEEL_TIMEOUT_S}
@@ -94,8 +99,18 @@ def daemon_config(devices: SimDevices, folder: Path, socket_path: Path, calibrat
     return {"robot": {"name": "trundle-demo"}, **tables,
             "logger": {"folder": str(folder), "compression": "zstd", "flush_period_s": 0.5},
             "disk": {"min_free_mb": 100.0, "action": "stop"},
-            "processing": {"odometry": True, "slam": False, "markers": False},
+            "processing": {"odometry": True, "slam": False, "markers": True, "markers_hz": MARKERS_HZ,
+                           "marker_size_m": marker_size(devices.sim.world),
+                           "aruco_dictionary": devices.sim.world.aruco_dictionary},
             "status": {"socket": str(socket_path), "diagnostics_period_s": 1.0}}
+
+
+def marker_size(world: World) -> float:
+    """The side (m) of the world's ArUco markers, which the daemon needs to know (one size for all)."""
+    sizes = {d.width for d in world.markers}
+    if len(sizes) != 1:
+        raise UserError(f"the {world.name} world has markers of sizes {sorted(sizes)}: the daemon knows one size")
+    return sizes.pop()
 
 
 def _status(socket_path: Path) -> dict[str, Any] | None:
@@ -160,9 +175,10 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
                 f"camera {devices.urls['camera']}")
             daemon_log = out / "daemon.log"
             with open(daemon_log, "w") as log_file:
-                # -P: the output folder (the daemon's cwd) is not put on sys.path, so nothing in it shadows trundle
-                proc = subprocess.Popen([sys.executable, "-P", "-m", "trundle.tools.cli", "daemon", "--config",
-                                         str(config)], stdout=log_file, stderr=subprocess.STDOUT, cwd=out)
+                # -P: the output folder (the daemon's cwd) is not put on sys.path, so nothing in it shadows
+                # trundle; a session of its own: the terminal's signals are the demo's, which stops it cleanly
+                proc = subprocess.Popen(daemon_process.command(["daemon", "--config", str(config)]),
+                                        stdout=log_file, stderr=subprocess.STDOUT, cwd=out, start_new_session=True)
             try:
                 say(f"daemon started (pid {proc.pid}): trundle daemon --config {config}")
                 deadline = time.monotonic() + STREAM_TIMEOUT_S
@@ -199,6 +215,10 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
                                          f"did not stop within {STOP_TIMEOUT_S:.0f} s of SIGTERM") from None
                 if code != 0:
                     raise _daemon_failed(proc, daemon_log, "did not stop cleanly")
+            except BaseException:  # Ctrl-C, SIGTERM, SIGHUP (see cli/demo.py) or a failure: keep what was logged
+                _stop(proc)
+                _keep_partial_log(folder, out, say)
+                raise
             finally:
                 _stop(proc)
         cpu = {"emulators": time.process_time() - cpu_before, "daemon": _children_cpu_s() - daemon_cpu_before}
@@ -217,6 +237,19 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
     frames, frame_ns, unmatched_frames = frame_ground_truth(log, sim, devices, frame_times)
     return Recording(log, scans, frames, scan_ns, frame_ns, {"scans": unmatched_scans, "frames": unmatched_frames},
                      robot_time, cpu, late)
+
+
+def _keep_partial_log(folder: Path, out: Path, say: Say) -> None:
+    """After an interrupted recording: the daemon's (closed) log moved out of its hidden folder to
+    ``out/demo.partial.mcap`` (numbered if several), said to the user; the folder removed."""
+    logs = sorted(folder.glob("*.mcap")) + sorted(folder.glob("*.mcap.active"))
+    for i, path in enumerate(logs):
+        suffix = ".mcap.active" if path.name.endswith(".active") else ".mcap"
+        target = out / (f"demo.partial{'' if i == 0 else f'-{i}'}{suffix}")
+        path.replace(target)
+        say(f"the recording was interrupted; its log so far is {target}"
+            + (" (trundle recover it)" if suffix.endswith(".active") else ""))
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 def _longest_pause_ms(times_ns: np.ndarray, since_ns: int, period_s: float) -> float | None:
@@ -249,6 +282,7 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     """Record the simulated robot with the real daemon, then map, detect, score and write ``out``;
     return the report. ``say`` tells each stage, ``progress`` makes each long stage's display."""
     started = time.monotonic()
+    output_folder(out, empty=False, create=False)  # made by record() once the world is read
     world = load_world(settings.world)
     sim = RobotSim(world, seed=settings.seed)
     say("[1/4] recording: world simulator -> device emulators -> trundle daemon -> log")
@@ -256,24 +290,30 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     write_trajectory_csv(out / "ground_truth.csv", recording.scans.stamps_ns, recording.scans.poses)
     write_trajectory_csv(out / "frames_ground_truth.csv", recording.frames.stamps_ns, recording.frames.poses)
     seconds = {"record": time.monotonic() - started}
-    say(f"[2/4] SLAM: replaying {len(recording.scans)} scans and the wheel encoders of {recording.log.name}")
-    run = run_slam(recording.log, progress=progress)
+    say(f"[2/4] SLAM: replaying {len(recording.scans)} scans, the wheel encoders and the daemon's marker sightings "
+        f"of {recording.log.name}, and again without the markers")
+    run = run_slam(recording.log, progress=progress, markers=True)
+    plain = run_slam(recording.log, progress=progress)
     seconds["slam"] = run.processing_s
-    say(f"      {run.slam.stats.keyframes} keyframes, {run.slam.stats.loop_closures} loop closures "
-        f"in {run.processing_s:.0f} s")
+    seconds["slam_without_markers"] = plain.processing_s
+    say(f"      {run.slam.stats.keyframes} keyframes, {run.slam.stats.loop_closures} loop closures, "
+        f"{len(run.slam.landmarks().ids)} markers mapped in {run.processing_s:.0f} s")
     say(f"[3/4] perception: ArUco markers in {len(recording.frames)} camera frames")
     t = time.monotonic()
     mount = sensor_mount(recording.log, "camera")
     score = score_markers(recording.log, recording.frames, world, mount, progress)
     seconds["markers"] = time.monotonic() - t
     say("[4/4] report")
-    report = build_report(settings.as_json(), recording, run, score, world, seconds)
+    report = build_report(settings.as_json(), recording, run, score, world, seconds, plain)
     save_map(run.grid, out / "map")
     write_trajectory_csv(out / "trajectory.csv", run.trajectory.stamps_ns, run.trajectory.poses)
     map_from_world = inverse(np.array(report["trajectory"]["ate"]["alignment_xyt"]))
     keyframes = run.slam.keyframe_poses()
+    mapped = run.slam.landmarks()
+    write_landmarks(out / "landmarks.csv", mapped)
     plot_run(run.grid, out / "trajectory.png", compose(map_from_world, recording.scans.poses), run.trajectory.poses,
-             run.odometry.poses, [(keyframes[i], keyframes[j]) for i, j in run.slam.loop_edges()])
+             run.odometry.poses, [(keyframes[i], keyframes[j]) for i, j in run.slam.loop_edges()],
+             (mapped.ids, mapped.positions, mapped.covariances))
     draw_detections(recording.log, score, recording.frames, world, mount, out / "camera_detections.png")
     seconds["total"] = time.monotonic() - started
     write_report(out, report)

@@ -1,12 +1,13 @@
 """SLAM over a demo log: the log replayed (as fast as possible) through ``trundle.fusion.slam.Slam``
 with wheel odometry from ``/wheels`` (the wheel model of the daemon's config, stored in the log)
 and the laser mount from ``/tf_static``, with the default SLAM configuration (the one every log
-gets: nothing here is tuned to the simulated robot).
+gets: nothing here is tuned to the simulated robot); with ``markers`` the daemon's marker
+sightings on ``/landmarks`` join the pose graph as landmarks
+(``trundle.fusion.landmark_grid_slam.LandmarkGridSlam``).
 """
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,13 +17,15 @@ import numpy as np
 
 from trundle.fusion.evaluation import Trajectory
 from trundle.fusion.odometry import DiffDriveOdometry, odometry_from_config
+from trundle.fusion.landmark_grid_slam import LandmarkGridSlam
 from trundle.fusion.slam import Slam, SlamConfig
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.metadata import read_metadata
 from trundle.logs.reader import LogInfo, LogReader
 from trundle.logs.replay import replay
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
-from trundle.tools.demo.topics import SCAN_TOPIC, WHEELS_TOPIC
+from trundle.tools.demo.topics import LANDMARK_TOPIC, SCAN_TOPIC, WHEELS_TOPIC
 
 @dataclass(eq=False)
 class SlamRun:
@@ -38,24 +41,28 @@ class SlamRun:
 
 
 def wheel_odometry(info: LogInfo) -> DiffDriveOdometry:
-    """Wheel odometry with the wheel model of the ``[can]`` table the daemon ran with (log metadata)."""
-    devices = json.loads(info.metadata.get("trundle", {}).get("devices", "{}"))
-    can = next((d for d in devices.values() if d.get("family") == "can"), None)
-    odometry = odometry_from_config(can) if can is not None else None
+    """Wheel odometry with the wheel model the log's metadata holds (the daemon's ``[can]`` table)."""
+    model = read_metadata(info.metadata).wheel_model()
+    odometry = odometry_from_config(model) if model is not None else None
     if odometry is None:
         raise UserError(f"{info.path}: no wheel model (wheel_radius_m, track_m) in the log's device metadata")
     return odometry
 
 
-def run_slam(log: Path, config: SlamConfig | None = None, progress: ProgressFactory = NoProgress) -> SlamRun:
+def run_slam(log: Path, config: SlamConfig | None = None, progress: ProgressFactory = NoProgress,
+             markers: bool = False) -> SlamRun:
     """Replay ``log`` (as fast as possible) through SLAM with wheel odometry from ``/wheels``
-    (``config`` default: the defaults), showing the scans done on a ``progress`` display."""
+    (``config`` default: the defaults), showing the scans done on a ``progress`` display; with
+    ``markers`` the log's ``/landmarks`` too (a UserError when it has none)."""
     with LogReader(log) as reader:
         info = reader.info()
     if SCAN_TOPIC not in info.topics:
         raise UserError(f"{log}: no {SCAN_TOPIC} topic")
+    if markers and LANDMARK_TOPIC not in info.topics:
+        raise UserError(f"{log}: no {LANDMARK_TOPIC} topic (marker sightings of the daemon)")
     odometry = wheel_odometry(info)
-    slam = Slam(config or SlamConfig(), odometry)
+    config = config or SlamConfig()
+    slam = LandmarkGridSlam(config, odometry, landmark_topic=LANDMARK_TOPIC) if markers else Slam(config, odometry)
     odom_stamps: list[int] = []
     odom_poses: list[np.ndarray] = []
     bar = progress("slam", info.topics[SCAN_TOPIC].count)
@@ -69,7 +76,7 @@ def run_slam(log: Path, config: SlamConfig | None = None, progress: ProgressFact
             bar.update(slam.stats.scans, f"{slam.stats.scans} scans, {slam.stats.loop_closures} loop closures")
 
     started = time.perf_counter()
-    replay(log, feed, rate=0.0, topics=["/tf_static", WHEELS_TOPIC, SCAN_TOPIC])
+    replay(log, feed, rate=0.0, topics=["/tf_static", WHEELS_TOPIC, SCAN_TOPIC] + ([LANDMARK_TOPIC] if markers else []))
     slam.finish()
     bar.close()
     if slam.stats.scans == 0:

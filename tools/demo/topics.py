@@ -6,3 +6,4 @@ SCAN_TOPIC = "/scan"                                # the laser's LaserScan
 WHEELS_TOPIC = "/wheels"                            # the wheel encoders' joint states
 IMAGE_TOPIC = "/camera/image_raw/compressed"        # the camera's JPEG frames
 CAMERA_INFO_TOPIC = "/camera/camera_info"           # the camera's calibration
+LANDMARK_TOPIC = "/landmarks"                       # the markers the daemon saw, as landmark observations

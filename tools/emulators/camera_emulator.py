@@ -27,6 +27,7 @@ from trundle.drivers.frame_source import FrameSource
 from trundle.drivers.lifecycle import DeviceError
 from trundle.drivers.video_file import ImageFolderSource, VideoFileSource, probe_video
 from trundle.logs.errors import UserError
+from trundle.logs.paths import input_file
 
 BOUNDARY = "trundleframe"
 STREAM_PATH = "/stream.mjpg"
@@ -109,6 +110,8 @@ class CameraEmulator:
             path = Path(source)
             if not path.exists():
                 raise UserError(f"emulator source not found: {path}")
+            if not path.is_dir():
+                input_file(path, "video file or image folder")  # not a device that reads forever
             if path.is_dir():
                 self._file = ImageFolderSource(path, fps=fps, pace=False, loop=True)
             else:

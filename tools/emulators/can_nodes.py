@@ -29,6 +29,7 @@ from trundle.drivers.can_bus import CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_PROT, 
 from trundle.logs.errors import UserError
 
 SpeedSource = Callable[[float], Sequence[float]]
+VERSION_0_6 = odrive.Version(protocol=2, hardware=(4, 4, 58), firmware=(0, 6, 10))  # an ODrive Pro, firmware 0.6.10
 
 
 class VelocityScript:
@@ -149,7 +150,13 @@ class OdriveNode(EmulatedNode):
     """One ODrive axis speaking CAN Simple: heartbeat, encoder estimates (and optionally encoder
     counts) cyclically, RTR requests answered, state requests, clear errors and reboot obeyed.
     ``count_offset`` starts the i32 shadow count near its wrap; ``encoder_error`` raises the
-    0.5 heartbeat's encoder error flag."""
+    0.5 heartbeat's encoder error flag.
+
+    ``firmware = "0.6"`` is an ODrive Pro / S1: it answers Get_Version (0x000, ``VERSION_0_6``)
+    and its heartbeat carries procedure result and trajectory-done flag in bytes 5 and 6; in
+    velocity control the trajectory is always "done", so byte 6 is 1 (where 0.5 keeps its
+    encoder error flag). ``"0.5"`` has no Get_Version and ignores the request.
+    """
 
     def __init__(self, node_id: int, wheel: int, *, firmware: str = "0.5", heartbeat_ms: int = 100,
                  encoder_ms: int = 10, count_ms: int = 0, cpr: int = 8192, count_offset: int = 0) -> None:
@@ -167,8 +174,10 @@ class OdriveNode(EmulatedNode):
 
     def _payload(self, cmd: int, turns: float, speed: float) -> bytes | None:
         if cmd == odrive.HEARTBEAT:
-            flags = (0, int(self.encoder_error), 0) if self.firmware == "0.5" else (0, 0, 0)
+            flags = (0, int(self.encoder_error), 0) if self.firmware == "0.5" else (0, 1, 0)  # 0.6: trajectory done
             return odrive.encode_heartbeat(odrive.Heartbeat(self.axis_error, self.axis_state, flags))
+        if cmd == odrive.GET_VERSION:
+            return None if self.firmware == "0.5" else odrive.encode_version(VERSION_0_6)
         if cmd == odrive.GET_ENCODER_ESTIMATES:
             return odrive.encode_encoder_estimates(turns + self.turns_offset, speed)
         if cmd == odrive.GET_ENCODER_COUNT:

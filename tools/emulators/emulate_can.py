@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import argparse
 import signal
-import threading
 import time
 from pathlib import Path
 
 from trundle.drivers import cia406
 from trundle.drivers.dbc_wheels import VESC_DBC
+from trundle.drivers.lifecycle import SignalFlag
 from trundle.logs.errors import UserError
+from trundle.tools.config.arguments import number_in, positive
 from trundle.tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes,
                                                odrive_nodes, vesc_nodes)
 from trundle.tools.emulators.slcan_emulator import SlcanEmulator
@@ -36,9 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--nodes", help="node ids, one per wheel (default odrive 0,1; cia406 5,6; dbc 9,10)")
     parser.add_argument("--script", default="0:0.5,0.5",
                         help="motor speeds in turns/s from T seconds on: 'T:left,right;T:left,right' (default 0:0.5,0.5)")
-    parser.add_argument("--duration", type=float,
+    parser.add_argument("--duration", type=positive,
                         help="stop this many seconds after the host opened the adapter (default: until Ctrl-C)")
-    parser.add_argument("--drop", type=float, default=0.0, metavar="P", help="drop each frame with probability P")
+    parser.add_argument("--drop", type=number_in(0.0, 1.0), default=0.0, metavar="P",
+                        help="drop each frame with probability P (0 <= P < 1)")
     parser.add_argument("--wrap", action="store_true", help="start the position counters just below their wrap")
     parser.add_argument("--firmware", default="0.5", choices=("0.5", "0.6"), help="ODrive firmware line")
     parser.add_argument("--fault", action="append", default=[], metavar="T:KIND[:WHEEL]",
@@ -104,8 +106,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"cannot emulate {args.protocol} nodes {ids}: {error}") from None
     if not args.link.parent.is_dir():
         raise UserError(f"no directory for the link: {args.link.parent}")
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    stop = SignalFlag()
+    signal.signal(signal.SIGTERM, stop.raise_)
     adapter = SlcanEmulator(str(args.link)).start()
     runner = CanNodeRunner(adapter.bus, nodes, WheelMotion(script, start_s=float("inf")), adapter=adapter)
     runner.drop_probability = args.drop
@@ -121,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     runner.start()
     start = None
     try:
-        while not stop.is_set():
+        while not stop.raised:
             if start is None:
                 if not adapter.is_open:
                     stop.wait(0.005)

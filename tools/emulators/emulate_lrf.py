@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 from trundle.logs.errors import UserError
+from trundle.tools.config.arguments import positive, tcp_port
 from trundle.tools.emulators import rplidar_emulator, scip2_emulator
 from trundle.tools.emulators.device_server import DeviceServer
 from trundle.tools.emulators.faults import parse_faults
@@ -30,14 +31,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sensor model (default utm-30lx for scip2, a1 for rplidar)")
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--link", type=Path, metavar="PATH", help="symlink to create for the emulated serial port")
-    where.add_argument("--tcp", type=int, metavar="PORT", help="serve on this TCP port of 127.0.0.1 (0: any)")
+    where.add_argument("--tcp", type=tcp_port, metavar="PORT", help="serve on this TCP port of 127.0.0.1 (0: any)")
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="TOML polygon scene (default: a room)")
     parser.add_argument("--faults", default="", metavar="SPEC", help=(
         "comma-separated per-scan probabilities, flags and durations, e.g. checksum=0.02,stall=0.005,"
         f"stall_s=0.3,streaming,seed=1; scip2: {' '.join(scip2_emulator.KINDS)}, flag streaming, wrap=S "
         f"(seconds to the 24-bit clock wrap); rplidar: {' '.join(rplidar_emulator.KINDS)}, flags "
         f"{' '.join(rplidar_emulator.FLAGS)}; durations stall_s, unplug_s, reboot_s"))
-    parser.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds (default: Ctrl-C)")
+    parser.add_argument("--duration", type=positive, metavar="S", help="stop after this many seconds (default: Ctrl-C)")
 
 
 def build_device(protocol: str, model_name: str | None, scene_path: Path, faults: str, now_ns: int):

@@ -3,6 +3,11 @@
 The emulator holds the master side; a driver opens the symlink (as it would open
 ``/dev/serial/by-id/...``) and gets the slave. ``unplug`` closes the pty and removes the
 link, as pulling the cable does; ``replug`` makes a new pty behind the same link.
+
+The link never replaces anything but a link of its own kind: a path that exists (a file, a
+real device node such as ``/dev/ttyACM0``, a folder, someone's link) is refused, except a stale
+link left by a killed emulator (pointing at a pty slave that no longer exists). Only the
+emulator's own link is ever removed.
 """
 
 from __future__ import annotations
@@ -13,6 +18,32 @@ import termios
 import tty
 from pathlib import Path
 
+from trundle.logs.errors import UserError
+
+
+PTY_SLAVES = "/dev/pts/"
+
+
+def _ours(path: Path, target: str) -> bool:
+    """Whether ``path`` is a link to ``target`` (our pty) or a stale link to a pty slave that is gone."""
+    try:
+        pointed = os.readlink(path)
+    except OSError:
+        return False
+    return pointed == target or (pointed.startswith(PTY_SLAVES) and not os.path.exists(pointed))
+
+
+def check_link_path(path: Path, own_target: str = "") -> None:
+    """Refuse a link path that exists and is not ours (see the module doc): a UserError naming it."""
+    if not (path.exists() or path.is_symlink()) or _ours(path, own_target):
+        return
+    if path.is_symlink():
+        raise UserError(f"{path} is a link to {os.readlink(path)}, which is in use (another emulator?); "
+                        "remove the link if it is a leftover")
+    kind = "a folder" if path.is_dir() else "a device node" if path.is_char_device() or path.is_block_device() \
+        else "a file"
+    raise UserError(f"{path} exists and is {kind}: the emulator's link replaces nothing; choose a new path")
+
 
 class PtyLink:
     """One emulated serial device on a pty whose slave is reachable at ``link_path``."""
@@ -21,6 +52,7 @@ class PtyLink:
         self.link_path = Path(link_path)
         self._master = -1
         self._slave = -1
+        self._target = ""
         self.replug()
 
     @property
@@ -33,6 +65,7 @@ class PtyLink:
     def replug(self) -> None:
         """(Re)create the pty and point the symlink at its slave."""
         self._close_fds()
+        check_link_path(self.link_path, self._target)
         master, slave = os.openpty()
         tty.setraw(slave)
         attrs = termios.tcgetattr(slave)
@@ -40,14 +73,17 @@ class PtyLink:
         termios.tcsetattr(slave, termios.TCSANOW, attrs)
         os.set_blocking(master, False)
         self._master, self._slave = master, slave
-        tmp = self.link_path.with_name(self.link_path.name + ".tmp")
+        target = os.ttyname(slave)
+        tmp = self.link_path.with_name(f".{self.link_path.name}.{os.getpid()}.tmp")  # this process's own name
         tmp.unlink(missing_ok=True)
-        os.symlink(os.ttyname(slave), tmp)
+        os.symlink(target, tmp)
         os.replace(tmp, self.link_path)
+        self._target = target
 
     def unplug(self) -> None:
         """Remove the link and close the pty: the driver's reads fail as on a pulled cable."""
-        self.link_path.unlink(missing_ok=True)
+        if self._target and _ours(self.link_path, self._target):
+            self.link_path.unlink(missing_ok=True)
         self._close_fds()
 
     def read(self, max_bytes: int = 65536, timeout_s: float = 0.0) -> bytes:

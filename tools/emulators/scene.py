@@ -24,6 +24,7 @@ from typing import Any, Callable
 import numpy as np
 
 from trundle.logs.errors import UserError
+from trundle.logs.paths import read_text
 from trundle.tools.sim.world import cast_rays
 
 DEFAULT_SCENE = Path(__file__).with_name("room.toml")
@@ -104,10 +105,7 @@ def load_scene(path: str | Path = DEFAULT_SCENE) -> Scene:
     """Read a scene file; a missing or malformed file is a UserError."""
     path = Path(path)
     try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
-    except FileNotFoundError:
-        raise UserError(f"scene file not found: {path}") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+        data = tomllib.loads(read_text(path, "scene file"))
+    except tomllib.TOMLDecodeError as error:
         raise UserError(f"{path} is not a valid TOML scene: {error}") from None
     return parse_scene(data, str(path))

@@ -1,92 +1,83 @@
-"""The job config (a TOML file of tables) and the robot model it or the log gives: wheels, laser mount.
+"""The robot model a job uses: the wheel model and laser mount from the job's config (a robot
+config, :mod:`trundle.tools.config.robot`) or from the log's own description.
 
 ``[odometry]`` holds the wheel model (``wheel_radius_m``, ``track_m``, ``wheels = [left, right]``,
 ``wheel_variance_per_m``), ``[laser]`` the laser mount on the robot (``x_m``, ``y_m`` in metres,
-``yaw_rad``); ``trundle slam`` and ``trundle localize`` read the same tables.
+``yaw_rad``); ``trundle slam`` and ``trundle localize`` read the same file the daemon does.
 """
 
 from __future__ import annotations
 
-import json
-import tomllib
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 from trundle.fusion.odometry import DiffDriveOdometry, odometry_from_config
 from trundle.logs.errors import UserError
+from trundle.logs.metadata import read_metadata
 from trundle.logs.reader import LogInfo
+from trundle.tools.config.robot import RobotConfig, parse_config
 
-ODOMETRY_KEYS = {"wheel_radius_m", "track_m", "wheels", "wheel_variance_per_m"}
-LASER_KEYS = {"x_m", "y_m", "yaw_rad"}
-
-
-def load_config(path: Path | None) -> dict[str, Any]:
-    """The TOML config as a dict ({} without a path); unreadable or invalid files are a UserError."""
-    if path is None:
-        return {}
-    if not path.is_file():
-        raise UserError(f"no such config file: {path}")
-    try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
-    except tomllib.TOMLDecodeError as error:
-        raise UserError(f"{path}: invalid TOML ({error})") from None
+JobConfig = RobotConfig | Mapping[str, Any] | None
+"""What a job takes as its config: a checked robot config, a decoded TOML document (checked here), or none."""
 
 
-def config_table(config: Mapping[str, Any], name: str, keys: set[str]) -> dict[str, Any]:
-    """The ``[name]`` table of ``config`` ({} if absent); a non-table or an option not in ``keys``
-    is a UserError, so a misspelt option is said instead of silently ignored."""
-    table = config.get(name, {})
-    if not isinstance(table, dict):
-        raise UserError(f"[{name}] must be a table")
-    unknown = set(table) - keys
-    if unknown:
-        raise UserError(f"unknown [{name}] option(s) {sorted(unknown)} (known: {sorted(keys)})")
-    return table
+def robot_config(config: JobConfig) -> RobotConfig:
+    """``config`` as a checked :class:`RobotConfig` (a document goes through the one validator)."""
+    if config is None:
+        return RobotConfig()
+    if isinstance(config, RobotConfig):
+        return config
+    return parse_config(dict(config))
 
 
-def _robot_model(metadata: Mapping[str, str]) -> dict[str, Any]:
-    """The ``robot`` metadata as the importers write it (a JSON table: wheel model, laser mount); {} when
-    it is something else (the daemon stores the robot's name there)."""
-    try:
-        robot = json.loads(metadata.get("robot", "{}") or "{}")
-    except json.JSONDecodeError:
-        return {}
-    return robot if isinstance(robot, dict) else {}
+def wheel_model(info: LogInfo, config: JobConfig) -> tuple[Mapping[str, Any] | None, str]:
+    """The wheel model for ``info``'s log and where it comes from: the config's ``[odometry]``
+    table, its ``[can]`` table, else the log's own description
+    (:meth:`trundle.logs.metadata.LogMetadata.wheel_model`: what the importers, the recorder and
+    the daemon store); ``(None, "")`` without one."""
+    config = robot_config(config)
+    can = config.options("can") if any(d.family == "can" for d in config.devices) else {}
+    for model, where in ((config.odometry, "the config's [odometry]"), (can, "the config's [can]"),
+                         (read_metadata(info.metadata).wheel_model(), "the log's metadata")):
+        if model and ("wheel_radius_m" in model or "track_m" in model):
+            return model, where
+    return None, ""
 
 
-def make_odometry(info: LogInfo, config: Mapping[str, Any]) -> DiffDriveOdometry | None:
-    """Wheel odometry for a log with wheel joint states; None if it has none (or only ``Odometry``).
+def _topics(info: LogInfo, ros_type: str) -> list[str]:
+    return sorted(name for name, t in info.topics.items() if t.ros_type == ros_type)
 
-    The wheel model comes from the first of: the config's ``[odometry]`` table, the log's
-    ``robot`` metadata (written by the importers), the ``[can]`` device table the recorder or
-    daemon ran with (``devices`` metadata).
-    """
-    if not any(t.ros_type == "sensor_msgs/msg/JointState" for t in info.topics.values()):
+
+def make_odometry(info: LogInfo, config: JobConfig) -> DiffDriveOdometry | None:
+    """Wheel odometry for a log with wheel joint states (wheel model: :func:`wheel_model`); None if
+    it has none, or only ``Odometry``; a UserError for wheel states without a wheel model."""
+    if not _topics(info, "sensor_msgs/msg/JointState"):
         return None
-    metadata = info.metadata.get("trundle", {})
-    devices = json.loads(metadata.get("devices", "{}") or "{}")
-    sources = [config_table(config, "odometry", ODOMETRY_KEYS), _robot_model(metadata),
-               next((d for d in devices.values() if isinstance(d, dict) and d.get("family") == "can"), {})]
-    for source in sources:
-        odometry = odometry_from_config(source) if source else None
-        if odometry is not None:
-            return odometry
-    if any(t.ros_type == "nav_msgs/msg/Odometry" for t in info.topics.values()):
+    model, _ = wheel_model(info, config)
+    if model is not None:
+        return odometry_from_config(model)
+    if _topics(info, "nav_msgs/msg/Odometry"):
         return None
     raise UserError("the log has wheel joint states but no wheel model: give wheel_radius_m and track_m "
                     "in the [odometry] table of --config")
 
 
-def laser_pose(info: LogInfo, config: Mapping[str, Any]) -> tuple[float, float, float] | None:
+def odometry_source(info: LogInfo, config: JobConfig, wheels: DiffDriveOdometry | None) -> str:
+    """What a job's odometry is, in words: the wheel encoders (and where their model came from),
+    the log's odometry messages (and, for an imported log, what the importer made them of), or ""
+    when the log has none (the job then runs on the laser alone)."""
+    if wheels is not None:
+        return (f"wheel encoders ({', '.join(_topics(info, 'sensor_msgs/msg/JointState'))}; "
+                f"wheel model from {wheel_model(info, config)[1]})")
+    topics = _topics(info, "nav_msgs/msg/Odometry")
+    if not topics:
+        return ""
+    made = read_metadata(info.metadata).fields.get("odometry_description", "")
+    return f"odometry messages ({', '.join(topics)})" + (f": {made}" if made else "")
+
+
+def laser_pose(info: LogInfo, config: JobConfig) -> tuple[float, float, float] | None:
     """The laser mount (x m, y m, yaw rad): the ``[laser]`` table, else the log's ``robot`` metadata
     (``laser_x_m``, ``laser_y_m``, ``laser_yaw_rad``), else None (then the log's /tf_static, or the identity)."""
-    table = config_table(config, "laser", LASER_KEYS)
-    if table:
-        return (float(table.get("x_m", 0.0)), float(table.get("y_m", 0.0)), float(table.get("yaw_rad", 0.0)))
-    robot = _robot_model(info.metadata.get("trundle", {}))
-    if any(k in robot for k in ("laser_x_m", "laser_y_m", "laser_yaw_rad")):
-        return (float(robot.get("laser_x_m", 0.0)), float(robot.get("laser_y_m", 0.0)),
-                float(robot.get("laser_yaw_rad", 0.0)))
-    return None
+    config = robot_config(config)
+    return config.laser if config.laser is not None else read_metadata(info.metadata).laser_mount()

@@ -4,7 +4,8 @@
             ``<image>/color_centroids`` (POINTS);
 - markers:  ``<image>/aruco_outlines`` (LINE_LIST, each marker's quadrilateral) and, with a
             marker size and the camera's CameraInfo, each marker's pose on ``/tf`` as
-            ``<camera frame> -> aruco_<id>``;
+            ``<camera frame> -> aruco_<id>``, and, once ``/tf_static`` places the camera on the
+            robot, the markers as landmark observations in ``base_link`` on ``/landmarks``;
 - features: ``<image>/keypoints`` (POINTS) and ``<image>/keypoint_orientations`` (LINE_LIST,
             from each keypoint a tick of half its size along its orientation).
 
@@ -24,7 +25,9 @@ import numpy as np
 
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.paths import input_file
 from trundle.perception.color import ColorSegmentation, HsvTemplate, segment_color, template_histograms
+from trundle.perception.landmarks import StaticFrames, marker_observation
 from trundle.perception.markers import MarkerDetector, marker_pose
 from trundle.tools.jobs.image_markers import CYAN, GREEN, MAGENTA, YELLOW, closed_line_list, ellipse_outline, image_marker
 
@@ -34,7 +37,7 @@ Triple = tuple[float, float, float]
 
 def _read_image(path: str | Path, flags: int) -> np.ndarray:
     """The image file at ``path`` read with OpenCV ``flags``; an unreadable one is a UserError."""
-    image = cv2.imread(str(path), flags)
+    image = cv2.imread(str(input_file(path, "image")), flags)
     if image is None:
         raise UserError(f"cannot read image {path}")
     return image
@@ -51,6 +54,9 @@ class Pipeline:
     def summary(self) -> dict[str, Any]:
         """The pipeline's totals over all frames processed, for the job's report."""
         raise NotImplementedError
+
+    def static_transforms(self, msg: m.TFMessage) -> None:
+        """A ``/tf_static`` message of the log (where the sensors sit on the robot); most pipelines ignore it."""
 
 
 class ColorPipeline(Pipeline):
@@ -114,8 +120,12 @@ class MarkerPipeline(Pipeline):
             raise UserError("--marker-size must be positive (metres)")
         self.detector = MarkerDetector(dictionary, refinement)
         self.size = marker_size
+        self.frames = StaticFrames()
         self.ids: collections.Counter[int] = collections.Counter()
         self.poses = 0
+        self.landmark_messages = 0
+        self.poses_without_mount = 0
+        self.too_small = 0
         self.poses_missing_camera_info = 0
         self.poses_failed = 0
 
@@ -131,25 +141,45 @@ class MarkerPipeline(Pipeline):
         if camera is None:
             self.poses_missing_camera_info += len(markers)
             return len(markers), out
-        transforms = []
+        transforms, observations = [], []
+        frame = msg.frame_id or camera.frame_id
+        camera_in_base = self.frames.pose_in(frame)
         for marker in markers:
             try:
                 pose = marker_pose(marker, camera, self.size)
             except ValueError:      # no solver found a pose (degenerate corners)
                 self.poses_failed += 1
                 continue
-            transforms.append(m.TransformStamped(msg.stamp_ns, msg.frame_id or camera.frame_id, f"aruco_{marker.id}",
+            transforms.append(m.TransformStamped(msg.stamp_ns, frame, f"aruco_{marker.id}",
                                                  pose.translation, pose.quaternion()))
+            landmark = None if camera_in_base is None else marker_observation(marker, pose, camera, self.size,
+                                                                               camera_in_base)
+            if landmark is not None:
+                observations.append(landmark)
+            elif camera_in_base is not None:
+                self.too_small += 1
         self.poses += len(transforms)
+        if camera_in_base is None:
+            self.poses_without_mount += len(transforms)
         if transforms:
             out.append(("/tf", m.TFMessage(tuple(transforms))))
+        if observations:
+            out.append(("/landmarks", m.LandmarkList(msg.stamp_ns, "base_link", tuple(observations))))
+            self.landmark_messages += 1
         return len(markers), out
 
+    def static_transforms(self, msg: m.TFMessage) -> None:
+        """Keep the camera's mount for the markers' landmark observations."""
+        self.frames.add(msg)
+
     def summary(self) -> dict[str, Any]:
-        """Markers seen per id, and poses found, failed and lacking a CameraInfo."""
+        """Markers seen per id, poses found, failed and lacking a CameraInfo, and landmark messages
+        written (and poses without them for want of the camera's mount on ``/tf_static``, or for
+        markers too small in the image to place)."""
         return {"marker_ids": {str(k): v for k, v in sorted(self.ids.items())}, "markers": sum(self.ids.values()),
                 "poses": self.poses, "poses_missing_camera_info": self.poses_missing_camera_info,
-                "poses_failed": self.poses_failed}
+                "poses_failed": self.poses_failed, "landmark_messages": self.landmark_messages,
+                "poses_without_camera_mount": self.poses_without_mount, "too_small_for_landmarks": self.too_small}
 
 
 class FeaturePipeline(Pipeline):

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -22,9 +21,10 @@ from trundle.fusion.odometry_faults import OdometryFault, dropped, faulty_poses,
 from trundle.logs import messages as m
 from trundle.logs import ros2
 from trundle.logs.errors import UserError
+from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader
 from trundle.logs.recover import copy_log
-from trundle.tools.jobs.config import make_odometry
+from trundle.tools.jobs.config import JobConfig, make_odometry
 
 ODOMETRY_TYPE, JOINT_STATE_TYPE = "nav_msgs/msg/Odometry", "sensor_msgs/msg/JointState"
 
@@ -32,9 +32,10 @@ Key = tuple[str, int, bytes]  # topic, log time, original data
 
 
 def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
-                  config: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                  config: JobConfig = None) -> dict[str, Any]:
     """Write ``output``: ``log`` with ``faults`` in its odometry. Returns a report: the faults and, per
     odometry topic, the messages changed and dropped."""
+    new_file(output, "output log")
     reader = LogReader(log)
     info = reader.info()
     topics = {name: t.ros_type for name, t in info.topics.items() if t.ros_type in (ODOMETRY_TYPE, JOINT_STATE_TYPE)}
@@ -43,7 +44,7 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
     raw = [r for r in reader.raw_messages(topics=topics) if r.data]
     decoded = [(r, ros2.decode(r.ros_type, r.data)) for r in raw]
     start_ns = min(msg.stamp_ns for _, msg in decoded)
-    wheels = make_odometry(info, config or {}) if JOINT_STATE_TYPE in topics.values() else None
+    wheels = make_odometry(info, config) if JOINT_STATE_TYPE in topics.values() else None
     replacements: dict[Key, bytes | None] = {}
     counts: dict[str, dict[str, int]] = {}
     for topic, ros_type in sorted(topics.items()):

@@ -4,7 +4,7 @@ Every image (sensor_msgs/Image or CompressedImage) of the chosen topics goes thr
 of :mod:`trundle.tools.jobs.image_pipelines`; its detections are written as
 visualization_msgs/ImageMarker (stamped and framed like the image) with the image's log time. The
 images and camera infos are copied into the output too (unless ``images=False``), so it opens on
-its own. A corrupt message or image is counted and skipped, never fatal.
+its own, and so is ``/tf_static`` (the marker pipeline places the camera on the robot by it). A corrupt message or image is counted and skipped, never fatal.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import numpy as np
 from trundle.logs import messages as m
 from trundle.logs import ros2
 from trundle.logs.errors import UserError
+from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader
 from trundle.logs.writer import Logger
 from trundle.perception.images import decode_image
@@ -65,6 +66,7 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
     if output.exists() and log.exists() and output.resolve() == log.resolve():
         raise UserError("the output must not be the input log")
     reader = LogReader(log)
+    new_file(output, "output")
     info = reader.info()
     image_topics = sorted(t for t, i in info.topics.items() if i.ros_type in IMAGE_TYPES)
     topics = list(topics or image_topics)
@@ -88,11 +90,15 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
                 time.sleep(0.001)
             logger.write_encoded(topic, ros_type, data, log_time_ns)
 
-        for raw in reader.raw_messages(topics + info_topics):
-            if images:
+        static = ["/tf_static"] if "/tf_static" in info.topics else []
+        for raw in reader.raw_messages(topics + info_topics + static):
+            if images or raw.topic == "/tf_static":
                 write(raw.topic, raw.ros_type, raw.data, raw.log_time_ns)
             try:
                 msg = ros2.decode(raw.ros_type, raw.data)
+                if isinstance(msg, m.TFMessage):
+                    detector.static_transforms(msg)
+                    continue
                 if isinstance(msg, m.CameraInfo):
                     cameras[raw.topic] = msg
                     continue

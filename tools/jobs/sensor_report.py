@@ -19,9 +19,11 @@ def write_plots(folder: Path, plots: dict[str, Any]) -> list[str]:
     if "beam_noise" in plots:
         angles, std = plots["beam_noise"]
         fig, ax = plt.subplots(figsize=(8, 3.5))
-        ax.semilogy(np.degrees(angles), std * 1000, lw=0.8)
+        log_scale = bool(np.any(std > 0))  # a noiseless (simulated or quantised) laser has no log axis
+        (ax.semilogy if log_scale else ax.plot)(np.degrees(angles), std * 1000, lw=0.8)
         ax.axhline(np.nanmedian(std) * 1000, color="k", ls="--", lw=0.8, label=f"median {np.nanmedian(std) * 1000:.1f} mm")
-        ax.set(xlabel="beam angle (deg)", ylabel="noise std (mm, log)", title="Per-beam noise while standing still")
+        ax.set(xlabel="beam angle (deg)", ylabel=f"noise std (mm{', log' if log_scale else ''})",
+               title="Per-beam noise while standing still")
         ax.legend(loc="upper right")
         fig.tight_layout()
         fig.savefig(folder / "beam_noise.png", dpi=110)

@@ -5,7 +5,9 @@ loop closures over the map, the stretches that fail the map self-check in magent
 (every keyframe's scan endpoints at its optimised pose: doubled walls show here, not in the
 occupancy map), ``trajectory.csv`` (``t_ns,x,y,theta`` of every scan in the map frame),
 ``report.json`` (with ``map_check``, see :mod:`trundle.fusion.map_check`) and ``slam.mcap`` with
-``/map``, ``/tf`` (map -> odom per scan) and ``/path``. The wheel model comes from the config's ``[odometry]`` table or the log's metadata (see
+``/map``, ``/tf`` (map -> odom per scan) and ``/path``. A log with landmark sightings (``/landmarks``) puts them into the pose graph
+(:class:`trundle.fusion.landmark_grid_slam.LandmarkGridSlam`) and adds ``landmarks.csv``
+(``id,x,y,sx,sy``), the landmarks on ``trajectory.png`` and ``/landmarks/map`` in ``slam.mcap``. The wheel model comes from the config's ``[odometry]`` table or the log's metadata (see
 :func:`trundle.tools.jobs.config.make_odometry`); ``[slam]`` holds
 :class:`trundle.fusion.slam.SlamConfig`; ``[laser]`` (``x_m``, ``y_m``, ``yaw_rad``) overrides the
 laser mount of the log's ``/tf_static``.
@@ -15,20 +17,24 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Mapping
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from trundle.fusion.landmark_grid_slam import LandmarkGridSlam
 from trundle.fusion.map_check import MapCheck
 from trundle.fusion.map_io import plot_scans, plot_trajectory, save_map, write_trajectory_csv
 from trundle.fusion.slam import Slam, SlamConfig
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.importers import write_log
+from trundle.logs.paths import output_folder
 from trundle.logs.reader import LogReader
-from trundle.tools.jobs.config import config_table, laser_pose, make_odometry
+from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, odometry_source, robot_config
+from trundle.tools.jobs.landmark_slam import (ESTIMATORS, landmark_markers, landmark_slam_log, landmark_topic,
+                                              write_landmarks)
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 
 
@@ -53,27 +59,39 @@ def map_check_report(check: MapCheck, stamps_ns: np.ndarray, t0_ns: int) -> dict
             "stretches": stretches}
 
 
-def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, local_only: bool = False,
-             progress: ProgressFactory = NoProgress) -> dict[str, Any]:
-    """Run SLAM over ``log`` and write its outputs into the folder ``output`` (created).
+def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool = False,
+             progress: ProgressFactory = NoProgress, estimator: str | None = None) -> dict[str, Any]:
+    """Run SLAM over ``log`` and write its outputs into the folder ``output`` (created; an existing
+    one must be empty, so a result is never overwritten).
 
-    ``config`` is the parsed TOML (``[slam]``, ``[odometry]``, ``[laser]`` tables; none by default);
-    ``local_only`` turns loop closure off whatever the config says. ``progress`` shows the log
-    seconds done. Returns the report (also written as ``report.json``): counts, timings (s),
-    residuals (m), path length (m), map size and the SLAM options used.
+    ``config`` is the robot config (``[slam]``, ``[odometry]``, ``[laser]``, ``[landmarks]`` tables;
+    none by default); ``local_only`` turns loop closure off whatever the config says. ``progress``
+    shows the log seconds done. ``estimator``: ``graph`` (the grid SLAM's pose graph, with the log's
+    landmark sightings as constraints; a log with sightings but no scans gets the landmark graph)
+    or ``ekf`` (EKF-SLAM of :mod:`trundle.tools.jobs.landmark_slam`); None chooses ``graph``.
+    Returns the report (also written as ``report.json``): the odometry it used (``odometry_source``:
+    wheel encoders, odometry messages or ``none``), counts, timings (s), residuals (m), path length
+    (m), map size and the SLAM options used.
     """
-    config = config or {}
+    config = robot_config(config)
     reader = LogReader(log)
     info = reader.info()
-    slam_config = SlamConfig.from_mapping(config_table(config, "slam", set(SlamConfig.__dataclass_fields__)))
+    if estimator not in (None, *ESTIMATORS):
+        raise UserError(f"unknown estimator {estimator!r} (choose {' or '.join(ESTIMATORS)})")
+    slam_config = SlamConfig.from_mapping(config.slam)
+    scan_info = info.topics.get(slam_config.scan_topic)
+    has_scans = scan_info is not None and scan_info.ros_type == "sensor_msgs/msg/LaserScan"
+    if estimator == "ekf" or (not has_scans and landmark_topic(info, config) is not None):
+        return landmark_slam_log(log, output, config, estimator or "graph", progress)
     if local_only:
         slam_config.loop_closure = False
-    scan_topic = info.topics.get(slam_config.scan_topic)
-    if scan_topic is None or scan_topic.ros_type != "sensor_msgs/msg/LaserScan":
-        raise UserError(f"{log} has no LaserScan topic {slam_config.scan_topic} "
-                        f"(topics: {', '.join(sorted(info.topics)) or 'none'})")
-    slam = Slam(slam_config, make_odometry(info, config), laser_pose(info, config))
-    output.mkdir(parents=True, exist_ok=True)
+    info.require(slam_config.scan_topic, "sensor_msgs/msg/LaserScan")
+    wheels = make_odometry(info, config)
+    odometry = odometry_source(info, config, wheels) or "none"
+    topic = landmark_topic(info, config)
+    slam = (Slam(slam_config, wheels, laser_pose(info, config)) if topic is None else
+            LandmarkGridSlam(slam_config, wheels, laser_pose(info, config), topic))
+    output_folder(output, create=False)  # checked before the work, made once there is a result
 
     bar = progress("slam", max(info.duration_s, 1e-9))
     t0 = info.start_ns or 0
@@ -93,6 +111,7 @@ def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, l
         raise UserError(f"{log}: no scans on {slam_config.scan_topic}")
 
     stamps, poses = slam.trajectory()
+    output_folder(output)
     end_ns = int(stamps.max())
     map_msg = grid.to_message(end_ns, "map")
     save_map(map_msg, output / "map")
@@ -100,17 +119,23 @@ def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, l
     keyframes = slam.keyframe_poses()
     loops = [(keyframes[i], keyframes[j]) for i, j in slam.loop_edges()]
     check = slam.check_map()
+    landmarks = slam.landmarks() if isinstance(slam, LandmarkGridSlam) else None
+    drawn = None if landmarks is None else (landmarks.ids, landmarks.positions, landmarks.covariances)
     plot_trajectory(map_msg, output / "trajectory.png", [poses], loops=loops,
-                    highlights=[slam.keyframe_scans(a, b) for a, b in check.stretches])
+                    highlights=[slam.keyframe_scans(a, b) for a, b in check.stretches], landmarks=drawn)
     plot_scans(map_msg, output / "scans.png", slam.keyframe_endpoints(), check.keyframe_consistency < 0.5)
     path_msg = m.Path(end_ns, "map", stamps, poses)
-    write_log(transforms + [("/map", map_msg, end_ns), ("/path", path_msg, end_ns)], output / "slam.mcap",
+    extra = [] if landmarks is None else [("/landmarks/map", landmark_markers(landmarks, end_ns), end_ns)]
+    write_log(transforms + [("/map", map_msg, end_ns), ("/path", path_msg, end_ns)] + extra, output / "slam.mcap",
               metadata={"command": "slam", "source": str(log)})
+    if landmarks is not None:
+        write_landmarks(output / "landmarks.csv", landmarks)
 
     st = slam.stats
     duration = info.duration_s
     report = {
-        "log": str(log), "scans": st.scans, "keyframes": st.keyframes, "duration_s": duration,
+        "log": str(log), "odometry_source": odometry, "scans": st.scans, "keyframes": st.keyframes,
+        "duration_s": duration,
         "processing_s": processing_s, "cpu_s": cpu_s,
         "real_time_factor": duration / processing_s if processing_s > 0 else None,
         "loop_closures": st.loop_closures, "loop_attempts": st.loop_attempts, "loop_rejected": st.loop_rejected,
@@ -125,5 +150,7 @@ def slam_log(log: Path, output: Path, config: Mapping[str, Any] | None = None, l
         "map_check": map_check_report(check, slam.keyframe_stamps(), t0),
         "config": {k: v for k, v in vars(slam_config).items()},
     }
+    if isinstance(slam, LandmarkGridSlam):
+        report["landmarks"] = {"topic": topic, "mapped": len(landmarks.ids), **asdict(slam.landmark_stats)}
     (output / "report.json").write_text(json.dumps(report, indent=2, default=float))
     return report

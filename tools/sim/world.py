@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from trundle.logs.errors import UserError
+from trundle.logs.paths import read_text
 
 DEFAULT_WORLD = Path(__file__).with_name("worlds") / "office.json"
 ON_WALL_TOLERANCE_M = 0.01
@@ -350,7 +351,9 @@ def load_world(path: str | Path = DEFAULT_WORLD) -> World:
     """Read a floor-plan JSON file (default: the office that ships with trundle)."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(read_text(path, "floor-plan JSON file"))
     except json.JSONDecodeError as error:
         raise UserError(f"{path}: not valid JSON ({error.msg} at line {error.lineno})") from None
+    if not isinstance(data, dict):
+        raise UserError(f"{path}: a floor plan is a JSON object, not {type(data).__name__}")
     return parse_world(data, str(path))

@@ -1,0 +1,327 @@
+"""Grid SLAM with landmarks in its pose graph: marker sightings tighten the map as Cartographer's
+landmark constraints do.
+
+:class:`LandmarkGridSlam` is the grid SLAM of :mod:`trundle.fusion.slam` plus LandmarkList
+messages. A sighting (an id is needed: the grid SLAM does not associate anonymous features) is
+tied to the keyframe of the latest scan: the robot's pose at the sighting's stamp in that
+keyframe's frame is the scan's offset from its keyframe composed with the odometry since the
+scan, and the landmark goes through it into the keyframe's frame. A marker with its full pose is
+a landmark *pose* with a between factor (x, y, yaw), like Cartographer's translation and rotation
+weights; a point landmark has a relative-position factor. Whenever the pose graph is optimised
+(loop closures, the end of the run, or a landmark seen again from a keyframe far from where it
+was first seen) the keyframes and the landmarks are optimised together as one
+:class:`trundle.fusion.factor_graph.FactorGraph`, the landmark factors under a Cauchy kernel, so
+one bad sighting pulls with a bounded force.
+
+Three things are read from the data rather than assumed:
+
+- the relative weight of the laser edges and the sightings: the pose graph's edge covariances
+  are deliberately conservative (a floor per keyframe), which would let a sighting bend the
+  laser's locally exact path; variance component estimation (``vce_rounds``, by
+  :meth:`trundle.fusion.factor_graph.FactorGraph.redundancy`) rescales each group to its
+  residuals;
+- the error correlation of successive sightings (:mod:`trundle.fusion.error_correlation`);
+- the sightings' time offset: a camera stamped on arrival lags the capture, and while the robot
+  turns, a few tens of milliseconds move a marker metres away by centimetres. At the end of the
+  run the offset that makes each landmark's sightings agree best (their information-weighted
+  scatter, over +-``max_time_offset_s``) is found, and the landmarks are placed with it.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from trundle.fusion.error_correlation import decorrelated_information
+from trundle.fusion.factor_graph import BETWEEN, POSITION, FactorGraph
+from trundle.fusion.geometry import compose, relative, rotation, wrap_angle
+from trundle.fusion.landmark_slam import LANDMARK_TOPIC, LandmarkMap, between_covariance
+from trundle.fusion.odometry import DiffDriveOdometry
+from trundle.fusion.slam import ScanResult, Slam, SlamConfig
+from trundle.logs import messages as m
+
+LANDMARK_KERNEL_WIDTH = 3.0
+POSITION_FLOOR_M2 = 1e-6       # variance added to a sighting's position: the motion since the scan
+TIME_OFFSET_STEP_S = 0.002
+MIN_SIGHTINGS_FOR_OFFSET = 20  # fewer cannot tell a time offset from noise
+
+
+@dataclass(frozen=True)
+class _Sighting:
+    """One sighting: its keyframe, landmark, stamp (s), the robot at the stamp in the keyframe's frame
+    (``here``), the robot's velocity then (vx, vy, wz, robot frame) and what was seen (robot frame)."""
+
+    node: int
+    landmark: str
+    stamp_s: float
+    here: np.ndarray
+    velocity: np.ndarray
+    position: np.ndarray
+    position_covariance: np.ndarray
+    yaw: float
+    yaw_variance: float
+
+    @property
+    def oriented(self) -> bool:
+        return self.yaw_variance > 0
+
+    def measurement(self, time_offset_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """The landmark in the keyframe's frame, (x, y) or (x, y, yaw), and its covariance, with the
+        stamp moved by ``time_offset_s``."""
+        here = compose(self.here, self.velocity * time_offset_s)
+        turn = rotation(float(here[2]))
+        position = here[:2] + turn @ self.position
+        xy_cov = turn @ self.position_covariance @ turn.T + np.eye(2) * POSITION_FLOOR_M2
+        if not self.oriented:
+            return position, xy_cov
+        yaw = float(here[2]) + self.yaw
+        return np.array([*position, yaw]), between_covariance(xy_cov, self.yaw_variance, yaw)
+
+
+@dataclass
+class LandmarkGridStats:
+    messages: int = 0
+    sightings: int = 0
+    anonymous: int = 0
+    before_first_scan: int = 0
+    joint_optimizations: int = 0
+    time_offset_s: float = 0.0
+    revisited: list[str] = field(default_factory=list)
+    noise_scales: dict[str, float] = field(default_factory=dict)
+    correlation_time_s: dict[str, list[float]] = field(default_factory=dict)
+
+
+class LandmarkGridSlam(Slam):
+    """Grid SLAM whose pose graph also holds the landmarks of ``landmark_topic`` (see the module docstring)."""
+
+    def __init__(self, config: SlamConfig | None = None, odometry: DiffDriveOdometry | None = None,
+                 laser_pose: tuple[float, float, float] | None = None, landmark_topic: str = LANDMARK_TOPIC,
+                 correlation_rounds: int = 1, vce_rounds: int = 3, max_time_offset_s: float = 0.2) -> None:
+        super().__init__(config, odometry, laser_pose)
+        self.landmark_topic = landmark_topic
+        self.correlation_rounds = correlation_rounds
+        self.vce_rounds = vce_rounds
+        self.max_time_offset_s = max_time_offset_s
+        self.landmark_stats = LandmarkGridStats()
+        self._sightings: list[_Sighting] = []
+        self._first_node: dict[str, int] = {}
+        self._estimates: dict[str, np.ndarray] = {}
+        self._graph: FactorGraph | None = None
+        self._variables: dict[str, tuple[bool, int]] = {}   # landmark -> (oriented, variable index)
+        self._sightings_at_optimization = 0
+        self._nodes_at_landmark_optimization = 0
+
+    def process(self, topic: str, msg: m.Message) -> ScanResult | None:
+        if isinstance(msg, m.LandmarkList):
+            if topic == self.landmark_topic:
+                self.add_landmarks(msg)
+            return None
+        return super().process(topic, msg)
+
+    def add_landmarks(self, msg: m.LandmarkList) -> None:
+        """Tie the sightings to the latest scan's keyframe; optimise when a landmark closes a loop."""
+        st = self.landmark_stats
+        st.messages += 1
+        if not self._scan_node:
+            st.before_first_scan += len(msg.landmarks)
+            return
+        node, offset = self._scan_node[-1], self._scan_rel[-1]
+        now, at_scan = self.odometry_at(msg.stamp_ns), self._last_scan_odom
+        here = compose(offset, relative(at_scan, now)) if now is not None and at_scan is not None else offset
+        closes_loop = False
+        for o in msg.landmarks:
+            if not o.id:
+                st.anonymous += 1
+                continue
+            self._sightings.append(_Sighting(node, o.id, msg.stamp_ns * 1e-9, here, self.motion.velocity,
+                                             o.translation[:2].copy(), o.position_covariance(), o.yaw,
+                                             o.yaw_variance))
+            st.sightings += 1
+            first = self._first_node.setdefault(o.id, node)
+            closes_loop |= node - first >= self.config.loop_min_node_gap
+        due = len(self.graph) - self._nodes_at_landmark_optimization >= self.config.optimize_every_keyframes
+        if closes_loop and due:
+            self.optimize()
+
+    # --- optimisation ------------------------------------------------------------------------
+    def _optimize_graph(self, max_iterations: int, kernel: str | None) -> None:
+        """Keyframes and the landmarks seen on more than one visit in one factor graph (the keyframes'
+        optimised poses go back to the pose graph); then the landmarks of a single visit, which close no
+        loop and would only bend the laser's locally better path, placed on the keyframes held fixed."""
+        if not self._sightings:
+            super()._optimize_graph(max_iterations, kernel)
+            return
+        graph = FactorGraph.from_pose_graph(self.graph)
+        edges = graph.factors(BETWEEN)[0].shape[0]
+        kernels = {BETWEEN: (kernel, LANDMARK_KERNEL_WIDTH), POSITION: ("cauchy", LANDMARK_KERNEL_WIDTH)}
+        revisited = self._revisited()
+        self.landmark_stats.revisited = sorted(revisited)
+        variables: dict[str, tuple[bool, int]] = {}
+        joint = self._add_sightings(graph, [s for s in self._sightings if s.landmark in revisited], variables)
+        graph.optimize(max_iterations, kernels)
+        if joint[True] or joint[False]:
+            for _ in range(self.correlation_rounds):
+                self._decorrelate(graph, joint)
+                graph.optimize(max_iterations, kernels)
+            self._estimate_noise(graph, edges, joint, kernels, max_iterations)
+        single = [s for s in self._sightings if s.landmark not in revisited]
+        if single:
+            graph.fixed_poses = set(range(len(graph.poses)))
+            graph.fixed_points = set(range(len(graph.points)))
+            self._add_sightings(graph, single, variables)
+            graph.optimize(max_iterations, kernels)
+        self.graph.poses = graph.poses[: len(self.graph)]
+        self._graph, self._variables = graph, variables
+        for name, (oriented, index) in variables.items():
+            self._estimates[name] = graph.pose(index) if oriented else graph.points[index]
+        self._sightings_at_optimization = len(self._sightings)
+        self._nodes_at_landmark_optimization = len(self.graph)
+        self.landmark_stats.joint_optimizations += 1
+
+    def _add_sightings(self, graph: FactorGraph, sightings: list[_Sighting], variables: dict[str, tuple[bool, int]]
+                       ) -> dict[bool, list[tuple[int, _Sighting]]]:
+        """Landmark variables (first sight: the last estimate, else placed by its keyframe) and a factor
+        per sighting; the factors' rows by kind (oriented or not), with their sightings."""
+        rows: dict[bool, list[tuple[int, _Sighting]]] = {True: [], False: []}
+        offset = self.landmark_stats.time_offset_s
+        for s in sightings:
+            z, covariance = s.measurement(offset)
+            if s.landmark not in variables:
+                keyframe = graph.pose(s.node)
+                guess = self._estimates.get(s.landmark)
+                if guess is None or len(guess) != len(z):
+                    guess = compose(keyframe, z) if s.oriented else keyframe[:2] + rotation(float(keyframe[2])) @ z
+                variables[s.landmark] = (s.oriented, graph.add_pose(guess) if s.oriented else graph.add_point(guess))
+            index = variables[s.landmark][1]
+            info = np.linalg.inv(covariance)
+            row = graph.add_between(s.node, index, z, info) if s.oriented else graph.add_position(s.node, index, z, info)
+            rows[s.oriented].append((row, s))
+        return rows
+
+    def _revisited(self) -> set[str]:
+        """The landmarks seen from keyframes at least ``loop_min_node_gap`` apart: only they close loops."""
+        nodes: dict[str, list[int]] = {}
+        for s in self._sightings:
+            nodes.setdefault(s.landmark, []).append(s.node)
+        return {name for name, seen in nodes.items() if max(seen) - min(seen) >= self.config.loop_min_node_gap}
+
+    def _groups(self, graph: FactorGraph, edges: int, rows: dict[bool, list[tuple[int, _Sighting]]]
+                ) -> dict[str, tuple[str, np.ndarray]]:
+        """The factor groups of the variance components: laser edges, marker and point sightings."""
+        between = np.zeros(len(graph.factors(BETWEEN)[0]), bool)
+        between[:edges] = True
+        markers = np.zeros_like(between)
+        markers[[row for row, _ in rows[True]]] = True
+        points = np.zeros(len(graph.factors(POSITION)[0]), bool)
+        points[[row for row, _ in rows[False]]] = True
+        return {"edges": (BETWEEN, between), "markers": (BETWEEN, markers), "points": (POSITION, points)}
+
+    def _estimate_noise(self, graph: FactorGraph, edges: int, rows: dict[bool, list[tuple[int, _Sighting]]], kernels,
+                        max_iterations: int) -> None:
+        """Variance component estimation: each group's information divided by its chi2 over its redundancy."""
+        groups = self._groups(graph, edges, rows)
+        totals = {name: 1.0 for name in groups}
+        for _ in range(self.vce_rounds):
+            scales = {}
+            for name, (kind, select) in groups.items():
+                if select.sum() < 10:
+                    continue
+                redundancy = graph.redundancy(kind, select, kernels)
+                if redundancy > 1.0:
+                    scales[name] = float(graph.factor_chi2(kind)[select].sum()) / redundancy
+            if not scales or all(abs(math.log(max(v, 1e-12))) < math.log(1.1) for v in scales.values()):
+                break
+            for name, scale in scales.items():
+                kind, select = groups[name]
+                info = graph.factors(kind)[2]
+                info[select] /= scale
+                graph.set_information(kind, info)
+                totals[name] *= scale
+            graph.optimize(max_iterations, kernels)
+        self.landmark_stats.noise_scales = {name: float(math.sqrt(v)) for name, v in totals.items()}
+
+    def _decorrelate(self, graph: FactorGraph, rows: dict[bool, list[tuple[int, _Sighting]]]) -> None:
+        """Reweight each kind's sightings by the correlation time of their residuals."""
+        for oriented, chosen in rows.items():
+            if not chosen:
+                continue
+            kind = BETWEEN if oriented else POSITION
+            index = np.array([row for row, _ in chosen])
+            mine = [s for _, s in chosen]
+            info = graph.factors(kind)[2]
+            nominal = np.array([np.linalg.inv(s.measurement(self.landmark_stats.time_offset_s)[1]) for s in mine])
+            groups = np.unique([s.landmark for s in mine], return_inverse=True)[1]
+            info[index], tau = decorrelated_information(nominal, graph.factor_errors(kind)[index], groups,
+                                                        np.array([s.stamp_s for s in mine]))
+            self.landmark_stats.correlation_time_s["marker" if oriented else "point"] = [float(v) for v in tau]
+            graph.set_information(kind, info)
+
+    def estimate_time_offset(self) -> float:
+        """The sightings' time offset (s) that makes each landmark's sightings, placed by the keyframes
+        as the laser alone has them, agree best (least robust information-weighted scatter), searched
+        over +-``max_time_offset_s``; 0 with fewer than ``MIN_SIGHTINGS_FOR_OFFSET`` sightings."""
+        if len(self._sightings) < MIN_SIGHTINGS_FOR_OFFSET or self.max_time_offset_s <= 0:
+            return 0.0
+        laser = copy.deepcopy(self.graph)   # the keyframes by the laser alone: the sightings have not bent them
+        laser.optimize(max_iterations=100, robust_kernel=self.config.robust_kernel
+                       if self.config.robust_kernel in ("huber", "cauchy") else None, kernel_width=3.0)
+        poses = laser.poses
+        names = np.unique([s.landmark for s in self._sightings], return_inverse=True)[1]
+        best = (math.inf, 0.0)
+        for offset in np.arange(-self.max_time_offset_s, self.max_time_offset_s + 1e-12, TIME_OFFSET_STEP_S):
+            where, information = [], []
+            for s in self._sightings:
+                z, covariance = s.measurement(float(offset))
+                turn = rotation(float(poses[s.node, 2]))
+                where.append(poses[s.node, :2] + turn @ z[:2])
+                information.append(np.linalg.inv(turn @ (covariance[:2, :2] if not s.oriented else
+                                                         _position_block(z, covariance)) @ turn.T))
+            where, information = np.array(where), np.array(information)
+            cost = 0.0
+            for k in range(names.max() + 1):
+                mine = names == k
+                total = information[mine].sum(axis=0)
+                mean = np.linalg.solve(total, np.einsum("nij,nj->i", information[mine], where[mine]))
+                d = where[mine] - mean
+                s2 = np.einsum("ni,nij,nj->n", d, information[mine], d)
+                cost += float(np.sum(LANDMARK_KERNEL_WIDTH ** 2 * np.log1p(s2 / LANDMARK_KERNEL_WIDTH ** 2)))
+            best = min(best, (cost, float(offset)))
+        return best[1]
+
+    def finish(self) -> None:
+        """The final optimisation, then the sightings' time offset and a last optimisation with it."""
+        super().finish()
+        if len(self._sightings) != self._sightings_at_optimization:
+            self.optimize(max_iterations=100)
+        offset = self.estimate_time_offset()
+        if offset != self.landmark_stats.time_offset_s:
+            self.landmark_stats.time_offset_s = offset
+            self.optimize(max_iterations=100)
+
+    # --- output ------------------------------------------------------------------------------
+    def landmarks(self) -> LandmarkMap:
+        """The landmarks as last optimised (map frame), with marginal covariances."""
+        names = sorted(self._variables)
+        if self._graph is None or not names:
+            return LandmarkMap([], np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0, np.int64), np.zeros(0))
+        oriented = [n for n in names if self._variables[n][0]]
+        points = [n for n in names if not self._variables[n][0]]
+        pose_covs, point_covs = self._graph.marginal_covariances([self._variables[n][1] for n in oriented],
+                                                                 [self._variables[n][1] for n in points])
+        covariance = {**{n: c[:2, :2] for n, c in zip(oriented, pose_covs)}, **dict(zip(points, point_covs))}
+        counts: dict[str, int] = {}
+        for s in self._sightings:
+            counts[s.landmark] = counts.get(s.landmark, 0) + 1
+        return LandmarkMap(names, np.array([self._estimates[n][:2] for n in names]),
+                           np.array([covariance[n] for n in names]), np.array([counts.get(n, 0) for n in names]),
+                           np.array([wrap_angle(float(self._estimates[n][2])) if len(self._estimates[n]) == 3
+                                     else np.nan for n in names]))
+
+
+def _position_block(z: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """A marker factor's position covariance back in the keyframe's frame (the factor keeps it in the marker's)."""
+    turn = rotation(float(z[2]))
+    return turn @ covariance[:2, :2] @ turn.T

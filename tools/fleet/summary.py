@@ -1,0 +1,148 @@
+"""The fleet summary over the rows: ``summary.md`` (counts, failed logs, checks that failed,
+figures per robot) and ``summary.png`` (the headline figures of each log over the log's start
+time, one series per robot: e.g. a laser whose noise drifts up, SLAM runs whose residual jumps).
+
+Headline figures are the numeric columns the job's report has, those matching the job's
+preferred names first (:data:`PREFERRED`, substrings so a renamed or added figure still
+matches), then others that vary between logs, at most :data:`PANELS`. A boolean figure that is
+false for some logs (a consistency check, a completeness flag) is listed as a failed check.
+"""
+
+from __future__ import annotations
+
+import statistics
+from collections.abc import Mapping, Sequence
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from trundle.tools.fleet.rows import COLUMNS, columns
+
+PREFERRED = {
+    "slam": ("consisten", "real_time_factor", "loop_closures", "scan_to_map_residual_m.mean", "path_length_m"),
+    "characterize": ("noise", "bias", "precision", "accuracy", "rate"),
+    "localize": ("converged", "false_alarms", "match_score_tracking.mean", "real_time_factor"),
+    "perceive": ("detections_per_frame.mean", "frames", "corrupt_messages"),
+    "info": ("duration_s", "messages", "corrupt_chunks", "size_bytes"),
+}
+PANELS = 6
+SKIP_PREFIXES = ("config.", "class.", "report.")
+LISTED = 20   # at most this many logs named per table
+
+
+def _numeric(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def headline(job: str, rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The figure columns to plot for ``job`` (see the module doc)."""
+    candidates = [c for c in columns(list(rows)) if c not in COLUMNS and not c.startswith(SKIP_PREFIXES)
+                  and any(_numeric(r.get(c)) for r in rows)]
+    chosen = [c for pattern in PREFERRED.get(job, ()) for c in candidates if pattern in c]
+    chosen = list(dict.fromkeys(chosen))
+    chosen += [c for c in candidates if c not in chosen and len({r.get(c) for r in rows if _numeric(r.get(c))}) > 1]
+    return chosen[:PANELS]
+
+
+def failed_checks(rows: Sequence[Mapping[str, Any]]) -> dict[str, list[str]]:
+    """Boolean figure -> the logs it is false for (only figures false somewhere)."""
+    checks: dict[str, list[str]] = {}
+    for name in columns(list(rows)):
+        if name in COLUMNS:
+            continue
+        values = [(r["log"], r.get(name)) for r in rows if isinstance(r.get(name), bool)]
+        false = [log for log, v in values if v is False]
+        if values and false:
+            checks[name] = false
+    return checks
+
+
+def _when(row: Mapping[str, Any]) -> datetime | None:
+    try:
+        return datetime.fromisoformat(row["log_start"]) if row.get("log_start") else None
+    except ValueError:
+        return None
+
+
+def plot(job: str, rows: Sequence[Mapping[str, Any]], path: Path) -> Path | None:
+    """``summary.png``: each headline figure over log start time, per robot (None without figures)."""
+    names = headline(job, rows)
+    timed = [r for r in rows if _when(r) is not None]
+    if not names or not timed:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    robots = sorted({r.get("robot") or "unknown" for r in timed})
+    fig, axes = plt.subplots(len(names), 1, figsize=(9, 2.2 * len(names) + 0.6), sharex=True, squeeze=False)
+    for ax, name in zip(axes[:, 0], names):
+        for robot in robots:
+            points = sorted((_when(r), r[name]) for r in timed
+                            if (r.get("robot") or "unknown") == robot and _numeric(r.get(name)))
+            if points:
+                ax.plot([p[0] for p in points], [p[1] for p in points], "o-", ms=3, lw=0.8, label=robot)
+        ax.set_ylabel(name, fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0, 0].set_title(f"trundle fleet {job}: figures per log over the log's start time (UTC)")
+    if len(robots) <= 12:
+        axes[0, 0].legend(fontsize=7, loc="best", title="robot", title_fontsize=7)
+    fig.autofmt_xdate()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return "-"
+    return f"{value:.4g}" if isinstance(value, float) else str(value).replace("|", "\\|")
+
+
+def markdown(job: str, rows: Sequence[Mapping[str, Any]], run: Mapping[str, Any], picture: str | None) -> str:
+    """The summary page for ``rows`` of a run of ``job`` (``run``: the figures of ``run.json``)."""
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("ok", "failed", "skipped", "cancelled")}
+    lines = [f"# trundle fleet {job}: {len(rows)} logs", "",
+             f"{counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped, {counts['cancelled']} "
+             f"cancelled in {run.get('elapsed_s', 0.0):.1f} s on {run.get('cpus', 0):g} CPUs "
+             f"({run.get('logs_per_minute', 0.0):.1f} logs per minute); job options: {run.get('options') or 'none'}.",
+             ""]
+    failed = [r for r in rows if r["status"] in ("failed", "cancelled")]
+    if failed:
+        lines += ["## Logs without a result", "", "| log | status | error |", "|---|---|---|"]
+        lines += [f"| {_cell(r['log'])} | {r['status']} | {_cell(r.get('error'))} |" for r in failed[:LISTED]]
+        lines += [f"| ... {len(failed) - LISTED} more in results.csv | | |"] if len(failed) > LISTED else []
+        lines.append("")
+    done = [r for r in rows if r["status"] in ("ok", "skipped")]
+    checks = failed_checks(done)
+    if checks:
+        lines += ["## Checks that failed", "", "| figure | false for | logs |", "|---|---|---|"]
+        lines += [f"| {name} | {len(logs)} of {sum(isinstance(r.get(name), bool) for r in done)} | "
+                  f"{_cell(', '.join(logs[:LISTED]))} |" for name, logs in checks.items()]
+        lines.append("")
+    names = headline(job, done)
+    if done:
+        lines += ["## Per robot (medians over its logs)", "",
+                  "| robot | logs | hours of log | " + " | ".join(names) + " |",
+                  "|---|---|---|" + "---|" * len(names)]
+        for robot in sorted({r.get("robot") or "unknown" for r in done}):
+            mine = [r for r in done if (r.get("robot") or "unknown") == robot]
+            hours = sum(r.get("log_duration_s") or 0.0 for r in mine) / 3600
+            medians = [_cell(statistics.median(v)) if (v := [r[n] for r in mine if _numeric(r.get(n))]) else "-"
+                       for n in names]
+            lines.append(f"| {_cell(robot)} | {len(mine)} | {hours:.3g} | " + " | ".join(medians) + " |")
+        lines.append("")
+    if picture:
+        lines += ["## Figures over time", "", f"![figures per log over time]({picture})", ""]
+    lines.append("Every figure of every log: results.csv (one row per log); each log's outputs: <name>/.")
+    return "\n".join(lines) + "\n"
+
+
+def write_summary(job: str, rows: Sequence[Mapping[str, Any]], run: Mapping[str, Any], folder: Path) -> list[Path]:
+    """Write ``summary.md`` (and ``summary.png`` when there are figures to plot) into ``folder``."""
+    picture = plot(job, [r for r in rows if r["status"] in ("ok", "skipped")], folder / "summary.png")
+    page = folder / "summary.md"
+    page.write_text(markdown(job, rows, run, picture.name if picture else None))
+    return [page] + ([picture] if picture else [])

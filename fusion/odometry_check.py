@@ -16,9 +16,20 @@ model's standard deviation). An increment whose squared Mahalanobis disagreement
 ``kappa^2 Q(u) + R`` (``R`` the match's covariance, large along a corridor's axis, so that
 direction weighs little) exceeds the chi-square 99.9 % quantile is an outlier: the laser
 contradicts it. Until ``warmup`` increments are known, ``kappa = 1`` (the model as configured).
+
+One increment's disagreement cannot show an error that repeats: a wrong wheel radius or a drifting
+heading adds the same small amount at every step, and a filter that takes that for independent
+noise of that size trusts the wheels far more than they deserve over a metre. So the same ratio is
+also taken over the sum of ``span`` consecutive used increments (the sum of their disagreements
+against the sum of their model variances): independent noise gives the same ``kappa^2``, an error
+that repeats up to ``span`` times more, and the level used is the larger of the two. Sums of
+overlapping spans are far from independent, so their median is taken over ``span`` times the
+history (at 40 Hz, the last 25 s) to be as steady as the per-increment one.
 """
 
 from __future__ import annotations
+
+from collections import deque
 
 import numpy as np
 
@@ -32,15 +43,20 @@ MIN_KAPPA2 = 1e-4  # odometry is never taken as more than 100 times better than 
 class OdometryCheck:
     """Robust test of odometry increments against scan matches, and the odometry noise level they show."""
 
-    def __init__(self, history: int = 100, warmup: int = 10) -> None:
+    def __init__(self, history: int = 100, warmup: int = 10, span: int = 10) -> None:
         self.warmup = int(warmup)
         self._ratios = RobustWindow(history)
+        self._span_ratios = RobustWindow(history * span)
+        self._recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=span)
 
     def kappa2(self) -> np.ndarray:
         """Learned noise level per axis (x, y, theta) relative to the configured model (1 until warmed up)."""
         if len(self._ratios) < self.warmup:
             return np.ones(3)
-        return np.maximum(self._ratios.median(), MIN_KAPPA2)
+        level = self._ratios.median()
+        if len(self._span_ratios) >= self.warmup:
+            level = np.maximum(level, self._span_ratios.median())
+        return np.maximum(level, MIN_KAPPA2)
 
     def noise(self, model_covariance: np.ndarray) -> np.ndarray:
         """The odometry noise (3x3, robot frame) of an increment whose configured noise is ``model_covariance``."""
@@ -61,4 +77,13 @@ class OdometryCheck:
     def accept(self, disagreement: np.ndarray, match_covariance: np.ndarray, model_covariance: np.ndarray) -> None:
         """Learn from an increment that was used."""
         e = np.asarray(disagreement, np.float64)
-        self._ratios.add(e * e / CHI2_1DOF_MEDIAN / np.maximum(np.diag(model_covariance), 1e-300))
+        variance = np.maximum(np.diag(model_covariance), 1e-300)
+        self._ratios.add(e * e / CHI2_1DOF_MEDIAN / variance)
+        self._recent.append((e, variance))
+        if len(self._recent) == self._recent.maxlen:
+            total = np.sum([d for d, _ in self._recent], axis=0)
+            self._span_ratios.add(total * total / CHI2_1DOF_MEDIAN / np.sum([v for _, v in self._recent], axis=0))
+
+    def interrupt(self) -> None:
+        """An increment was not used (rejected): the next sum starts after it."""
+        self._recent.clear()

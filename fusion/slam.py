@@ -405,6 +405,7 @@ class Slam:
             if usual and not outlier:
                 self.odometry_check.accept(disagreement, match_covariance, model)
                 return self._fuse(result), searched
+            self.odometry_check.interrupt()
             before.predict(motion.delta, motion.covariance)
             points = tracked_points()  # de-skewed without the odometry in question
             if not usual:  # the truth may lie outside the odometry's window: match from the motion model
@@ -470,14 +471,17 @@ class Slam:
 
     def _match(self, submap: Submap, points: np.ndarray, prediction: np.ndarray,
                covariance: np.ndarray) -> tuple[MatchResult | None, bool]:
-        """Best match near ``prediction``: the refinement from it when that fits as usual where the
-        prediction expects it (most scans, and cheap), else a correlative search over three standard
-        deviations (prior-weighted), refined."""
+        """Best match near ``prediction``: for a scan that samples walls densely, the refinement from it
+        when that fits as usual where the prediction expects it (most scans, and cheap); else a
+        correlative search over three standard deviations (prior-weighted), refined. A sparse scan
+        (few returns per wall) gives the refinement a narrow, rough basin that holds it near the
+        prediction, so the prediction's error (a wrong wheel radius) would pass into the match: it is
+        always searched, which costs little with few points."""
         cfg = self.config
         sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:2, :2]).max()), 0.0))
         sigma_theta = math.sqrt(max(float(covariance[2, 2]), 0.0))
         refined = refine_pose(submap.grid, points, prediction, shaped_covariance=True, wall_lines=self._dense)
-        if self._usual(refined) and _mahalanobis2(prediction, covariance, refined) <= cfg.gate_chi2:
+        if self._dense and self._usual(refined) and _mahalanobis2(prediction, covariance, refined) <= cfg.gate_chi2:
             return refined, False
         window_xy = float(np.clip(3.0 * sigma_xy, *cfg.search_window_xy_m))
         window_theta = float(np.clip(3.0 * sigma_theta, *cfg.search_window_theta_rad))

@@ -175,6 +175,20 @@ def trajectory_relations(reference: Trajectory, step: int = 1) -> Relations:
     return Relations(reference.stamps_ns[:-step], reference.stamps_ns[step:], relative(a, b))
 
 
+def revisit_relations(reference: Trajectory, max_distance_m: float = 3.0, min_gap_s: float = 30.0) -> Relations:
+    """Relations between every pair of reference poses less than ``max_distance_m`` apart and more than
+    ``min_gap_s`` apart in time: the places the robot came back to, where a map is doubled if it is
+    (consecutive relations cannot show that; loop closure is judged here)."""
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(reference.poses[:, :2]).query_pairs(max_distance_m, output_type="ndarray").reshape(-1, 2)
+    gap_ns = np.abs(reference.stamps_ns[pairs[:, 0]] - reference.stamps_ns[pairs[:, 1]])
+    pairs = pairs[gap_ns > round(min_gap_s * 1e9)]
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    return Relations(reference.stamps_ns[pairs[:, 0]], reference.stamps_ns[pairs[:, 1]],
+                     relative(reference.poses[pairs[:, 0]], reference.poses[pairs[:, 1]]))
+
+
 def poses_at(trajectory: Trajectory, stamps_ns: np.ndarray, tolerance_ns: int = DEFAULT_TOLERANCE_NS
              ) -> tuple[np.ndarray, np.ndarray]:
     """Poses (M, 3) of ``trajectory`` nearest to each stamp and a mask of those within ``tolerance_ns``."""

@@ -430,6 +430,13 @@ class Slam:
             retries = [self._match(submap, points, centre, widest) for centre in centres]
             searched |= any(also for _, also in retries)
             usual_retries = [r for r, _ in retries if r is not None and self._usual(r)]
+            if not usual_retries:  # a slow log's robot may turn further than the widest window between two scans
+                turned = self._match_any_heading(submap, points, before.pose)
+                searched = True
+                if turned is not None and self._usual(turned):
+                    self.ekf = PoseEKF(turned.pose, np.diag([(self.config.search_window_xy_m[1] / 3.0) ** 2] * 2
+                                                            + [(math.pi / 3.0) ** 2]))
+                    return self._fuse(turned), searched
             if usual_retries:
                 self.ekf.covariance = self.ekf.covariance + widest
                 return self._fuse(max(usual_retries, key=lambda r: r.score)), searched
@@ -493,6 +500,15 @@ class Slam:
         if result is None or refined.score > result.score:
             result = refined
         return (result if result.score >= cfg.min_match_score else None), True
+
+    def _match_any_heading(self, submap: Submap, points: np.ndarray, centre: np.ndarray) -> MatchResult | None:
+        """Best match within the widest translation window of ``centre`` at any heading (no prior on it)."""
+        cfg = self.config
+        reach = cfg.search_window_xy_m[1]
+        return match_scan(submap.grid, points, centre, window_xy_m=reach, window_theta_rad=math.pi,
+                          angular_step_rad=cfg.search_angular_step_rad, min_score=cfg.min_match_score,
+                          prior_std_xy_m=cfg.search_prior_scale * reach / 3.0, shaped_covariance=True,
+                          wall_lines=self._dense)
 
     def _is_keyframe(self, pose_local: np.ndarray, stamp_ns: int) -> bool:
         cfg = self.config

@@ -29,7 +29,7 @@ from scipy.stats import chi2
 
 from trundle.fusion.data_association import UNPAIRED, Association, individual_d2, jcbb, nearest_neighbour
 from trundle.fusion.geometry import wrap_angle
-from trundle.fusion.motion_model import MotionNoise, compose_jacobians
+from trundle.fusion.odometry_increments import MotionNoise, compose_jacobians
 from trundle.fusion.observation_models import point_from_range_bearing, range_bearing
 from trundle.logs.messages import LandmarkObservation
 

@@ -175,6 +175,29 @@ def trajectory_relations(reference: Trajectory, step: int = 1) -> Relations:
     return Relations(reference.stamps_ns[:-step], reference.stamps_ns[step:], relative(a, b))
 
 
+MAX_REVISIT_POSES = 5000      # a reference thinned evenly to this many poses before pairing
+MAX_REVISIT_RELATIONS = 1_000_000  # and its revisit pairs thinned evenly to this many
+
+
+def revisit_relations(reference: Trajectory, max_distance_m: float = 3.0, min_gap_s: float = 30.0) -> Relations:
+    """Relations between pairs of reference poses less than ``max_distance_m`` apart and more than
+    ``min_gap_s`` apart in time: the places the robot came back to, where a map is doubled if it is
+    (consecutive relations cannot show that; loop closure is judged here). A dense reference (100 Hz
+    motion capture) is thinned evenly to ``MAX_REVISIT_POSES`` poses, and the pairs to
+    ``MAX_REVISIT_RELATIONS``, so memory stays bounded; the mean error of an even sample is the
+    same figure."""
+    from scipy.spatial import cKDTree
+
+    keep = np.arange(0, len(reference), max(1, -(-len(reference) // MAX_REVISIT_POSES)))
+    stamps, poses = reference.stamps_ns[keep], reference.poses[keep]
+    pairs = cKDTree(poses[:, :2]).query_pairs(max_distance_m, output_type="ndarray").reshape(-1, 2)
+    pairs = pairs[np.abs(stamps[pairs[:, 0]] - stamps[pairs[:, 1]]) > round(min_gap_s * 1e9)]
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    if len(pairs) > MAX_REVISIT_RELATIONS:
+        pairs = pairs[np.linspace(0, len(pairs) - 1, MAX_REVISIT_RELATIONS).astype(np.int64)]
+    return Relations(stamps[pairs[:, 0]], stamps[pairs[:, 1]], relative(poses[pairs[:, 0]], poses[pairs[:, 1]]))
+
+
 def poses_at(trajectory: Trajectory, stamps_ns: np.ndarray, tolerance_ns: int = DEFAULT_TOLERANCE_NS
              ) -> tuple[np.ndarray, np.ndarray]:
     """Poses (M, 3) of ``trajectory`` nearest to each stamp and a mask of those within ``tolerance_ns``."""

@@ -136,7 +136,7 @@ class LandmarkGridSlam(Slam):
             if not o.id:
                 st.anonymous += 1
                 continue
-            self._sightings.append(_Sighting(node, o.id, msg.stamp_ns * 1e-9, here, self._velocity.copy(),
+            self._sightings.append(_Sighting(node, o.id, msg.stamp_ns * 1e-9, here, self.motion.velocity,
                                              o.translation[:2].copy(), o.position_covariance(), o.yaw,
                                              o.yaw_variance))
             st.sightings += 1

@@ -33,7 +33,7 @@ from trundle.fusion.ekf_slam import ASSOCIATIONS, EkfSlam, EkfSlamConfig
 from trundle.fusion.error_correlation import decorrelated_information
 from trundle.fusion.factor_graph import BETWEEN, RANGE_BEARING, FactorGraph
 from trundle.fusion.geometry import compose, rotation
-from trundle.fusion.motion_model import Increment, MotionNoise, OdometryIncrements
+from trundle.fusion.odometry_increments import Increment, MotionNoise, OdometryIncrements
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 

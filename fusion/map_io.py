@@ -123,13 +123,15 @@ def read_trajectory_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.nd
 
 def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajectories: list[np.ndarray],
                     colours: list[tuple[int, int, int]] | None = None, loops: list[tuple[np.ndarray, np.ndarray]] = (),
-                    min_size: int = 1000, landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Path:
+                    min_size: int = 1000, highlights: list[np.ndarray] = (),
+                    landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Path:
     """PNG of the map with trajectories (each (N, 3), map frame) drawn over it, scaled up to ``min_size`` px.
 
     ``colours`` are BGR per trajectory (default red, then blue, green); ``loops`` are pairs of
-    positions drawn as thin lines (loop-closure constraints). Start is a circle, end a square.
-    ``landmarks`` (ids, positions (M, 2), covariances (M, 2, 2)) are drawn as a cross with its
-    3-sigma ellipse (at least a few pixels) and the id beside it, in magenta.
+    positions drawn as thin lines (loop-closure constraints); ``highlights`` are stretches of path
+    drawn wide in magenta under the trajectories (e.g. where the map fails its self-check).
+    Start is a circle, end a square. ``landmarks`` (ids, positions (M, 2), covariances (M, 2, 2))
+    are drawn as a cross with its 3-sigma ellipse (at least a few pixels) and the id beside it, in magenta.
     """
     base = map_image(grid)
     scale = max(1, int(math.ceil(min_size / max(base.shape))))
@@ -146,6 +148,10 @@ def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajector
     for a, b in loops:
         ends = pixels(np.vstack([a[:2], b[:2]]))
         cv2.line(image, tuple(ends[0]), tuple(ends[1]), (0, 200, 0), 1, cv2.LINE_AA, shift)
+    for stretch in highlights:
+        pts = pixels(np.asarray(stretch).reshape(-1, 3)[:, :2])
+        cv2.polylines(image, [pts.reshape(-1, 1, 2)], False, (255, 0, 255), 3 * max(1, scale), cv2.LINE_AA, shift)
+        cv2.circle(image, tuple(pts[0]), 3 * max(1, scale) << shift, (255, 0, 255), -1, cv2.LINE_AA, shift)
     colours = colours or [(0, 0, 255), (255, 0, 0), (0, 160, 0)]
     for k, poses in enumerate(trajectories):
         if len(poses) == 0:
@@ -171,6 +177,33 @@ def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajector
                         cv2.LINE_AA)
     path = Path(path)
     if not cv2.imwrite(str(path), image):
+        raise UserError(f"cannot write {path}")
+    return path
+
+
+def plot_scans(grid: OccupancyGrid, path: str | os.PathLike[str], points: list[np.ndarray],
+               highlight: np.ndarray | None = None) -> Path:
+    """PNG of scan endpoints (each (N, 2), map frame) drawn over the map's extent, one pixel per cell.
+
+    Unlike the occupancy map, nothing clears anything: a wall mapped twice shows twice. Darker
+    pixels hold more endpoints; the scans flagged in ``highlight`` (bool per scan) are magenta.
+    """
+    height, width = grid.data.shape
+    counts = np.zeros((height, width), np.float32)
+    flagged = np.zeros((height, width), bool)
+    for k, xy in enumerate(points):
+        cols = np.floor((xy[:, 0] - grid.origin_x) / grid.resolution).astype(np.int64)
+        rows = np.floor((xy[:, 1] - grid.origin_y) / grid.resolution).astype(np.int64)
+        inside = (cols >= 0) & (rows >= 0) & (cols < width) & (rows < height)
+        np.add.at(counts, (rows[inside], cols[inside]), 1.0)
+        if highlight is not None and highlight[k]:
+            flagged[rows[inside], cols[inside]] = True
+    shade = np.clip(255.0 * (1.0 - np.log1p(counts) / max(np.log1p(counts.max()), 1e-9) * 0.9 - 0.1 * (counts > 0)),
+                    0, 255).astype(np.uint8)
+    image = cv2.cvtColor(shade, cv2.COLOR_GRAY2BGR)
+    image[flagged] = (255, 0, 255)
+    path = Path(path)
+    if not cv2.imwrite(str(path), image[::-1]):
         raise UserError(f"cannot write {path}")
     return path
 

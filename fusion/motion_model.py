@@ -1,192 +1,124 @@
-"""Odometry increments and their covariance, composed over many odometry readings.
+"""A motion model that learns from the log how far the next scan can be: no fixed speed or rate.
 
-Landmark SLAM predicts between sightings, which arrive far less often than odometry; the motion in
-between is the composition of every reading's increment, and its covariance is propagated step by
-step (``Sigma <- J_a Sigma J_a^T + J_b Q J_b^T`` for ``a (+) b``), so a curved path's heading error
-shows as the lateral error it causes. The per-step noise ``Q`` is a random walk: its variances
-grow linearly with the distance driven, the angle turned and the time taken, so the accumulated
-covariance does not depend on how often the odometry reports (a floor per reading would).
+Two predictions of the motion to the next scan are kept side by side: *standstill* (no motion)
+and *constant velocity* (robot frame; measured over at least the log's typical scan interval
+back, so one short interval, e.g. two scans stamped 40 ms apart in a 4 Hz log, cannot make a
+wild velocity). After every
+tracked scan the error each would have made is recorded. The model predicts with whichever has
+had the smaller recent errors, and its uncertainty is the spread of those errors, so the search
+window follows the log: a 10 Hz laser on a slow robot gets a window of centimetres, a log that
+keeps one scan per metre travelled (GMapping's output) one of about a metre. Errors are recorded
+in units of the log's typical scan interval, so a dropout of several intervals widens the window
+in proportion. Until ``warmup`` errors are known a prior stands in.
 """
 
 from __future__ import annotations
 
-import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
-from trundle.fusion.geometry import compose, relative, wrap_angle
+from trundle.fusion.geometry import relative
 
 
 @dataclass(frozen=True)
-class MotionNoise:
-    """Random-walk odometry noise: standard deviation after one metre, one radian or one second.
+class MotionPrediction:
+    """Predicted step (robot frame at the last scan), its per-axis standard deviations and largest
+    recent error (x m, y m, theta rad), and which predictor made it."""
 
-    ``xy_per_m`` (m/sqrt(m)) along and across the motion per distance driven; ``theta_per_m``
-    (rad/sqrt(m)) heading per distance; ``theta_per_rad`` (rad/sqrt(rad)) heading per angle
-    turned; ``xy_per_s`` (m/sqrt(s)) and ``theta_per_s`` (rad/sqrt(s)) per second whatever the
-    motion (wheel slip, a robot pushed while standing). Defaults suit a small differential-drive
-    robot on a hard floor, on the generous side: an estimator trusting its odometry too much
-    becomes inconsistent, one trusting it too little only leans more on its landmarks.
-    """
-
-    xy_per_m: float = 0.1
-    theta_per_m: float = 0.1
-    theta_per_rad: float = 0.1
-    xy_per_s: float = 0.005
-    theta_per_s: float = 0.01
-
-    def step_covariance(self, step_xyt, dt_s: float) -> np.ndarray:
-        """3x3 covariance (robot frame at the step's start) of one odometry increment taking ``dt_s``."""
-        distance, turn = math.hypot(float(step_xyt[0]), float(step_xyt[1])), abs(float(step_xyt[2]))
-        dt = max(float(dt_s), 0.0)
-        vxy = self.xy_per_m ** 2 * distance + self.xy_per_s ** 2 * dt
-        vth = self.theta_per_m ** 2 * distance + self.theta_per_rad ** 2 * turn + self.theta_per_s ** 2 * dt
-        return np.diag([vxy, vxy, vth])
-
-
-def compose_jacobians(a_xyt, b_xyt) -> tuple[np.ndarray, np.ndarray]:
-    """Jacobians of ``a (+) b`` by ``a`` and by ``b`` (3x3 each)."""
-    c, s = math.cos(float(a_xyt[2])), math.sin(float(a_xyt[2]))
-    bx, by = float(b_xyt[0]), float(b_xyt[1])
-    ja = np.array([[1.0, 0.0, -s * bx - c * by], [0.0, 1.0, c * bx - s * by], [0.0, 0.0, 1.0]])
-    jb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return ja, jb
-
-
-class IncrementAccumulator:
-    """The composed increment since the last :meth:`reset` (robot frame at that instant), its
-    covariance and the distance (m), turn (rad) and time (s) it took.
-
-    Called once per odometry reading (tens of thousands a log), so :meth:`add` works on Python
-    floats: ``J_a Sigma J_a^T`` and ``J_b Q J_b^T`` written out for the diagonal ``Q`` of
-    :meth:`MotionNoise.step_covariance`.
-    """
-
-    def __init__(self, noise: MotionNoise | None = None) -> None:
-        self.noise = noise or MotionNoise()
-        self.reset()
-
-    def reset(self) -> None:
-        self._x = self._y = self._theta = 0.0
-        self._s = [0.0] * 6  # xx, xy, xt, yy, yt, tt
-        self.distance_m = 0.0
-        self.turn_rad = 0.0
-        self.duration_s = 0.0
-
-    @property
-    def delta(self) -> np.ndarray:
-        return np.array([self._x, self._y, self._theta])
+    delta: np.ndarray
+    sigma: np.ndarray
+    largest: np.ndarray
+    predictor: str
+    learned: bool
 
     @property
     def covariance(self) -> np.ndarray:
-        xx, xy, xt, yy, yt, tt = self._s
-        return np.array([[xx, xy, xt], [xy, yy, yt], [xt, yt, tt]])
-
-    def add(self, step_xyt, dt_s: float) -> None:
-        """Append one odometry increment (robot frame at its start) that took ``dt_s`` seconds."""
-        bx, by, bt = float(step_xyt[0]), float(step_xyt[1]), float(step_xyt[2])
-        dt = max(float(dt_s), 0.0)
-        c, s = math.cos(self._theta), math.sin(self._theta)
-        noise = self.noise
-        distance, turn = math.hypot(bx, by), abs(bt)
-        vxy = noise.xy_per_m ** 2 * distance + noise.xy_per_s ** 2 * dt
-        vth = noise.theta_per_m ** 2 * distance + noise.theta_per_rad ** 2 * turn + noise.theta_per_s ** 2 * dt
-        # J_a = [[1, 0, a], [0, 1, b], [0, 0, 1]] with a = -s bx - c by, b = c bx - s by
-        a, b = -s * bx - c * by, c * bx - s * by
-        xx, xy, xt, yy, yt, tt = self._s
-        nxt, nyt = xt + a * tt, yt + b * tt
-        nxx = xx + 2 * a * xt + a * a * tt
-        nxy = xy + a * yt + b * xt + a * b * tt
-        nyy = yy + 2 * b * yt + b * b * tt
-        # J_b Q J_b^T with J_b = blockdiag(R(theta), 1) and Q = diag(vxy, vxy, vth): isotropic in x-y
-        self._s = [nxx + vxy, nxy, nxt, nyy + vxy, nyt, tt + vth]
-        self._x += c * bx - s * by
-        self._y += s * bx + c * by
-        self._theta = wrap_angle(self._theta + bt)
-        self.distance_m += distance
-        self.turn_rad += turn
-        self.duration_s += dt
+        return np.diag(self.sigma ** 2)
 
 
-@dataclass(frozen=True)
-class Increment:
-    """The motion between two :meth:`OdometryIncrements.take` calls: ``delta`` (robot frame at the
-    first) and its covariance, and the odometry readings on the way: their ``stamps_ns`` (k,) and
-    ``partial`` (k, 3) poses in that same frame (for a trajectory at every reading)."""
+class MotionModel:
+    """Standstill or constant-velocity prediction with errors learned over the last ``history`` scans.
 
-    delta: np.ndarray
-    covariance: np.ndarray
-    stamps_ns: np.ndarray
-    partial: np.ndarray
-
-
-class OdometryIncrements:
-    """Odometry messages in, the increment since the last :meth:`take` out, at any instant.
-
-    Readings are kept until the next :meth:`take`, which turns those up to its stamp into
-    increments in one vectorised step and composes them with their covariance
-    (:class:`IncrementAccumulator`). A sighting's stamp falls between readings: the last reading's
-    twist carries the pose on to it, for at most ``timeout_s`` (farther, the odometry counts as
-    stale and the increment stops at the reading).
+    ``prior_sigma`` (x m, y m, theta rad) is the uncertainty per scan interval before ``warmup``
+    errors are known; ``floor_sigma`` the least uncertainty ever claimed (the matcher's own
+    precision: a grid cell and the angular step).
     """
 
-    def __init__(self, noise: MotionNoise | None = None, timeout_s: float = 0.5) -> None:
-        self.accumulator = IncrementAccumulator(noise)
-        self.timeout_s = timeout_s
-        self.readings = 0
-        self.stale = 0
-        self._pending: list[tuple[int, float, float, float, float, float]] = []  # stamp, x, y, theta, v, w
-        self._ref: np.ndarray | None = None     # odometry pose at the last take
-        self._ref_ns = 0
-        self._last: tuple[int, float, float, float, float, float] | None = None  # last reading taken
+    PREDICTORS = ("standstill", "constant_velocity")
 
-    def add(self, odom) -> None:
-        """One nav_msgs/Odometry-like reading (``stamp_ns``, ``x``, ``y``, ``theta``, ``vx``, ``wz``)."""
-        self._pending.append((int(odom.stamp_ns), float(odom.x), float(odom.y), float(odom.theta), float(odom.vx),
-                              float(odom.wz)))
-        self.readings += 1
+    def __init__(self, prior_sigma: tuple[float, float, float], floor_sigma: tuple[float, float, float],
+                 history: int = 50, warmup: int = 8) -> None:
+        self.prior_sigma = np.asarray(prior_sigma, np.float64)
+        self.floor_sigma = np.asarray(floor_sigma, np.float64)
+        self.warmup = int(warmup)
+        self._errors = {name: deque(maxlen=history) for name in self.PREDICTORS}
+        self._intervals: deque[float] = deque(maxlen=history)
+        self._last: tuple[int, np.ndarray] | None = None
+        self._tracked: deque[tuple[int, np.ndarray]] = deque(maxlen=history)
+        self._velocity: np.ndarray | None = None  # per second, robot frame
 
     @property
-    def started(self) -> bool:
-        return self._ref is not None or bool(self._pending)
+    def velocity(self) -> np.ndarray:
+        """The velocity (vx m/s, vy m/s, wz rad/s, robot frame) of the last tracked step (zeros at first)."""
+        return np.zeros(3) if self._velocity is None else self._velocity.copy()
 
-    @property
-    def pending_until(self) -> int | None:
-        """Stamp of the last reading not yet taken (None if none)."""
-        return self._pending[-1][0] if self._pending else None
+    def typical_interval_s(self) -> float:
+        """Median interval between tracked scans (s); 0 before two scans."""
+        return float(np.median(self._intervals)) if self._intervals else 0.0
 
-    def take(self, stamp_ns: int) -> Increment:
-        """The increment from the previous take to ``stamp_ns`` (robot frame at the previous take); restarts there."""
-        due = [r for r in self._pending if r[0] <= stamp_ns]
-        self._pending = [r for r in self._pending if r[0] > stamp_ns]
-        origin = self._ref is None and bool(due)
-        if origin:  # the first reading is the origin of the increments (its partial pose is zero)
-            first = due.pop(0)
-            self._ref, self._ref_ns, self._last = np.array(first[1:4]), first[0], first
-        acc = self.accumulator
-        acc.reset()
-        if self._ref is None:
-            return Increment(np.zeros(3), np.zeros((3, 3)), np.zeros(0, np.int64), np.zeros((0, 3)))
-        stamps = np.array([self._ref_ns] + [r[0] for r in due], np.int64)
-        chain = np.vstack([self._ref, np.array([r[1:4] for r in due]).reshape(-1, 3)])
-        steps = relative(chain[:-1], chain[1:])
-        partial = np.zeros((len(due), 3))
-        for k, (step, dt) in enumerate(zip(steps, np.diff(stamps) * 1e-9)):
-            acc.add(step, dt)
-            partial[k] = acc.delta
-        if due:
-            self._last = due[-1]
-        assert self._last is not None
-        last_ns, x, y, theta, v, w = self._last
-        gap = (stamp_ns - last_ns) * 1e-9
-        there = chain[-1]
-        if gap > self.timeout_s:
-            self.stale += 1
-        elif gap > 0:
-            there = compose(np.array([x, y, theta]), np.array([v * gap, 0.0, w * gap]))
-            acc.add(relative(chain[-1], there), (stamp_ns - int(stamps[-1])) * 1e-9)
-        self._ref, self._ref_ns = there, max(int(stamp_ns), int(stamps[-1]))
-        if origin:
-            return Increment(acc.delta, acc.covariance, stamps, np.vstack([np.zeros((1, 3)), partial]))
-        return Increment(acc.delta, acc.covariance, stamps[1:], partial)
+    def _guess(self, name: str, dt: float) -> np.ndarray:
+        if name == "constant_velocity" and self._velocity is not None:
+            return self._velocity * dt
+        return np.zeros(3)
+
+    def predict(self, dt_s: float) -> MotionPrediction:
+        """The step expected over the next ``dt_s`` seconds and its uncertainty."""
+        typical = self.typical_interval_s()
+        intervals = max(1.0, dt_s / typical) if typical > 0 else 1.0
+        counts = {name: len(errors) for name, errors in self._errors.items()}
+        if min(counts.values()) < self.warmup:
+            name = "constant_velocity" if self._velocity is not None else "standstill"
+            sigma = self.prior_sigma * intervals
+            return MotionPrediction(self._guess(name, dt_s), np.maximum(sigma, self.floor_sigma), 3.0 * sigma, name,
+                                    False)
+        scores = {}
+        for name, errors in self._errors.items():
+            e = np.abs(np.array(errors))
+            scores[name] = float(np.sum(np.sqrt(np.mean(e ** 2, axis=0)) / self.floor_sigma))
+        name = min(scores, key=scores.get)
+        e = np.abs(np.array(self._errors[name]))
+        sigma = np.maximum(np.sqrt(np.mean(e ** 2, axis=0)) * intervals, self.floor_sigma)
+        return MotionPrediction(self._guess(name, dt_s), sigma, e.max(axis=0) * intervals, name, True)
+
+    def update(self, stamp_ns: int, pose: np.ndarray, tracked: bool = True) -> None:
+        """Record the pose of a scan: when it was ``tracked`` (matched), each predictor's error (per
+        typical interval) and the velocity; otherwise (a predicted pose) only the pose."""
+        pose = np.asarray(pose, np.float64)
+        if self._last is not None and tracked:
+            last_stamp, last_pose = self._last
+            dt = (stamp_ns - last_stamp) * 1e-9
+            step = relative(last_pose, pose)
+            if dt > 0:
+                self._intervals.append(dt)
+                typical = self.typical_interval_s()
+                scale = max(1.0, dt / typical) if typical > 0 else 1.0
+                for name in self.PREDICTORS:
+                    if name == "constant_velocity" and self._velocity is None:
+                        continue
+                    self._errors[name].append(relative(self._guess(name, dt), step) / scale)
+        if tracked:
+            self._tracked.append((int(stamp_ns), pose.copy()))
+            self._velocity = self._measured_velocity()
+        self._last = (int(stamp_ns), pose.copy())
+
+    def _measured_velocity(self) -> np.ndarray | None:
+        """Velocity from the newest tracked pose back to the latest one at least a typical interval older."""
+        now_ns, now = self._tracked[-1]
+        span = self.typical_interval_s()
+        for stamp_ns, pose in reversed(self._tracked):
+            dt = (now_ns - stamp_ns) * 1e-9
+            if dt > 0 and dt >= span * (1.0 - 1e-9):
+                return relative(pose, now) / dt
+        return None

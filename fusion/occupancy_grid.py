@@ -11,6 +11,7 @@ update.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Callable, TypeVar
 
 import cv2
@@ -50,17 +51,32 @@ def ray_cells(start: np.ndarray, ends: np.ndarray) -> np.ndarray:
     return xy[keep][:, ::-1]
 
 
+@dataclass(frozen=True)
+class WallLines:
+    """Walls of a grid as its returns describe them: ``nearest`` (H, W) the index of each cell's nearest
+    occupied cell (-1: none), and per occupied cell the ``mean`` (K, 2, metres, grid frame) of its
+    returns, the ``normal`` (K, 2) of the line through its neighbourhood's returns and whether they
+    lie on one (``is_line``; otherwise the returns are matched as a point)."""
+
+    nearest: np.ndarray
+    mean: np.ndarray
+    normal: np.ndarray
+    is_line: np.ndarray
+
+
 class LogOddsGrid:
     """Occupancy in log-odds over a growing 2-D array.
 
     ``resolution`` m/cell; ``p_hit`` / ``p_miss`` the inverse sensor model; ``l_min``/``l_max``
     clamp the log-odds so the map can still change; ``grow_cells`` is the margin added when a scan
-    falls outside (growth is amortised).
+    falls outside (growth is amortised). With ``subcell`` each cell also keeps the moments of the
+    returns that fell in it, so matching can use the walls those returns describe rather than the
+    cell lattice (see :meth:`wall_lines`).
     """
 
     def __init__(self, resolution: float = 0.05, *, p_hit: float = 0.7, p_miss: float = 0.4,
                  l_min: float = -2.0, l_max: float = 3.5, origin_xy: tuple[float, float] = (0.0, 0.0),
-                 grow_cells: int = 64) -> None:
+                 grow_cells: int = 64, subcell: bool = False) -> None:
         if resolution <= 0:
             raise ValueError("resolution must be positive")
         self.resolution = float(resolution)
@@ -70,6 +86,8 @@ class LogOddsGrid:
         self.origin = np.array(origin_xy, dtype=np.float64)
         self.log_odds = np.zeros((0, 0), np.float32)
         self.observed = np.zeros((0, 0), bool)
+        # per cell: returns, sum of their x and y offsets in the cell, and of x^2, xy, y^2 (cell units)
+        self.moments: np.ndarray | None = np.zeros((6, 0, 0), np.float32) if subcell else None
         self.version = 0
         self._cache: dict[tuple, object] = {}
 
@@ -108,6 +126,11 @@ class LogOddsGrid:
         if height:
             grown[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.log_odds
             seen[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.observed
+        if self.moments is not None:
+            moments = np.zeros((6, int(new_h), int(new_w)), np.float32)
+            if height:
+                moments[:, pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.moments
+            self.moments = moments
         self.log_odds, self.observed = grown, seen
         self.origin = self.origin - pad_lo * self.resolution
         self._changed()
@@ -125,7 +148,13 @@ class LogOddsGrid:
         self.ensure_contains(everything.min(axis=0), everything.max(axis=0))
         width = self.shape[1]
         start = self.world_to_cell(sensor_xy)
-        hit_cells = np.floor(self.world_to_cell(hits_xy)).astype(np.int64)
+        hit_coords = self.world_to_cell(hits_xy)
+        hit_cells = np.floor(hit_coords).astype(np.int64)
+        if self.moments is not None and len(hit_cells):
+            u, v = (hit_coords - hit_cells).T
+            flat_hits = hit_cells[:, 1] * width + hit_cells[:, 0]
+            for k, values in enumerate((np.ones_like(u), u, v, u * u, u * v, v * v)):
+                np.add.at(self.moments[k].reshape(-1), flat_hits, values.astype(np.float32))
         crossed = ray_cells(start, np.vstack([self.world_to_cell(hits_xy), self.world_to_cell(free_ends_xy)]))
         # Each cell once per scan, hits winning over misses. A mark per cell beats sorting for grids
         # up to a few dozen times the number of cells the rays touch; beyond, sort.
@@ -182,6 +211,53 @@ class LogOddsGrid:
         return self.cached(("distance", float(max_distance_m)),
                            lambda: np.minimum(self._distance_cells() * np.float32(self.resolution),
                                               np.float32(max_distance_m)))
+
+    def wall_lines(self, min_flatness: float = 0.8) -> WallLines:
+        """The walls the returns describe, for point-to-line matching (a grid built with ``subcell``).
+
+        Occupied cells put every wall on the cell lattice, up to half a cell from where it is, and a
+        match inherits that error, the same each time the wall is seen. The returns themselves know
+        better: each occupied cell gets the mean of its returns and, where the returns of its 3 x 3
+        occupied neighbourhood lie on a line (``flatness``, as in :class:`trundle.fusion.icp.LineReference`),
+        that line's normal; and each cell the index of its nearest occupied cell.
+        """
+        return self.cached(("wall_lines", float(min_flatness)), lambda: self._wall_lines(min_flatness))
+
+    def _wall_lines(self, min_flatness: float) -> WallLines:
+        if self.moments is None:
+            raise ValueError("wall_lines needs a grid built with subcell=True")
+        occupied = self.occupied() & (self.moments[0] > 0)
+        height, width = self.shape
+        if not occupied.any():
+            return WallLines(np.full(self.shape, -1, np.int32), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, bool))
+        free = np.where(occupied, 0, 255).astype(np.uint8)
+        _, labels = cv2.distanceTransformWithLabels(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)
+        rows, cols = np.nonzero(occupied)
+        m = self.moments[:, rows, cols].astype(np.float64)
+        mean = np.stack([cols + m[1] / m[0], rows + m[2] / m[0]], axis=1)  # returns' mean, absolute cell units
+        sums = np.zeros((len(rows), 6))  # moments of the occupied neighbourhood about the cell's mean
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                r, c = rows + dr, cols + dc
+                ok = (r >= 0) & (c >= 0) & (r < height) & (c < width)
+                ok[ok] &= occupied[r[ok], c[ok]]
+                n = self.moments[:, r[ok], c[ok]].astype(np.float64)
+                ox, oy = c[ok] - mean[ok, 0], r[ok] - mean[ok, 1]
+                sums[ok] += np.stack([n[0], n[1] + ox * n[0], n[2] + oy * n[0], n[3] + 2 * ox * n[1] + ox * ox * n[0],
+                                      n[4] + ox * n[2] + oy * n[1] + ox * oy * n[0],
+                                      n[5] + 2 * oy * n[2] + oy * oy * n[0]], axis=1)
+        mx, my = sums[:, 1] / sums[:, 0], sums[:, 2] / sums[:, 0]
+        sxx, sxy, syy = (sums[:, 3] / sums[:, 0] - mx * mx, sums[:, 4] / sums[:, 0] - mx * my,
+                         sums[:, 5] / sums[:, 0] - my * my)
+        angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the largest spread: the wall
+        spread = np.sqrt(((sxx - syy) / 2.0) ** 2 + sxy ** 2)
+        centre = (sxx + syy) / 2.0
+        flat = 1.0 - (centre - spread) / np.maximum(centre + spread, 1e-12)
+        index = np.zeros(int(labels.max()) + 1, np.int32)
+        index[labels[rows, cols]] = np.arange(len(rows), dtype=np.int32)
+        return WallLines(index[labels], self.origin + mean * self.resolution,
+                         np.stack([-np.sin(angle), np.cos(angle)], axis=1), (flat >= min_flatness) & (sums[:, 0] >= 3))
 
     def likelihood_field(self, sigma_m: float) -> np.ndarray:
         """``exp(-d^2 / (2 sigma^2))`` of the distance to the nearest occupied cell, 0 beyond 4 sigma."""

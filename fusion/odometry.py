@@ -117,12 +117,18 @@ class DiffDriveOdometry:
     track_m : distance between the wheel contact points (m).
     left, right : joint names of the wheels in the ``JointState`` messages.
     wheel_variance_per_m : variance (m^2) added per metre a wheel rolls (slip model).
-    max_speed_m_s, max_yaw_rate_rad_s : bound on the motion while a wheel is stale; the
-        covariance grows by it over the gap, since the motion during a gap is not integrated.
+    max_speed_m_s, max_yaw_rate_rad_s : bound on the motion while a wheel is stale.
 
     A reading with a non-finite wheel position (a stale wheel) marks the odometry stale and
-    produces no output; the next good reading becomes the new reference, so the pose never
-    jumps by what the wheels did unseen. ``gaps`` counts such interruptions.
+    produces no output. Wheel angles are cumulative (an ODrive's position estimate, an unwrapped
+    counter), so when the wheels report again the motion across the gap is still in them: it is
+    integrated as one arc, with the heading exact (it follows from the wheels alone) and the
+    position uncertain by half the distance times the turn (the path's shape is unknown), if it
+    is a motion the robot could make in that time (at most ``max_speed_m_s``). Otherwise (a
+    counter that restarted, a device that rebooted) the next good reading becomes the new
+    reference, so the pose never jumps, and the covariance grows by ``max_speed_m_s`` and
+    ``max_yaw_rate_rad_s`` over the gap. ``gaps`` counts the interruptions, ``bridged`` those
+    whose motion was kept.
     """
 
     def __init__(self, wheel_radius_m: float, track_m: float, *, left: str = "left", right: str = "right",
@@ -142,6 +148,7 @@ class DiffDriveOdometry:
         self.covariance = np.zeros((3, 3))
         self.distance_m = 0.0
         self.gaps = 0
+        self.bridged = 0
         self.stale = False
         self._ref: tuple[int, float, float] | None = None  # stamp, left rad, right rad
         self._stale_since_ns: int | None = None
@@ -198,9 +205,30 @@ class DiffDriveOdometry:
         if not self.stale:
             self.stale = True
             self._stale_since_ns = self._ref[0] if self._ref is not None else stamp_ns
-        self._ref = None
+
+    def _bridge(self, stamp_ns: int, left: float, right: float) -> bool:
+        """After a gap: can the wheels' travel since the last good reading be kept? If so, add the
+        uncertainty of the unknown path to the covariance."""
+        if self._ref is None:
+            return False
+        ref_stamp, ref_left, ref_right = self._ref
+        gap_s = max(0.0, (stamp_ns - ref_stamp) * 1e-9)
+        d_left, d_right = (left - ref_left) * self.left_radius_m, (right - ref_right) * self.right_radius_m
+        if max(abs(d_left), abs(d_right)) > self.max_speed_m_s * gap_s:
+            return False
+        sigma = 0.5 * abs(0.5 * (d_left + d_right)) * min(1.0, abs(d_right - d_left) / self.track_m)
+        self.covariance = self.covariance + np.diag((sigma ** 2, sigma ** 2, 0.0))
+        return True
 
     def _advance(self, stamps: np.ndarray, left: np.ndarray, right: np.ndarray) -> m.Odometry | None:
+        if self.stale:
+            if self._bridge(int(stamps[0]), float(left[0]), float(right[0])):
+                self.gaps += 1
+                self.bridged += 1
+                self.stale = False
+                self._stale_since_ns = None
+            else:
+                self._ref = None
         if self._ref is None:
             if self.stale and self._stale_since_ns is not None:
                 gap_s = max(0.0, (int(stamps[0]) - self._stale_since_ns) * 1e-9)

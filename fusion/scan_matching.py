@@ -29,7 +29,10 @@ class MatchResult:
     ``score`` is the mean likelihood-field value under the points at ``pose`` (0..1, 1 = every
     point on an occupied cell); ``residual_m`` the mean distance of the inlier points to the
     nearest occupied cell; ``inlier_fraction`` the share of points within ``inlier_m`` of one;
-    ``search_score`` the best correlative score (NaN when no search ran).
+    ``search_score`` the best correlative score (NaN when no search ran); ``overlap`` the share
+    of points on cells the grid has observed and ``overlap_score`` the mean likelihood over those
+    alone: a scan that sees new space scores low overall but not there, a scan put in the wrong
+    place lands on known free space and scores low there too.
     """
 
     pose: np.ndarray
@@ -39,6 +42,8 @@ class MatchResult:
     inlier_fraction: float
     search_score: float
     iterations: int
+    overlap: float = 1.0
+    overlap_score: float = 0.0
 
 
 def angular_step(resolution: float, max_range_m: float) -> float:
@@ -110,7 +115,9 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     likelihood-field width (default one cell). With ``prior_std_xy_m`` / ``prior_std_theta_rad``
     each score is weighted by a Gaussian prior around the initial pose (as in Olson's real-time
     correlative matcher), which keeps a corridor or a row of doors from pulling the match to a
-    look-alike place far from the prediction; the score returned is then the weighted one.
+    look-alike place far from the prediction; the score returned is then the weighted one, while
+    ``min_score`` applies to the unweighted score of that pose (a good match far out in a wide
+    prior is still a good match).
     Branch and bound over a max-pooled pyramid makes the result the exact lattice optimum at a
     fraction of the exhaustive cost.
     """
@@ -159,7 +166,8 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     a, ox, oy = np.meshgrid(np.arange(len(thetas)), offsets, offsets, indexing="ij")
     candidates = np.stack([a.ravel(), ox.ravel(), oy.ravel()], axis=1)
     scores = scores_of(top, candidates)
-    bound = min_score
+    weighted = prior_std_xy_m is not None or prior_std_theta_rad is not None
+    bound = 0.0 if weighted else min_score
 
     # Greedy dives from the best top blocks reach leaves at once: a lower bound to prune with.
     dive = candidates[np.argsort(scores)[::-1][:8]]
@@ -180,7 +188,8 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     if len(scores) == 0:
         return None
     i = int(np.argmax(scores))
-    if scores[i] < min_score:
+    raw = float(_block_scores(pyramid[0], base, candidates[i:i + 1])[0]) if weighted else float(scores[i])
+    if raw < min_score:
         return None
     a_i, dx, dy = candidates[i]
     return np.array([x0 + (dx - limit) * res, y0 + (dy - limit) * res, wrap_angle(thetas[a_i])]), float(scores[i])
@@ -255,12 +264,19 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple], initial_pose_xy
 
 
 def match_covariance(jacobian: np.ndarray, residuals: np.ndarray, weights: np.ndarray, min_std_xy_m: float,
-                     min_std_theta_rad: float, max_variance: float = 100.0) -> np.ndarray:
-    """Pose covariance ``s^2 (J^T W J)^-1`` of a converged match, from its inlier residuals.
+                     min_std_theta_rad: float, max_variance: float = 100.0, shaped: bool = False) -> np.ndarray:
+    """Pose covariance of a converged match from ``s^2 (J^T W J)^-1``, its inlier residuals.
 
     ``s^2`` is the weighted residual variance. Directions the points do not constrain (a
-    corridor's axis) get ``max_variance`` rather than infinity, and a floor of ``min_std_xy_m``
-    / ``min_std_theta_rad`` standard deviation covers the map's discretisation.
+    corridor's axis) get ``max_variance`` rather than infinity. By default a floor of
+    ``min_std_xy_m`` / ``min_std_theta_rad`` standard deviation is added for the map's
+    discretisation. Taken as it is though, ``s^2 (J^T W J)^-1`` claims millimetres from a thousand
+    points on a few walls (their errors are not independent: a wall is one constraint, however
+    many points lie on it), so the floor then dominates every direction alike. Its shape is right:
+    a corridor's axis holds far less information than its width. ``shaped`` keeps that shape and
+    scales it so that the best-constrained translation and the rotation are no more certain than
+    the floor; every weaker direction then gets proportionally more variance, so a filter takes a
+    direction the scan hardly constrains from its prediction (odometry, a motion model).
     """
     count = len(residuals)
     jw = jacobian * weights[:, None]
@@ -268,21 +284,36 @@ def match_covariance(jacobian: np.ndarray, residuals: np.ndarray, weights: np.nd
     variance = max(float(np.sum(weights * residuals ** 2) / max(count - 3, 1)), 1e-10)
     eigenvalues, vectors = np.linalg.eigh(hessian)
     information = np.maximum(eigenvalues, variance / max_variance) / variance
-    covariance = (vectors / information) @ vectors.T + np.diag([min_std_xy_m ** 2, min_std_xy_m ** 2,
-                                                                min_std_theta_rad ** 2])
+    raw = (vectors / information) @ vectors.T
+    floor = np.diag([min_std_xy_m ** 2, min_std_xy_m ** 2, min_std_theta_rad ** 2])
+    if not shaped:
+        covariance = raw + floor
+    else:
+        best_xy = float(np.linalg.eigvalsh(raw[:2, :2])[0])
+        scale = max(1.0, min_std_xy_m ** 2 / max(best_xy, 1e-300), min_std_theta_rad ** 2 / max(float(raw[2, 2]), 1e-300))
+        values, axes = np.linalg.eigh(scale * raw)
+        covariance = (axes * np.minimum(values, max_variance)) @ axes.T + 1e-6 * floor
     return 0.5 * (covariance + covariance.T)
 
 
 def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.ndarray, *,
                 max_distance_m: float = 0.5, huber_m: float | None = None, inlier_m: float | None = None,
                 max_iterations: int = 20, sigma_m: float | None = None, min_std_xy_m: float = 0.01,
-                min_std_theta_rad: float = math.radians(0.25), search_score: float = float("nan")) -> MatchResult:
+                min_std_theta_rad: float = math.radians(0.25), search_score: float = float("nan"),
+                shaped_covariance: bool = False, wall_lines: bool = True) -> MatchResult:
     """Levenberg-Marquardt refinement of ``initial_pose_xyt`` against ``grid``'s distance field.
 
     Minimises ``sum huber(d_i)`` with ``d_i`` the distance (m, capped at ``max_distance_m``) from
     point i to the nearest occupied cell; ``huber_m`` defaults to one cell, ``inlier_m`` to two.
+    On a grid that keeps its returns' moments (``subcell``) and with ``wall_lines`` (a scan that
+    samples walls densely enough, see :func:`samples_walls_densely`), a second refinement follows from
+    there, with ``d_i`` the signed distance to the wall line of the nearest occupied cell where
+    its returns lie on one (:meth:`LogOddsGrid.wall_lines`; the field elsewhere): the
+    interpolated distance field has the wide basin, but it cannot put a wall's zero between two
+    cell centres; a line can, so the match is not pulled onto the cell lattice.
     The covariance is ``s^2 (J^T W J)^-1`` with ``s^2`` the weighted residual variance, plus a floor
-    of ``min_std_xy_m`` / ``min_std_theta_rad`` standard deviation for the grid's discretisation.
+    of ``min_std_xy_m`` / ``min_std_theta_rad`` standard deviation for the grid's discretisation
+    (``shaped_covariance``: its shape scaled to that floor instead, see :func:`match_covariance`).
     """
     points = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
     res = grid.resolution
@@ -295,7 +326,7 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
 
     px, py = points[:, 0], points[:, 1]
 
-    def evaluate(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def evaluate_field(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         c, s = math.cos(pose[2]), math.sin(pose[2])
         rx, ry = c * px - s * py, s * px + c * py  # rotated points; d(q)/d(theta) = (-ry, rx)
         u = (rx + (pose[0] - origin[0])) / res - 0.5
@@ -310,16 +341,61 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
         cost, weight = huber_loss(d, huber)
         return cost, d, jac, weight, active
 
-    pose, iterations, (d, jac, weight, active) = levenberg_marquardt(evaluate, initial_pose_xyt, max_iterations)
+    def evaluate_lines(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        rx, ry = c * px - s * py, s * px + c * py
+        qx, qy = rx + pose[0], ry + pose[1]
+        d, du, dv, inside = _bilinear(field, (qx - origin[0]) / res - 0.5, (qy - origin[1]) / res - 0.5)
+        col = np.clip(np.floor((qx - origin[0]) / res).astype(np.int64), 0, field.shape[1] - 1)
+        row = np.clip(np.floor((qy - origin[1]) / res).astype(np.int64), 0, field.shape[0] - 1)
+        k = lines.nearest[row, col]
+        active = inside & (d < max_distance_m)
+        line = active & (k >= 0) & lines.is_line[np.maximum(k, 0)]
+        k = np.maximum(k, 0)
+        nx, ny = lines.normal[k, 0], lines.normal[k, 1]
+        # on a line: the signed distance to it; elsewhere (a corner, clutter, a sparse wall): the field
+        d = np.where(line, (qx - lines.mean[k, 0]) * nx + (qy - lines.mean[k, 1]) * ny, d)
+        d[~inside] = max_distance_m
+        jac = np.stack([np.where(line, nx, du / res), np.where(line, ny, dv / res), np.zeros(len(d))], axis=1)
+        jac[~active] = 0.0
+        jac[:, 2] = ry * -jac[:, 0] + rx * jac[:, 1]
+        cost, weight = huber_loss(d, huber)
+        return cost, d, jac, weight, active
+
+    lines = grid.wall_lines() if grid.moments is not None and wall_lines else None
+    pose, iterations, (d, jac, weight, active) = levenberg_marquardt(evaluate_field, initial_pose_xyt, max_iterations)
+    if lines is not None and len(lines.mean) and max_iterations > 0:  # from the field's wide basin to the walls
+        pose, more, (d, jac, weight, active) = levenberg_marquardt(evaluate_lines, pose, max_iterations)
+        iterations += more
     inliers = active & (np.abs(d) <= inlier)
     n_in = int(inliers.sum())
-    covariance = match_covariance(jac[inliers], d[inliers], weight[inliers], min_std_xy_m, min_std_theta_rad)
+    covariance = match_covariance(jac[inliers], d[inliers], weight[inliers], min_std_xy_m, min_std_theta_rad,
+                                  shaped=shaped_covariance)
     rot = rotation(pose[2])
     q = points @ rot.T + pose[:2]
     lik, _, _, inside = _bilinear(likelihood, (q[:, 0] - origin[0]) / res - 0.5, (q[:, 1] - origin[1]) / res - 0.5)
-    score = float(np.mean(np.where(inside, lik, 0.0))) if len(points) else 0.0
+    lik = np.where(inside, lik, 0.0)
+    score = float(np.mean(lik)) if len(points) else 0.0
+    cells = np.floor((q - origin) / res).astype(np.int64)
+    on_grid = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < grid.shape[1]) & (cells[:, 1] < grid.shape[0])
+    known = np.zeros(len(points), bool)
+    known[on_grid] = grid.observed[cells[on_grid, 1], cells[on_grid, 0]]
+    overlap = float(known.mean()) if len(points) else 0.0
+    overlap_score = float(lik[known].mean()) if known.any() else 0.0
     residual = float(np.mean(np.abs(d[inliers]))) if n_in else float("nan")
-    return MatchResult(pose, covariance, score, residual, n_in / max(len(points), 1), search_score, iterations)
+    return MatchResult(pose, covariance, score, residual, n_in / max(len(points), 1), search_score, iterations,
+                       overlap, overlap_score)
+
+
+def samples_walls_densely(points_xy: np.ndarray, resolution: float) -> bool:
+    """Do a scan's consecutive returns lie within a cell of each other (median)? Then each wall cell
+    holds returns of most scans and the lines through them are well defined; a sparse scan (a 1-degree
+    laser at several metres) leaves gaps between a wall's cells, across which a point's nearest
+    cell may be another wall's."""
+    points = np.asarray(points_xy, np.float64).reshape(-1, 2)
+    if len(points) < 3:
+        return False
+    return float(np.median(np.hypot(*np.diff(points, axis=0).T))) <= resolution
 
 
 def match_scan(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.ndarray, *,
@@ -327,7 +403,8 @@ def match_scan(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.nd
                angular_step_rad: float | None = None, sigma_m: float | None = None, min_score: float = 0.0,
                refine: bool = True, max_distance_m: float = 0.5, huber_m: float | None = None,
                min_std_xy_m: float = 0.01, min_std_theta_rad: float = math.radians(0.25),
-               prior_std_xy_m: float | None = None, prior_std_theta_rad: float | None = None) -> MatchResult | None:
+               prior_std_xy_m: float | None = None, prior_std_theta_rad: float | None = None,
+               shaped_covariance: bool = False, wall_lines: bool = True) -> MatchResult | None:
     """Match ``points_xy`` (robot frame) against ``grid`` near ``initial_pose_xyt``; None if nothing scores ``min_score``.
 
     A correlative search over ``+-window_xy_m`` / ``+-window_theta_rad`` (optionally weighted by a
@@ -342,4 +419,5 @@ def match_scan(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.nd
     pose, search_score = found
     return refine_pose(grid, points_xy, pose, max_distance_m=max_distance_m, huber_m=huber_m,
                        max_iterations=20 if refine else 0, sigma_m=sigma_m, min_std_xy_m=min_std_xy_m,
-                       min_std_theta_rad=min_std_theta_rad, search_score=search_score)
+                       min_std_theta_rad=min_std_theta_rad, search_score=search_score,
+                       shaped_covariance=shaped_covariance, wall_lines=wall_lines)

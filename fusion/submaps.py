@@ -59,7 +59,7 @@ class SubmapStack:
     ``grid_options`` go to each :class:`LogOddsGrid` (inverse sensor model, clamps).
     """
 
-    def __init__(self, resolution: float = 0.05, scans_per_submap: int = 30, **grid_options: float) -> None:
+    def __init__(self, resolution: float = 0.05, scans_per_submap: int = 30, **grid_options: float | bool) -> None:
         if scans_per_submap < 1:
             raise ValueError("scans_per_submap must be at least 1")
         self.resolution = resolution

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
@@ -27,6 +28,9 @@ class RecoverResult:
     stopped_by: str
 
 
+Replace = Callable[[str, str, int, bytes], "bytes | None"]  # topic, schema name, log time ns, data
+
+
 def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> RecoverResult:
     """Copy every readable record of ``src`` into a complete MCAP at ``dst``.
 
@@ -34,17 +38,26 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recover
     ``UserError`` when ``src`` is not MCAP, nothing at all could be read, or ``dst`` exists (a
     file is never overwritten); nothing is left behind then.
     """
-    reader = LogReader(src)
     dst = Path(dst)
     if dst.is_dir():
-        name = reader.path.name.removesuffix(".active")
+        name = Path(src).name.removesuffix(".active")
         dst = dst / (name if name.endswith(".mcap") else name + ".mcap")
+    return copy_log(src, dst)
+
+
+def copy_log(src: str | os.PathLike[str], dst: str | os.PathLike[str], replace: Replace | None = None,
+             metadata: dict[str, dict[str, str]] | None = None) -> RecoverResult:
+    """Copy every readable record of ``src`` to the new file ``dst`` (as :func:`recover`), passing each
+    message through ``replace(topic, schema_name, log_time_ns, data)``, which returns the data to write
+    or None to drop it; ``metadata`` records (name -> key -> value) are added."""
+    reader = LogReader(src)
+    dst = Path(dst)
     if dst.resolve() == reader.path.resolve():
-        raise UserError("recover needs an output path different from its input")
-    new_file(dst, "recover output")
+        raise UserError("the output must be a different file from the input")
+    new_file(dst, "output log")
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
     try:
-        count, channel_ids = _copy(reader, tmp)
+        count, channel_ids = _copy(reader, tmp, replace, metadata)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -55,9 +68,10 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recover
     return RecoverResult(dst, count, reader.last_scan_corrupt_chunks, reader.last_scan_error)
 
 
-def _copy(reader: LogReader, tmp: Path) -> tuple[int, dict[int, int]]:
-    """Copy every readable record of ``reader``'s file into a complete MCAP at ``tmp``; the
-    messages copied and the channel ids used."""
+def _copy(reader: LogReader, tmp: Path, replace: Replace | None,
+          metadata: dict[str, dict[str, str]] | None) -> tuple[int, dict[int, int]]:
+    """Copy every readable record of ``reader``'s file into a complete MCAP at ``tmp`` (messages through
+    ``replace``, ``metadata`` added); the messages copied and the channel ids used."""
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
     pending_channels: dict[int, Channel] = {}
@@ -72,6 +86,8 @@ def _copy(reader: LogReader, tmp: Path) -> tuple[int, dict[int, int]]:
                 writer.start(profile=header if header is not None else "ros2",
                              library=getattr(record, "library", "trundle recover"))
                 header_written = True
+                for name, values in (metadata or {}).items():
+                    writer.add_metadata(name, values)
                 if header is not None:
                     continue
             if isinstance(record, Schema):
@@ -79,13 +95,19 @@ def _copy(reader: LogReader, tmp: Path) -> tuple[int, dict[int, int]]:
             elif isinstance(record, Channel):
                 pending_channels[record.id] = record
             elif isinstance(record, Message):
+                channel = pending_channels.get(record.channel_id)
                 new_id = channel_ids.get(record.channel_id)
                 if new_id is None:
-                    channel = pending_channels.get(record.channel_id)
                     if channel is None:
                         continue
                     new_id = channel_ids[record.channel_id] = _register(writer, channel, schemas, schema_ids)
-                writer.add_message(new_id, record.log_time, record.data, record.publish_time, record.sequence)
+                data = record.data
+                if replace is not None and channel is not None:
+                    schema = schemas.get(channel.schema_id)
+                    data = replace(channel.topic, schema.name if schema else "", record.log_time, record.data)
+                    if data is None:
+                        continue
+                writer.add_message(new_id, record.log_time, data, record.publish_time, record.sequence)
                 count += 1
             elif isinstance(record, Metadata):
                 writer.add_metadata(record.name, record.metadata)

@@ -135,8 +135,10 @@ def can_rig(tmp_path: Path, protocol: str, transport: str, script: str, *, node_
 def assert_no_jump(rig: Rig, speed_m_s: float) -> int:
     """Every odometry step is explained by the wheel speed over the time between the two stamps
     (a wrong unwrap moves by thousands of turns; frames read in a burst after a stall of the
-    loaded test machine share nearly one receive stamp, hence the 0.5 s floor), and across every
-    stale period the pose is held exactly. Returns how many stale periods were crossed."""
+    loaded test machine share nearly one receive stamp, hence the 0.5 s floor), across every
+    stale period too: there the pose is held (the counter restarted) or moved by what the
+    cumulative wheel positions say (the motion across the gap is kept). Returns how many stale
+    periods were crossed."""
     odoms = rig.topic("/odom")
     for a, b in zip(odoms, odoms[1:]):
         step = math.hypot(b.x - a.x, b.y - a.y)
@@ -147,7 +149,6 @@ def assert_no_jump(rig: Rig, speed_m_s: float) -> int:
             stale = True
         elif topic == "/odom":
             if stale:
-                assert (msg.x, msg.y, msg.theta) == (before.x, before.y, before.theta), (before, msg)
                 crossed += 1
                 stale = False
             before = msg

@@ -62,7 +62,13 @@ def test_record_from_the_emulator_process(tmp_path, capsys):
         assert state.position[1] == pytest.approx(2 * math.pi * carried, abs=1e-9)
     assert any(math.isnan(w.position[1]) for w in wheels)  # the heartbeat loss is in the log
     xs = np.array([o.x for o in odoms])
-    assert xs[-1] > 0.3 and np.max(np.abs(np.diff(xs))) < 0.05  # moving forward, no jump over the gap
+    # Driving straight at 0.5 turn/s on 0.1 m wheels. ODrive positions are cumulative, so the motion
+    # during the heartbeat gap is kept: the step over the gap is the distance driven in it, and the
+    # whole distance is the speed times the time.
+    speed, t = 2 * math.pi * 0.1 * 0.5, np.array([o.stamp_ns for o in odoms]) * 1e-9
+    assert xs[-1] - xs[0] == pytest.approx(speed * (t[-1] - t[0]), rel=0.05)
+    gap = int(np.argmax(np.diff(t)))
+    assert np.diff(t)[gap] > 0.3 and xs[gap + 1] - xs[gap] == pytest.approx(speed * np.diff(t)[gap], rel=0.1)
     assert odometry.gaps >= 1
     # the odometry recorded live is the odometry the same code computes again from the log
     assert len(live) == len(odoms)  # (yaw travels as a quaternion: equal to rounding)

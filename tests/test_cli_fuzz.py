@@ -125,6 +125,8 @@ PATH_OPTIONS: dict[tuple[str, ...], tuple[dict[str, str | None], dict[str, str]]
     ("replay",): ({"file": "{log}", "--rate": "0"}, {"file": "in"}),
     ("export",): ({"file": "{log}", "--topic": "/odom", "-o": "{out}.csv"}, {"file": "in", "-o": "out"}),
     ("slam",): ({"log": "{log}", "-o": "{out}"}, {"log": "in", "-o": "new folder", "--config": "config"}),
+    ("inject-faults",): ({"log": "{log}", "-o": "{out}.mcap", "--glitches": "1"},
+                         {"log": "in", "-o": "out", "--config": "config"}),
     ("slam-eval",): ({"result": "{trajectory}", "reference": "{trajectory}"}, {"result": "in", "reference": "in"}),
     ("localize",): ({"log": "{log}", "--map": "{map}", "-o": "{out}.csv"},
                     {"log": "in", "--map": "map", "--config": "config", "-o": "out"}),

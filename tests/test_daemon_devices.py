@@ -82,8 +82,9 @@ def test_daemon_logs_every_emulated_device_consistently_with_ground_truth(tmp_pa
     assert topics["/odom"].count > 100 and topics["/diagnostics"].count >= 4
     assert status["odometry"]["can"]["distance_m"] > 1.0  # the daemon's wheel odometry ran
 
-    # Laser: each logged scan is, to the millimetre, a scan the emulator cast in the world at the
-    # robot's true pose when that scan passed the rear; stamps are the sensor's time of it.
+    # Laser: each logged scan is, to the millimetre, a scan the emulator cast in the world, each beam at
+    # the robot's true pose when the head passed it (the sweep starts when the scan passes the rear);
+    # stamps are the sensor's time of that scan.
     assert len(scans) >= 40
     dmin = 23  # UTM-30LX DMIN (mm): values below it are codes, logged as inf/-inf/NaN
     by_content = {np.where(q.distances >= dmin, q.distances, -1).tobytes(): q for q in sent.values()}
@@ -98,7 +99,7 @@ def test_daemon_logs_every_emulated_device_consistently_with_ground_truth(tmp_pa
     # which a loaded machine delays (seen: -190 ms with load average 25 on 2 cores)
     assert abs(np.median(offsets)) < 500.0  # ms
     for match in list(sent.values())[::25]:
-        truth = sim.ranges_at((match.rear_ns - t0_ns) / 1e9, devices.laser_model)
+        truth = sim.ranges_at((devices.first_beam_ns(match.rear_ns) - t0_ns) / 1e9, devices.laser_model)
         hit = np.isfinite(truth) & (match.distances > 30)
         assert np.abs(match.distances[hit] - truth[hit] * 1000).max() <= 0.55  # mm rounding (+ float time)
 

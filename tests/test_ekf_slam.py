@@ -16,7 +16,7 @@ from trundle.fusion.data_association import UNPAIRED, individual_d2, jcbb, joint
 from trundle.fusion.ekf_slam import EkfSlam, EkfSlamConfig
 from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.landmark_slam import EkfLandmarkSlam
-from trundle.fusion.motion_model import MotionNoise
+from trundle.fusion.odometry_increments import MotionNoise
 from trundle.logs import messages as m
 
 THREE_SIGMA_2DOF = float(chi2.ppf(0.9973, 2))

@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trundle.fusion.evaluation import (Relations, Trajectory, absolute_trajectory_error, align_se2, read_reference,
-                                       read_relations, relation_error, relative_pose_error, seconds_to_ns,
-                                       trajectory_relations)
+                                       read_relations, relation_error, relative_pose_error, revisit_relations,
+                                       seconds_to_ns, trajectory_relations)
 from trundle.fusion.geometry import compose
 from trundle.fusion.map_io import write_trajectory_csv
 from trundle.logs.errors import UserError
@@ -177,6 +177,34 @@ def test_intel_reference_and_drifting_odometry():
     assert absolute_trajectory_error(drift, reference).rmse_m > 0.5
 
 
+def test_revisits_hand_computed():
+    """A 40 s out-and-back along x, a pose a second: pairs within 1 m and more than 30 s apart are the
+    start and the end (t = 0..4 s against t = 36..40 s); a map 0.2 m shifted on the way back errs by
+    0.2 m on each."""
+    xs = np.concatenate([np.arange(0.0, 20.0), np.arange(20.0, -1.0, -1.0)])  # 0..19 out, 20..0 back: 41 poses
+    reference = Trajectory(np.arange(len(xs)) * SECOND, np.column_stack([xs, np.zeros_like(xs), np.zeros_like(xs)]))
+    relations = revisit_relations(reference, max_distance_m=1.0, min_gap_s=30.0)
+    pairs = {(int(a // SECOND), int(b // SECOND)) for a, b in zip(relations.t1_ns, relations.t2_ns)}
+    assert pairs == {(a, b) for a in range(41) for b in range(a + 31, 41) if abs(xs[a] - xs[b]) <= 1.0}
+    assert pairs and all(b - a > 30 for a, b in pairs)
+    back = reference.poses.copy()
+    back[21:, 1] += 0.2  # the way back mapped 0.2 m to the side
+    error = relation_error(Trajectory(reference.stamps_ns, back), relations)
+    assert error.count == len(pairs) and error.translation_abs_m.mean == pytest.approx(0.2, abs=1e-9)
+
+
+def test_revisits_of_a_dense_reference_are_thinned_evenly():
+    """Motion capture at 100 Hz circling a 1 m ring for 10 min: 60,000 poses, every one within 3 m of
+    every other (1.8e9 pairs). The pairs are capped and spread over the whole run."""
+    t = np.arange(60_000) * 10_000_000
+    angle = 2 * math.pi * t * 1e-9 / 20.0
+    ring = Trajectory(t, np.column_stack([np.cos(angle), np.sin(angle), angle + math.pi / 2]))
+    relations = revisit_relations(ring)
+    assert 0 < len(relations) <= 1_000_000
+    gaps = (relations.t2_ns - relations.t1_ns) * 1e-9
+    assert gaps.min() > 30.0 and gaps.max() > 500.0  # the spread reaches across the whole run
+
+
 def test_slam_eval_command(tmp_path, capsys):
     from trundle.tools.cli.main import main
 
@@ -190,6 +218,10 @@ def test_slam_eval_command(tmp_path, capsys):
     assert report["relation_error"]["translation_abs_m"]["mean"] == pytest.approx(0.15, abs=1e-6)
     assert report["rpe"]["translation_mean_m"] == pytest.approx(0.15, abs=1e-6)
     assert report["ate"]["count"] == 3
+    assert report["revisits"] == {"max_distance_m": 3.0, "min_gap_s": 30.0, "count": 0}  # 3 s: never back
+    assert main(["slam-eval", str(result), str(reference), "--revisit-s", "0.5", "--json"]) == 0
+    revisits = json.loads(capsys.readouterr().out)["revisits"]  # every pair is within 3 m and 1-2 s apart
+    assert revisits["count"] == 3 and revisits["missing"] == 0
     assert main(["slam-eval", str(result), str(reference)]) == 0
     text = capsys.readouterr().out
     assert "translation abs     0.1500 +- 0.0500 m" in text and "ATE" in text

@@ -12,7 +12,8 @@ from hypothesis.extra.numpy import arrays
 
 from trundle.fusion.geometry import scan_to_points, transform_points, wrap_angle
 from trundle.fusion.occupancy_grid import LogOddsGrid
-from trundle.fusion.scan_matching import angular_step, correlative_search, match_scan, refine_pose, score_pyramid
+from trundle.fusion.scan_matching import (angular_step, correlative_search, match_scan, refine_pose,
+                                          samples_walls_densely, score_pyramid)
 from tests.planar_world import CORRIDOR, ROOM, scan
 
 
@@ -122,3 +123,59 @@ def test_search_reaching_the_window_corner_stays_in_bounds() -> None:
         found = correlative_search(grid, points, truth - np.array([window, window, 0.0]), window_xy_m=window,
                                    window_theta_rad=0.05)
         assert found is not None and np.hypot(*(found[0][:2] - truth[:2])) < 0.03
+
+
+def test_a_good_match_far_out_in_a_wide_prior_is_not_declined(room_map: LogOddsGrid) -> None:
+    """min_score applies to the unweighted score: the prior weighting (sigma 0.2 m) pulls the search score
+    of the true pose, 0.15 m off the prediction, down to about e^-0.28 of its ~1, below min_score 0.8."""
+    truth = np.array([0.3, 0.2, 0.1])
+    points = scan_to_points(scan(ROOM, truth, beams=360, max_range=10.0))
+    guess = truth - np.array([0.15, 0.0, 0.0])
+    found = correlative_search(room_map, points, guess, window_xy_m=0.4, window_theta_rad=math.radians(5.0),
+                               min_score=0.8, prior_std_xy_m=0.2)
+    assert found is not None and np.hypot(*(found[0][:2] - truth[:2])) < 0.03 and found[1] < 0.8
+
+
+def test_shaped_covariance_keeps_the_corridor_blind_along_its_axis() -> None:
+    grid = build_map(CORRIDOR, [(x, 0.0, 0.0) for x in range(-10, 11, 2)], max_range=6.0)
+    truth = np.array([0.2, 0.1, 0.0])
+    points = scan_to_points(scan(CORRIDOR, truth, beams=360, noise_m=0.01, seed=2, max_range=6.0))
+    result = refine_pose(grid, points, truth, shaped_covariance=True)
+    std = np.sqrt(np.linalg.eigvalsh(result.covariance[:2, :2]))
+    assert std[0] == pytest.approx(0.01, rel=1e-3)  # the width: the floor (the map's precision), no less
+    assert std[1] > 30 * std[0]  # the axis: nothing to hold it
+    assert np.sqrt(result.covariance[2, 2]) >= math.radians(0.25) * (1 - 1e-6)
+
+
+def corner(wall_y: float, step: float = 0.02) -> np.ndarray:
+    """Points every ``step`` on a wall at ``wall_y`` (x from -3 to 3 m) and on a wall across it at x = 3.0123."""
+    xs = np.arange(-3.0, 3.0, step)
+    ys = np.arange(wall_y - 2.0, wall_y, step)
+    return np.vstack([np.column_stack([xs, np.full_like(xs, wall_y)]), np.column_stack([np.full_like(ys, 3.0123), ys])])
+
+
+def wall_grid(wall_y: float, subcell: bool) -> LogOddsGrid:
+    """The corner's returns seen from three places."""
+    grid = LogOddsGrid(0.05, subcell=subcell)
+    for offset in (-0.5, 0.0, 0.5):
+        grid.insert_rays(np.array([offset, 0.0]), corner(wall_y))
+    return grid
+
+
+@pytest.mark.parametrize("wall_y", [0.7623, 0.75, 0.7749])
+def test_point_to_line_refinement_puts_a_wall_between_cell_centres(wall_y: float) -> None:
+    """Against cell centres the wall sits up to half a cell off (at 0.775 for all three walls); against
+    the line through its returns it sits where it is."""
+    points = corner(wall_y, 0.05)
+    guess = np.array([0.003, 0.004, 0.0])
+    lattice = refine_pose(wall_grid(wall_y, subcell=False), points, guess)
+    lines = refine_pose(wall_grid(wall_y, subcell=True), points, guess)
+    assert np.hypot(*lines.pose[:2]) < 0.001
+    if abs(wall_y - 0.775) > 0.005:
+        assert abs(lattice.pose[1]) > 5 * np.hypot(*lines.pose[:2])
+
+
+def test_dense_and_sparse_scans() -> None:
+    dense = scan_to_points(scan(ROOM, np.zeros(3), beams=1440, max_range=10.0))
+    sparse = scan_to_points(scan(ROOM, np.zeros(3), beams=180, max_range=10.0))
+    assert samples_walls_densely(dense, 0.05) and not samples_walls_densely(sparse, 0.05)

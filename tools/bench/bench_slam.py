@@ -15,6 +15,12 @@ submap; the first search with the build is reported too) is the baseline; the fu
 ICP and an exhaustive search over the same lattice are given as ratios to it; matches are timed
 in CPU seconds. Wall-clock figures depend on the machine's load (shared with other work), so CPU
 time and the load average are recorded too.
+fr079 (issue 14) is mapped laser-only from GMapping's corrected scans, as ``trundle import carmen
+--odometry none`` makes it, and scored against the corrected poses (consecutive relations, revisits
+less than 3 m and more than 30 s apart, ATE). Each log's real-time factor is given with
+Cartographer's published figure for it (Hess et al. 2016, Table V: Intel 15x, fr079 17x, CSAIL
+12x, on a 6-core desktop) and their ratio; the MIT CSAIL log is not in ../shared/data, so its
+figure is not measured here.
 Run: python tools/bench/bench_slam.py [--quick]
 """
 
@@ -29,7 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
+from trundle.fusion.evaluation import (Trajectory, absolute_trajectory_error, relation_error, revisit_relations,
+                                       trajectory_relations)
 from trundle.fusion.geometry import scan_to_points, transform_points, voxel_filter
 from trundle.fusion.icp import LineReference, icp
 from trundle.fusion.map_io import plot_trajectory
@@ -43,6 +50,7 @@ from trundle.logs.reader import LogReader
 from trundle.tools.bench import report
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+CARTOGRAPHER_RTF = {"intel": 15.0, "fr079": 17.0, "csail": 12.0}  # Hess et al. 2016, Table V
 
 
 def map_log(path: Path, wheels: DiffDriveOdometry | None, loop_closure: bool = True) -> tuple[Slam, float, float, float]:
@@ -114,6 +122,30 @@ def time_matches(log: carmen.CarmenLog, first: int, count: int) -> dict[str, flo
             "search_angular_step_formula_deg": math.degrees(angular_step(0.05, 30.0))}
 
 
+def fr079_figures(path: Path, folder: Path) -> dict[str, object]:
+    """fr079 laser-only: speed against Cartographer's figure, and accuracy against the corrected poses."""
+    log = carmen.read_carmen(path)
+    stamps, poses = carmen.scan_poses(log)
+    mcap = folder / "fr079.mcap"
+    carmen.import_carmen(path, mcap, odometry="none", log=log)
+    slam, duration, wall, cpu = map_log(mcap, None)
+    estimate, reference = Trajectory(*slam.trajectory()), Trajectory(stamps, poses)
+    consecutive = relation_error(estimate, trajectory_relations(reference))
+    revisits = relation_error(estimate, revisit_relations(reference, 3.0, 30.0))
+    check = slam.check_map()
+    return {"fr079_duration_s": duration, "fr079_processing_s": wall, "fr079_cpu_s": cpu,
+            "fr079_real_time_factor": duration / wall, "fr079_real_time_factor_cpu": duration / cpu,
+            "fr079_vs_cartographer_rtf": duration / wall / CARTOGRAPHER_RTF["fr079"],
+            "fr079_scans": slam.stats.scans, "fr079_loop_closures": slam.stats.loop_closures,
+            "fr079_consecutive_translation_mean_m": consecutive.translation_abs_m.mean,
+            "fr079_consecutive_rotation_mean_deg": consecutive.rotation_abs_deg.mean,
+            "fr079_revisit_relations": revisits.count,
+            "fr079_revisit_translation_mean_m": revisits.translation_abs_m.mean,
+            "fr079_revisit_rotation_mean_deg": revisits.rotation_abs_deg.mean,
+            "fr079_ate_rmse_m": absolute_trajectory_error(estimate, reference).rmse_m,
+            "fr079_map_check_passed": check.passed, "fr079_map_consistency": check.consistency}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="exp2 and 20 matches only (no Intel run)")
@@ -153,7 +185,14 @@ def main() -> None:
                             "intel_scans": slam.stats.scans, "intel_ms_per_scan": 1e3 * wall / slam.stats.scans,
                             "intel_loop_closures": slam.stats.loop_closures,
                             "intel_relation_translation_mean_m": error.translation_abs_m.mean,
-                            "intel_relation_rotation_mean_deg": error.rotation_abs_deg.mean})
+                            "intel_relation_rotation_mean_deg": error.rotation_abs_deg.mean,
+                            "intel_vs_cartographer_rtf": duration / wall / CARTOGRAPHER_RTF["intel"]})
+            fr079 = DATA / "fr079" / "fr079-corrected-gfs.log.gz"
+            if fr079.exists():
+                figures.update(fr079_figures(fr079, Path(folder)))
+            else:
+                figures["fr079"] = f"not measured: {fr079} absent"
+            figures["csail"] = "not measured: the MIT CSAIL log is not in ../shared/data"
     figures.update(time_matches(log, 40, 20 if args.quick else 80))
     figures["load_average_1min_at_end"] = os.getloadavg()[0]
     report.write("slam", figures)

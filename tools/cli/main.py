@@ -32,6 +32,7 @@ COMMANDS = {
     "export": "export one topic as CSV or NDJSON",
     "slam": "build a map and trajectory from a log (LaserScan + odometry)",
     "slam-eval": "relation error (Kuemmerle 2009), ATE and RPE of a SLAM trajectory",
+    "inject-faults": "copy a log with realistic odometry faults (heading glitches, slip, scale, dropouts)",
     "localize": "localise a log on a saved map (unknown start, kidnap recovery)",
     "perceive": "run an image-feature pipeline over a log's images",
     "match": "match local features between two images (keypoints, matches, RANSAC model)",

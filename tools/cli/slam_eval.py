@@ -4,7 +4,9 @@ RESULT is the ``trajectory.csv`` (``t_ns,x,y,theta``) written by ``trundle slam`
 Freiburg ``.relations`` file (relation error only), or a reference trajectory: a
 ``t_ns,x,y,theta`` CSV or a CARMEN log (its laser lines' poses, e.g. GMapping's corrected
 ``.gfs.log``), from which the relations between scans ``--step`` apart are taken and ATE and RPE
-are computed as well. Poses are paired by timestamp within ``--tolerance-ms``. With
+are computed as well, and the relations between revisits (reference poses less than
+``--revisit-m`` apart and more than ``--revisit-s`` apart in time: where a doubled map shows).
+Poses are paired by timestamp within ``--tolerance-ms``. With
 ``--landmarks REF.csv`` (``id,x,y,sx,sy``, e.g. a survey) the ``landmarks.csv`` beside RESULT is
 scored too, in the frame of the ATE alignment.
 """
@@ -17,11 +19,12 @@ from dataclasses import asdict
 
 from pathlib import Path
 
-from trundle.fusion.evaluation import (Trajectory, absolute_trajectory_error, landmark_error, read_reference,
-                                       relation_error, relative_pose_error, trajectory_relations)
+from trundle.fusion.evaluation import (Relations, Trajectory, absolute_trajectory_error, landmark_error, poses_at,
+                                       read_reference, relation_error, relative_pose_error, revisit_relations,
+                                       trajectory_relations)
 from trundle.fusion.map_io import read_landmarks_csv
 from trundle.logs.errors import UserError
-from trundle.tools.config.arguments import non_negative, positive_int
+from trundle.tools.config.arguments import non_negative, positive, positive_int
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -33,13 +36,18 @@ def register(p: argparse.ArgumentParser) -> None:
                    help="relations and RPE between reference poses this many scans apart (default 1: consecutive)")
     p.add_argument("--tolerance-ms", type=non_negative, default=1.0,
                    help="largest time difference when pairing poses (default 1 ms)")
+    p.add_argument("--revisit-m", type=positive, default=3.0,
+                   help="revisits: reference poses at most this far apart (default 3 m) ...")
+    p.add_argument("--revisit-s", type=non_negative, default=30.0,
+                   help="... and more than this far apart in time (default 30 s)")
     p.add_argument("--landmarks", help="reference landmarks id,x,y,sx,sy: score the landmarks.csv beside RESULT")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.set_defaults(func=run)
 
 
-def evaluate(result: Trajectory, reference, step: int = 1, tolerance_ns: int = 1_000_000) -> dict:
-    """All metrics as a JSON-ready dict (``ate`` and ``rpe`` only for a reference trajectory)."""
+def evaluate(result: Trajectory, reference, step: int = 1, tolerance_ns: int = 1_000_000,
+             revisit_m: float = 3.0, revisit_s: float = 30.0) -> dict:
+    """All metrics as a JSON-ready dict (``ate``, ``rpe`` and ``revisits`` only for a reference trajectory)."""
     if step < 1:
         raise UserError(f"--step must be at least 1, got {step}")
     if isinstance(reference, Trajectory):
@@ -48,10 +56,21 @@ def evaluate(result: Trajectory, reference, step: int = 1, tolerance_ns: int = 1
         report = {"relations": f"reference poses {step} apart",
                   "relation_error": asdict(relation_error(result, trajectory_relations(reference, step), tolerance_ns)),
                   "ate": asdict(absolute_trajectory_error(result, reference, tolerance_ns)),
-                  "rpe": asdict(relative_pose_error(result, reference, step, tolerance_ns))}
+                  "rpe": asdict(relative_pose_error(result, reference, step, tolerance_ns)),
+                  "revisits": {"max_distance_m": revisit_m, "min_gap_s": revisit_s,
+                               **_revisit_error(result, revisit_relations(reference, revisit_m, revisit_s),
+                                                tolerance_ns)}}
     else:
         report = {"relations": "relations file", "relation_error": asdict(relation_error(result, reference, tolerance_ns))}
     return report
+
+
+def _revisit_error(result: Trajectory, relations: Relations, tolerance_ns: int) -> dict:
+    """The relation error over revisits, or ``{"count": 0}`` when the reference (or the part of it the
+    result covers) never comes back to a place."""
+    covered = poses_at(result, relations.t1_ns, tolerance_ns)[1] & poses_at(result, relations.t2_ns,
+                                                                                 tolerance_ns)[1]
+    return asdict(relation_error(result, relations, tolerance_ns)) if covered.any() else {"count": 0}
 
 
 def _text(report: dict) -> str:
@@ -70,6 +89,10 @@ def _text(report: dict) -> str:
                   f" max {a['max_m']:.4f} m, heading rmse {a['rotation_rmse_deg']:.3f} deg over {a['count']} poses",
                   f"RPE ({r['step']} scan{'s' if r['step'] > 1 else ''}):"
                   f"         translation rmse {r['translation_rmse_m']:.4f} m, rotation rmse {r['rotation_rmse_deg']:.3f} deg"]
+        v = report["revisits"]
+        lines.append(f"Revisits (< {v['max_distance_m']:g} m, > {v['min_gap_s']:g} s apart): {v['count']} relations, "
+                     f"mean {v['translation_abs_m']['mean']:.4f} m, {v['rotation_abs_deg']['mean']:.3f} deg"
+                     if v["count"] else f"Revisits (< {v['max_distance_m']:g} m, > {v['min_gap_s']:g} s apart): none")
     if "landmarks" in report:
         k = report["landmarks"]
         lines.append(f"Landmarks (same alignment): mean {k['mean_m']:.4f} m, rmse {k['rmse_m']:.4f} m, "
@@ -82,7 +105,8 @@ def run(args: argparse.Namespace) -> int:
     result = read_reference(args.result)
     if not isinstance(result, Trajectory):
         raise UserError(f"{args.result}: RESULT must be a trajectory (t_ns,x,y,theta CSV or CARMEN log)")
-    report = evaluate(result, read_reference(args.reference), args.step, int(round(args.tolerance_ms * 1e6)))
+    report = evaluate(result, read_reference(args.reference), args.step, int(round(args.tolerance_ms * 1e6)),
+                      args.revisit_m, args.revisit_s)
     if args.landmarks:
         if "ate" not in report:
             raise UserError("--landmarks needs a reference trajectory (its ATE alignment places the map)")

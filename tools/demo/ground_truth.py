@@ -30,7 +30,8 @@ class Recording:
     """A recorded run: the log and its ground truth (base_link poses in the world frame).
 
     ``scans`` holds, at each logged scan's stamp, the pose the robot had when the laser emulator
-    cast that scan, and ``scan_true_ns`` that true time (host clock); ``frames`` and
+    cast that scan's first beam (the instant a LaserScan's stamp means), and ``scan_true_ns`` that
+    true time (host clock); ``frames`` and
     ``frame_true_ns`` the same for each logged camera frame. ``unmatched`` counts logged messages
     no emulator record explained (0 expected). ``cpu_s``: CPU time of the emulators (this
     process) and of the daemon process while recording; ``emulator_late_ms`` how late each
@@ -82,7 +83,8 @@ def scan_ground_truth(log: Path, sim: RobotSim, devices: SimDevices) -> tuple[Tr
     dmin = devices.scip_model.params.dmin
     cast: dict[bytes, list[int]] = collections.defaultdict(list)
     for sent in devices.lrf_device.sent:
-        cast[np.where(sent.distances >= dmin, sent.distances, -1).astype(np.int64).tobytes()].append(sent.rear_ns)
+        cast[np.where(sent.distances >= dmin, sent.distances, -1).astype(np.int64).tobytes()].append(
+            devices.first_beam_ns(sent.rear_ns))
 
     def true_ns(msg: m.LaserScan) -> int | None:
         ranges = msg.ranges.astype(np.float64)

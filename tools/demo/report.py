@@ -25,7 +25,7 @@ from trundle.perception.images import decode_image
 from trundle.tools.demo.ground_truth import Recording
 from trundle.tools.demo.scoring import (MarkerScore, camera_from_info, camera_pose, map_wall_distances, path_length,
                                         score_trajectory)
-from trundle.tools.demo.slam import SLAM_OPTIONS, SlamRun
+from trundle.tools.demo.slam import SlamRun
 from trundle.tools.demo.topics import IMAGE_TOPIC
 from trundle.tools.sim.camera_render import CameraRenderer
 from trundle.tools.sim.robot import Mount
@@ -161,7 +161,7 @@ def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, s
         "load_average": list(os.getloadavg()),
         "seconds": seconds,
         "settings": settings,
-        "slam_options": SLAM_OPTIONS,
+        "slam_config": "defaults (trundle.fusion.slam.SlamConfig)",
     }
     return report
 

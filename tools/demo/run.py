@@ -45,7 +45,7 @@ from trundle.tools.demo.ground_truth import FrameTimes, Recording, frame_ground_
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 from trundle.tools.demo.report import build_report, draw_detections, plot_run, write_report
 from trundle.tools.demo.scoring import score_markers, sensor_mount
-from trundle.tools.demo.slam import SLAM_OPTIONS, run_slam
+from trundle.tools.demo.slam import run_slam
 from trundle.tools.daemon.status import query_status
 from trundle.tools.config.toml_text import format_config
 from trundle.tools.jobs.landmark_slam import write_landmarks
@@ -101,7 +101,7 @@ def daemon_config(devices: SimDevices, folder: Path, socket_path: Path, calibrat
             "disk": {"min_free_mb": 100.0, "action": "stop"},
             "processing": {"odometry": True, "slam": False, "markers": True, "markers_hz": MARKERS_HZ,
                            "marker_size_m": marker_size(devices.sim.world),
-                           "aruco_dictionary": devices.sim.world.aruco_dictionary}, "slam": SLAM_OPTIONS,
+                           "aruco_dictionary": devices.sim.world.aruco_dictionary},
             "status": {"socket": str(socket_path), "diagnostics_period_s": 1.0}}
 
 

@@ -1,7 +1,8 @@
 """SLAM over a demo log: the log replayed (as fast as possible) through ``trundle.fusion.slam.Slam``
 with wheel odometry from ``/wheels`` (the wheel model of the daemon's config, stored in the log)
-and the laser mount from ``/tf_static``, with the demo's SLAM options; with ``markers`` the
-daemon's marker sightings on ``/landmarks`` join the pose graph as landmarks
+and the laser mount from ``/tf_static``, with the default SLAM configuration (the one every log
+gets: nothing here is tuned to the simulated robot); with ``markers`` the daemon's marker
+sightings on ``/landmarks`` join the pose graph as landmarks
 (``trundle.fusion.landmark_grid_slam.LandmarkGridSlam``).
 """
 
@@ -25,16 +26,6 @@ from trundle.logs.reader import LogInfo, LogReader
 from trundle.logs.replay import replay
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 from trundle.tools.demo.topics import LANDMARK_TOPIC, SCAN_TOPIC, WHEELS_TOPIC
-
-# SLAM options of the demo (the [slam] table of its robot.toml), each for a property of the emulated robot:
-SLAM_OPTIONS: dict[str, Any] = {
-    # heading noise floor per scan step (rad): the wheel odometry jumps by degrees between two scans when
-    # the left and right wheel readings come from different instants (bunched when the machine is busy)
-    "odom_sigma_theta_rad": 0.05,
-    # the simulated laser casts a whole scan from one pose (it does not sweep): there is nothing to de-skew
-    "deskew": False,
-}
-
 
 @dataclass(eq=False)
 class SlamRun:
@@ -61,7 +52,7 @@ def wheel_odometry(info: LogInfo) -> DiffDriveOdometry:
 def run_slam(log: Path, config: SlamConfig | None = None, progress: ProgressFactory = NoProgress,
              markers: bool = False) -> SlamRun:
     """Replay ``log`` (as fast as possible) through SLAM with wheel odometry from ``/wheels``
-    (``config`` default: ``SLAM_OPTIONS``), showing the scans done on a ``progress`` display; with
+    (``config`` default: the defaults), showing the scans done on a ``progress`` display; with
     ``markers`` the log's ``/landmarks`` too (a UserError when it has none)."""
     with LogReader(log) as reader:
         info = reader.info()
@@ -70,7 +61,7 @@ def run_slam(log: Path, config: SlamConfig | None = None, progress: ProgressFact
     if markers and LANDMARK_TOPIC not in info.topics:
         raise UserError(f"{log}: no {LANDMARK_TOPIC} topic (marker sightings of the daemon)")
     odometry = wheel_odometry(info)
-    config = config or SlamConfig.from_mapping(SLAM_OPTIONS)
+    config = config or SlamConfig()
     slam = LandmarkGridSlam(config, odometry, landmark_topic=LANDMARK_TOPIC) if markers else Slam(config, odometry)
     odom_stamps: list[int] = []
     odom_poses: list[np.ndarray] = []

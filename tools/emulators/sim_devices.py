@@ -37,13 +37,22 @@ from trundle.tools.sim.world import LaserModel
 
 
 def laser_model_for(model: scip2_emulator.ScipModel, base: LaserModel) -> LaserModel:
-    """``base``'s error model with the beam layout and range limits of an emulated SCIP model."""
+    """``base``'s error model with the beam layout, range limits and sweep of an emulated SCIP model
+    (one step of ``ARES`` per ``60 / SCAN`` seconds: the head turns at its rpm)."""
     angles = model.angles
     p = model.params
+    period = 60.0 / p.rpm
     return LaserModel(beams=angles.size, angle_min=float(angles[0]), angle_max=float(angles[-1]),
                       range_min=p.dmin / 1000.0, range_max=p.dmax / 1000.0, noise_sigma_m=base.noise_sigma_m,
                       dropout=base.dropout, max_incidence_rad=base.max_incidence_rad,
-                      scan_time=60.0 / p.rpm)
+                      scan_time=period, time_increment=period / p.ares)
+
+
+def first_beam_delay_s(model: scip2_emulator.ScipModel) -> float:
+    """Time (s) from a SCIP scan's start (the head pointing backwards, step ``AFRT - ARES / 2``)
+    to its first step ``AMIN``, as the protocol times it and the driver stamps it."""
+    p = model.params
+    return (p.amin - (p.afrt - p.ares / 2.0)) / p.ares * 60.0 / p.rpm
 
 
 class SimDevices:
@@ -96,7 +105,11 @@ class SimDevices:
     # ------------------------------------------------------------------ sensors on the shared clock
     def _ranges_at(self, rear_s: float) -> np.ndarray:
         self.activity["lrf"].append(time.time_ns())  # when the emulator emits the scan (its thread ran)
-        return self.sim.ranges_at(rear_s - self.t0_ns / 1e9, self.laser_model)
+        return self.sim.ranges_at(rear_s - self.t0_ns / 1e9 + first_beam_delay_s(self.scip_model), self.laser_model)
+
+    def first_beam_ns(self, rear_ns: int) -> int:
+        """Host time (ns) of the first beam of the scan the laser emulator began at ``rear_ns``."""
+        return rear_ns + int(round(first_beam_delay_s(self.scip_model) * 1e9))
 
     def _motor_turns_per_s(self, _runner_t: float) -> np.ndarray:
         now = time.time_ns()

@@ -1,9 +1,11 @@
 """The slam job: map one log; write map files, trajectory, report and an MCAP into a folder.
 
 Outputs: ``map.pgm`` + ``map.yaml`` (map_server), ``map.png``, ``trajectory.png`` (the path and
-loop closures over the map), ``trajectory.csv`` (``t_ns,x,y,theta`` of every scan in the map
-frame), ``report.json`` and ``slam.mcap`` with ``/map``, ``/tf`` (map -> odom per scan) and
-``/path``. A log with landmark sightings (``/landmarks``) puts them into the pose graph
+loop closures over the map, the stretches that fail the map self-check in magenta), ``scans.png``
+(every keyframe's scan endpoints at its optimised pose: doubled walls show here, not in the
+occupancy map), ``trajectory.csv`` (``t_ns,x,y,theta`` of every scan in the map frame),
+``report.json`` (with ``map_check``, see :mod:`trundle.fusion.map_check`) and ``slam.mcap`` with
+``/map``, ``/tf`` (map -> odom per scan) and ``/path``. A log with landmark sightings (``/landmarks``) puts them into the pose graph
 (:class:`trundle.fusion.landmark_grid_slam.LandmarkGridSlam`) and adds ``landmarks.csv``
 (``id,x,y,sx,sy``), the landmarks on ``trajectory.png`` and ``/landmarks/map`` in ``slam.mcap``. The wheel model comes from the config's ``[odometry]`` table or the log's metadata (see
 :func:`trundle.tools.jobs.config.make_odometry`); ``[slam]`` holds
@@ -22,7 +24,8 @@ from typing import Any
 import numpy as np
 
 from trundle.fusion.landmark_grid_slam import LandmarkGridSlam
-from trundle.fusion.map_io import plot_trajectory, save_map, write_trajectory_csv
+from trundle.fusion.map_check import MapCheck
+from trundle.fusion.map_io import plot_scans, plot_trajectory, save_map, write_trajectory_csv
 from trundle.fusion.slam import Slam, SlamConfig
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
@@ -43,6 +46,17 @@ def _stats(values: list[float]) -> dict[str, float]:
     a = a[np.isfinite(a)]
     return {"mean": float(a.mean()), "median": float(np.median(a)), "min": float(a.min()),
             "p05": float(np.percentile(a, 5)), "max": float(a.max())} if a.size else {}
+
+
+def map_check_report(check: MapCheck, stamps_ns: np.ndarray, t0_ns: int) -> dict[str, Any]:
+    """The map self-check for report.json: the figure, and each inconsistent stretch with its times (s
+    after the log's start)."""
+    stretches = [{"first_keyframe": a, "last_keyframe": b, "start_s": (int(stamps_ns[a]) - t0_ns) * 1e-9,
+                  "end_s": (int(stamps_ns[b]) - t0_ns) * 1e-9,
+                  "consistency": float(np.nanmean(check.keyframe_consistency[a:b + 1]))} for a, b in check.stretches]
+    return {"passed": check.passed, "consistency": check.consistency, "compared_keyframes": check.compared_keyframes,
+            "inconsistent_keyframes": check.inconsistent_keyframes, "min_stretch": check.min_stretch,
+            "stretches": stretches}
 
 
 def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool = False,
@@ -104,9 +118,12 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     write_trajectory_csv(output / "trajectory.csv", stamps, poses)
     keyframes = slam.keyframe_poses()
     loops = [(keyframes[i], keyframes[j]) for i, j in slam.loop_edges()]
+    check = slam.check_map()
     landmarks = slam.landmarks() if isinstance(slam, LandmarkGridSlam) else None
     drawn = None if landmarks is None else (landmarks.ids, landmarks.positions, landmarks.covariances)
-    plot_trajectory(map_msg, output / "trajectory.png", [poses], loops=loops, landmarks=drawn)
+    plot_trajectory(map_msg, output / "trajectory.png", [poses], loops=loops,
+                    highlights=[slam.keyframe_scans(a, b) for a, b in check.stretches], landmarks=drawn)
+    plot_scans(map_msg, output / "scans.png", slam.keyframe_endpoints(), check.keyframe_consistency < 0.5)
     path_msg = m.Path(end_ns, "map", stamps, poses)
     extra = [] if landmarks is None else [("/landmarks/map", landmark_markers(landmarks, end_ns), end_ns)]
     write_log(transforms + [("/map", map_msg, end_ns), ("/path", path_msg, end_ns)] + extra, output / "slam.mcap",
@@ -124,11 +141,13 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
         "loop_closures": st.loop_closures, "loop_attempts": st.loop_attempts, "loop_rejected": st.loop_rejected,
         "loop_unverified": st.loop_unverified,
         "optimizations": st.optimizations, "matched": st.matched, "searched": st.searched,
-        "gated_out": st.gated_out, "odometry_only": st.odometry_only,
+        "gated_out": st.gated_out, "odometry_only": st.odometry_only, "motion_model_only": st.motion_model_only,
+        "odometry_rejected": st.odometry_rejected,
         "match_score": _stats(st.scores), "scan_to_submap_residual_m": _stats(st.residuals),
         "scan_to_map_residual_m": _stats(list(slam.map_residuals(grid))),
         "path_length_m": float(np.sum(np.hypot(*np.diff(poses[:, :2], axis=0).T))) if len(poses) > 1 else 0.0,
         "map": {"resolution": float(map_msg.resolution), "width": map_msg.width, "height": map_msg.height},
+        "map_check": map_check_report(check, slam.keyframe_stamps(), t0),
         "config": {k: v for k, v in vars(slam_config).items()},
     }
     if isinstance(slam, LandmarkGridSlam):

@@ -221,10 +221,18 @@ class RobotSim:
         return compose(self.pose_at(t), np.array([mount.x, mount.y, mount.yaw]))
 
     def ranges_at(self, t: float, model: LaserModel | None = None) -> np.ndarray:
-        """One laser scan at ``t`` (m; +inf no return, -inf too close), beams as ``model`` lays them out."""
+        """One laser scan whose first beam is at ``t`` (m; +inf no return, -inf too close), beams as
+        ``model`` lays them out; a sweeping model (``time_increment``) casts beam ``i`` from the
+        laser's pose at ``t + i * time_increment`` (linear between the sweep's ends: constant
+        velocity over a few milliseconds)."""
         model = model or self.model.laser_model
         pose = self.sensor_pose_at(t, self.model.laser)
-        return simulate_scan(self.world, tuple(pose), model, self._rng(t, 3) if self.noise else None)
+        if model.time_increment > 0:
+            sweep = model.time_increment * (model.beams - 1)
+            end = self.sensor_pose_at(t + sweep, self.model.laser)
+            share = np.linspace(0.0, 1.0, model.beams)[:, None]
+            pose = pose + share * np.array([end[0] - pose[0], end[1] - pose[1], wrap_angle(end[2] - pose[2])])
+        return simulate_scan(self.world, pose, model, self._rng(t, 3) if self.noise else None)
 
     def camera_pose_at(self, t: float) -> CameraPose:
         x, y, yaw = self.sensor_pose_at(t, self.model.camera)

@@ -156,7 +156,9 @@ class LaserModel:
     ``noise_sigma_m`` is the standard deviation of the Gaussian range error; ``dropout`` the
     probability that a beam returns nothing; beams meeting a face more obliquely than
     ``max_incidence_rad`` from its normal return nothing; hits beyond ``range_max`` are +inf and
-    closer than ``range_min`` -inf (REP 117).
+    closer than ``range_min`` -inf (REP 117). ``time_increment`` is the time (s) between two
+    beams of a sweeping laser: a moving robot casts each beam from where it is at that beam's
+    time, as a real scanner does (0: the whole scan from one pose).
     """
 
     beams: int = 1081
@@ -168,6 +170,7 @@ class LaserModel:
     dropout: float = 0.002
     max_incidence_rad: float = math.radians(88.0)
     scan_time: float = 0.025
+    time_increment: float = 0.0
 
     @property
     def angle_increment(self) -> float:
@@ -178,16 +181,17 @@ class LaserModel:
         return self.angle_min + self.angle_increment * np.arange(self.beams)
 
 
-def simulate_scan(world: World, pose: tuple[float, float, float], model: LaserModel = LaserModel(),
+def simulate_scan(world: World, pose: tuple[float, float, float] | np.ndarray, model: LaserModel = LaserModel(),
                   rng: np.random.Generator | None = None) -> np.ndarray:
     """Ranges (m, float64) a laser at ``pose`` (x, y, yaw of the laser in the map) measures.
 
+    ``pose`` may also be one pose per beam (beams, 3): a sweep during which the laser moved.
     With ``rng`` None the ranges are exact (no noise, no random dropouts); the deterministic
     parts of the model (max/min range, grazing incidence) always apply.
     """
-    x, y, yaw = pose
-    angles = yaw + model.angles()
-    hits = cast_rays(world.segments, (x, y), angles)
+    poses = np.asarray(pose, dtype=np.float64).reshape(-1, 3)
+    angles = poses[:, 2] + model.angles()
+    hits = cast_rays(world.segments, poses[:, :2], angles)
     ranges = hits.distance.copy()
     hit = hits.segment >= 0
     seg = world.segments[np.maximum(hits.segment, 0)]

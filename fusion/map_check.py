@@ -1,0 +1,148 @@
+"""Map self-check: does each keyframe's scan agree with the map the rest of the run built?
+
+A broken map can look clean: free-space clearing erases the doubled walls of a room mapped twice
+at different headings, and only the scans drawn at their estimated poses show it. So after the
+final optimisation every keyframe's scan endpoints are compared, at its optimised pose, with
+every submap that it played no part in (submaps hold the keyframes of a stretch of the run and
+move rigidly with the pose graph; those it was matched against or inserted into are left out,
+since they agree with it by construction). Per submap, an endpoint *agrees* when an occupied
+cell lies within ``tolerance_cells`` of it (plus the width of one beam at its range: the
+laser's own angular resolution, so a long-range sensor is not judged on what it cannot resolve),
+and *conflicts* when it lies where that submap saw free space and nothing occupied is near;
+elsewhere the submap knows nothing. A keyframe whose
+endpoints conflict more often than they agree is inconsistent: more of its scan contradicts the
+rest of the map than supports it. The map fails when a stretch of ``min_stretch`` consecutive
+compared keyframes (5: a metre of travel at the keyframe spacing) is inconsistent; shorter runs are
+left to people and doors that moved.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from trundle.fusion.geometry import inverse, transform_points
+from trundle.fusion.submaps import Submap
+
+HALF_DIAGONAL = 0.5 ** 0.5  # cells from a cell's centre to its corner
+
+
+@dataclass(frozen=True)
+class MapCheck:
+    """Outcome of :func:`check_map`.
+
+    ``consistency`` is the share of agreeing among all agreeing and conflicting endpoint
+    comparisons (NaN when nothing could be compared); ``keyframe_consistency`` the same per
+    keyframe (NaN: not compared); ``stretches`` the inconsistent runs ``(first, last)`` of keyframe
+    indices, inclusive; ``passed`` is False when any run is ``min_stretch`` compared keyframes long.
+    """
+
+    consistency: float
+    keyframe_consistency: np.ndarray
+    comparisons: np.ndarray
+    stretches: list[tuple[int, int]] = field(default_factory=list)
+    passed: bool = True
+    min_stretch: int = 5
+
+    @property
+    def compared_keyframes(self) -> int:
+        return int(np.isfinite(self.keyframe_consistency).sum())
+
+    @property
+    def inconsistent_keyframes(self) -> int:
+        return int((self.keyframe_consistency < 0.5).sum())
+
+
+def _submap_votes(submap: Submap, frame: np.ndarray, points_map: np.ndarray, tolerance_m: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Agree / conflict mask of map-frame points against one submap placed at ``frame``; ``tolerance_m``
+    per point."""
+    grid = submap.grid
+    if grid.shape[0] == 0:
+        return np.zeros(len(points_map), bool), np.zeros(len(points_map), bool)
+    local = transform_points(inverse(frame), points_map)
+    cells = np.floor(grid.world_to_cell(local)).astype(np.int64)
+    height, width = grid.shape
+    inside = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < width) & (cells[:, 1] < height)
+    rows, cols = cells[inside, 1], cells[inside, 0]
+    distance = grid.distance_field(0.5)  # the matcher's cached field (tolerances beyond half a metre are cut)
+    agree = np.zeros(len(points_map), bool)
+    conflict = np.zeros(len(points_map), bool)
+    near = distance[rows, cols] <= tolerance_m[inside] * (1.0 + 1e-6)
+    free = grid.observed[rows, cols] & (grid.log_odds[rows, cols] < 0.0)
+    agree[inside] = near
+    conflict[inside] = free & ~near
+    return agree, conflict
+
+
+def check_map(submaps: list[Submap], submap_frames: np.ndarray, keyframe_poses: np.ndarray,
+              keyframe_points: list[np.ndarray], keyframe_ranges: list[np.ndarray], beam_spacing_rad: np.ndarray,
+              exclude_keyframes: int, tolerance_cells: float = 2.0, min_stretch: int = 5) -> MapCheck:
+    """Check every keyframe against the submaps it was not part of (see the module doc).
+
+    ``submap_frames`` (S, 3) are the map poses of the submaps' local frames; ``keyframe_points``
+    the keyframes' scan points in the robot frame, ``keyframe_ranges`` their ranges (m) and
+    ``beam_spacing_rad`` each keyframe's angle between beams; a submap is left out for keyframe
+    ``k`` when it holds a keyframe within ``exclude_keyframes`` of ``k`` (those it was tracked
+    against and inserted into).
+    """
+    count = len(keyframe_poses)
+    agree = np.zeros(count)
+    conflict = np.zeros(count)
+    world = [transform_points(pose, points) for pose, points in zip(keyframe_poses, keyframe_points)]
+    lows = np.array([w.min(axis=0) if len(w) else (np.inf, np.inf) for w in world]).reshape(-1, 2)
+    highs = np.array([w.max(axis=0) if len(w) else (-np.inf, -np.inf) for w in world]).reshape(-1, 2)
+    for submap, frame in zip(submaps, submap_frames):
+        if not submap.nodes or submap.grid.shape[0] == 0:
+            continue
+        first, last = min(submap.nodes), max(submap.nodes)
+        corners = np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) * np.array(submap.grid.shape[::-1]) * submap.grid.resolution
+        box = transform_points(frame, corners + submap.grid.origin)
+        lo, hi = box.min(axis=0), box.max(axis=0)
+        ks = np.flatnonzero(np.all(highs >= lo, axis=1) & np.all(lows <= hi, axis=1))
+        ks = ks[(ks < first - exclude_keyframes) | (ks > last + exclude_keyframes)]
+        if not len(ks):
+            continue
+        sizes = [len(world[k]) for k in ks]
+        # within tolerance_cells of the cell, not of its centre (the field measures to centres): + half a diagonal
+        tolerance = np.concatenate([(tolerance_cells + HALF_DIAGONAL) * submap.grid.resolution
+                                    + keyframe_ranges[k] * beam_spacing_rad[k] for k in ks])
+        votes = _submap_votes(submap, frame, np.concatenate([world[k] for k in ks]), tolerance)
+        owner = np.repeat(ks, sizes)
+        agree += np.bincount(owner, votes[0], minlength=count)
+        conflict += np.bincount(owner, votes[1], minlength=count)
+    total = agree + conflict
+    per_keyframe = np.full(count, np.nan)
+    per_keyframe[total > 0] = agree[total > 0] / total[total > 0]
+    consistency = float(agree.sum() / total.sum()) if total.sum() > 0 else float("nan")
+    stretches = _stretches(per_keyframe)
+    passed = all(_compared(per_keyframe, a, b) < min_stretch for a, b in stretches)
+    return MapCheck(consistency, per_keyframe, total, stretches, passed, min_stretch)
+
+
+def _compared(per_keyframe: np.ndarray, first: int, last: int) -> int:
+    return int(np.isfinite(per_keyframe[first:last + 1]).sum())
+
+
+def _stretches(per_keyframe: np.ndarray, window: int = 5) -> list[tuple[int, int]]:
+    """Runs of inconsistent keyframes: the median of ``window`` compared keyframes around each below 0.5
+    (a broken stretch keeps a few keyframes that happen to agree; a lone bad one is not a stretch),
+    bridging keyframes that could not be compared."""
+    compared = np.flatnonzero(np.isfinite(per_keyframe))
+    values = per_keyframe[compared]
+    half = window // 2
+    smooth = np.array([np.median(values[max(0, i - half):i + half + 1]) for i in range(len(values))])
+    runs: list[tuple[int, int]] = []
+    start = last = -1
+    for k, value in zip(compared, smooth):
+        if value < 0.5 and per_keyframe[k] < 0.5:
+            if start < 0:
+                start = int(k)
+            last = int(k)
+        elif value >= 0.5 and start >= 0:
+            runs.append((start, last))
+            start = -1
+    if start >= 0:
+        runs.append((start, last))
+    return runs

@@ -39,7 +39,8 @@ def wall_s(command: list[str], cwd: Path) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--logs", type=int, default=8, help="copies of the log (default 8)")
+    parser.add_argument("--logs", type=int, default=16,
+                        help="copies of the log (default 16: enough that Ray's fixed ~5 s start is not the figure)")
     args = parser.parse_args()
     if not DATA.exists():
         print(f"bench_fleet: skipped, public data not available: {DATA} (see ../shared/data/README.md)")

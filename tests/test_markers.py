@@ -49,8 +49,9 @@ def test_edge_refined_corners_on_photos_move_out_of_the_black_square(photo: str)
     assert [m.id for m in edges] == [m.id for m in subpix] == sorted(int(i) for i in _gold()[photo])
     assert max(np.abs(a.corners - b.corners).max() for a, b in zip(edges, subpix)) <= 2.0
     outwards = [np.mean(np.linalg.norm(e.corners - s.corners.mean(axis=0), axis=1)
-                        - np.linalg.norm(s.corners - s.corners.mean(axis=0), axis=1)) for e, s in zip(edges, subpix)]
-    assert np.mean(outwards) > 0.05
+                        - np.linalg.norm(s.corners - s.corners.mean(axis=0), axis=1))
+                for e, s in zip(edges, subpix) if not np.array_equal(e.corners, s.corners)]  # too small: kept
+    assert len(outwards) >= 3 and np.mean(outwards) > 0.05
 
 
 def test_grey_input_gives_the_same_markers() -> None:

@@ -125,3 +125,29 @@ def test_calibration_file_loads_as_the_same_camera_info(tmp_path):
 def test_render_rejects_a_camera_outside_the_room_height(renderer):
     with pytest.raises(ValueError):
         renderer.render(CameraPose(10.0, 5.25, 3.0, 0.0))
+
+
+def test_corners_on_the_edges_are_where_the_marker_is_and_subpix_corners_are_inside(renderer):
+    """Seen from 1.2-3.5 m, on markers 40-200 px a side: OpenCV's sub-pixel corners lie inside the
+    projected square (the render's mip-map blur rounds the corners, as a lens does), the edge-refined
+    corners on it. Truth: the corners projected from the world file."""
+    from trundle.perception.markers import MarkerDetector
+
+    offsets: dict[str, list[float]] = {"subpix": [], "edges": []}
+    for k in range(60):
+        marker = renderer.world.markers[k % len(renderer.world.markers)]
+        distance = 1.2 + 2.3 * (k / 59)
+        yaw = math.atan2(-marker.normal[1], -marker.normal[0]) + math.radians(25.0 * math.sin(k))
+        pose = CameraPose(marker.x - distance * math.cos(yaw), marker.y - distance * math.sin(yaw), 0.45, yaw)
+        image = renderer.render(pose)
+        projected, _ = project(marker.corners(), pose, renderer.camera)
+        side = np.linalg.norm(projected[0] - projected[1])
+        for refinement in offsets:
+            found = {m.id: m for m in MarkerDetector(renderer.world.aruco_dictionary, refinement).detect(image)}
+            if marker.marker_id in found and side >= 40:
+                centre = projected.mean(axis=0)
+                offsets[refinement].append(float(np.mean(np.linalg.norm(found[marker.marker_id].corners - centre, axis=1)
+                                                         - np.linalg.norm(projected - centre, axis=1))))
+    assert len(offsets["edges"]) >= 30 and len(offsets["subpix"]) == len(offsets["edges"])
+    assert np.mean(offsets["subpix"]) < -0.08  # pixels inwards
+    assert abs(np.mean(offsets["edges"])) < 0.02

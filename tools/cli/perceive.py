@@ -55,7 +55,8 @@ def register(p: argparse.ArgumentParser) -> None:
     c.add_argument("--min-extent", type=number_in(0.0, 1.0), default=0.0, help="smallest fraction of its box a region fills")
     k = p.add_argument_group("markers pipeline")
     k.add_argument("--dictionary", default="DICT_6X6_250", help="ArUco dictionary (default DICT_6X6_250)")
-    k.add_argument("--refinement", default="subpix", help="corner refinement: subpix, none, contour, apriltag")
+    k.add_argument("--refinement", default="edges", choices=("edges", "subpix", "none", "contour", "apriltag"),
+                   help="corner refinement (default edges: sub-pixel corners refined on the marker's edges)")
     k.add_argument("--marker-size", type=positive, help="printed marker side in metres (enables poses)")
     k.add_argument("--camera-info", help="CameraInfo topic (default: <camera namespace>/camera_info)")
     f = p.add_argument_group("features pipeline")

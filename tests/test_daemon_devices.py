@@ -121,13 +121,17 @@ def test_daemon_logs_every_emulated_device_consistently_with_ground_truth(tmp_pa
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250), params)
-    checked = 0
+    checked = spurious = 0
+    in_world = {decal.marker_id for decal in sim.world.markers}
     for msg in images:
         corners, ids, _ = detector.detectMarkers(cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE))
         for marker_id, found in zip([] if ids is None else ids.ravel(), corners):
+            if int(marker_id) not in in_world:  # ArUco decodes a rare false id from noise and JPEG blocks
+                spurious += 1
+                continue
             t = (msg.stamp_ns - t0_ns) / 1e9
             errors = [np.abs(project(sim.world.marker(int(marker_id)).corners(), sim.camera_pose_at(t - dt), camera)[0]
                              - found.reshape(4, 2)).max() for dt in np.arange(0.0, 0.5, 0.002)]
             assert min(errors) < 1.5, marker_id
             checked += 1
-    assert checked >= 1
+    assert checked >= 1 and spurious <= max(1, checked // 50)

@@ -48,15 +48,18 @@ class OdometryCheck:
         self._ratios = RobustWindow(history)
         self._span_ratios = RobustWindow(history * span)
         self._recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=span)
+        self._kappa2: np.ndarray | None = None  # the medians, kept until the next accepted increment
 
     def kappa2(self) -> np.ndarray:
         """Learned noise level per axis (x, y, theta) relative to the configured model (1 until warmed up)."""
         if len(self._ratios) < self.warmup:
             return np.ones(3)
-        level = self._ratios.median()
-        if len(self._span_ratios) >= self.warmup:
-            level = np.maximum(level, self._span_ratios.median())
-        return np.maximum(level, MIN_KAPPA2)
+        if self._kappa2 is None:
+            level = self._ratios.median()
+            if len(self._span_ratios) >= self.warmup:
+                level = np.maximum(level, self._span_ratios.median())
+            self._kappa2 = np.maximum(level, MIN_KAPPA2)
+        return self._kappa2.copy()
 
     def noise(self, model_covariance: np.ndarray) -> np.ndarray:
         """The odometry noise (3x3, robot frame) of an increment whose configured noise is ``model_covariance``."""
@@ -79,6 +82,7 @@ class OdometryCheck:
         e = np.asarray(disagreement, np.float64)
         variance = np.maximum(np.diag(model_covariance), 1e-300)
         self._ratios.add(e * e / CHI2_1DOF_MEDIAN / variance)
+        self._kappa2 = None
         self._recent.append((e, variance))
         if len(self._recent) == self._recent.maxlen:
             total = np.sum([d for d, _ in self._recent], axis=0)

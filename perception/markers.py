@@ -162,7 +162,7 @@ class MarkerDetector:
             return []
         found = [Marker(int(i), np.asarray(c, dtype=np.float64).reshape(4, 2)) for i, c in zip(ids.ravel(), corners)]
         if self.refinement == "edges":
-            grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+            grey = (image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)).astype(np.float32)
             found = [Marker(f.id, refine_on_edges(grey, f.corners, self._bits)) for f in found]
         return sorted(found, key=lambda m: m.id)
 

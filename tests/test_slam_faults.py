@@ -24,13 +24,10 @@ SECONDS = 20.0
 def office():
     """20 s of the office route: wheel angles at 100 Hz, 40 Hz scans of a sweeping laser, the truth at each scan."""
     sim = RobotSim(load_world(), seed=3)
-    model = sim.model.laser_model
     wheel_t = np.arange(0.0, SECONDS, 0.01)
     angles = np.array([sim.encoder_angles_at(t) for t in wheel_t])
     scan_t = np.arange(0.0, SECONDS, 0.025)
-    scans = [m.LaserScan(int(round(t * 1e9)), "laser", model.angle_min, model.angle_max, model.angle_increment,
-                         model.time_increment, model.scan_time, model.range_min, model.range_max,
-                         sim.ranges_at(t).astype(np.float32)) for t in scan_t]
+    scans = [sim.laser_scan(t, int(round(t * 1e9))) for t in scan_t]
     return sim, wheel_t, angles, scan_t, scans, np.array([sim.pose_at(t) for t in scan_t])
 
 

@@ -11,7 +11,6 @@ import pytest
 
 from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
 from trundle.fusion.slam import Slam, SlamConfig
-from trundle.logs import messages as m
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
 
@@ -19,14 +18,11 @@ from trundle.tools.sim.world import load_world
 @pytest.mark.parametrize("rate_hz", [1.7, 1.0])
 def test_a_slow_laser_only_log_does_not_diverge(rate_hz: float) -> None:
     sim = RobotSim(load_world(), seed=3)
-    model, mount = sim.model.laser_model, sim.model.laser
+    mount = sim.model.laser
     slam = Slam(SlamConfig(), None, laser_pose=(mount.x, mount.y, mount.yaw))
     times = np.arange(0.0, sim.duration_s, 1.0 / rate_hz)
     for t in times:
-        slam.process("/scan", m.LaserScan(int(round(t * 1e9)) + 1_000_000_000, "laser", model.angle_min,
-                                          model.angle_max, model.angle_increment, model.time_increment,
-                                          model.scan_time, model.range_min, model.range_max,
-                                          sim.ranges_at(t).astype(np.float32)))
+        slam.process("/scan", sim.laser_scan(t, int(round(t * 1e9)) + 1_000_000_000))
     slam.finish()
     stamps, poses = slam.trajectory()
     truth = Trajectory(stamps, np.array([sim.pose_at(t) for t in times]))

@@ -24,6 +24,7 @@ import numpy as np
 
 from trundle.fusion.geometry import compose, wrap_angle
 from trundle.fusion.odometry import integrate, integrate_path
+from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.tools.sim.camera_render import CameraPose, CameraRenderer, PinholeCamera
 from trundle.tools.sim.world import LaserModel, World, simulate_scan
@@ -233,6 +234,13 @@ class RobotSim:
             share = np.linspace(0.0, 1.0, model.beams)[:, None]
             pose = pose + share * np.array([end[0] - pose[0], end[1] - pose[1], wrap_angle(end[2] - pose[2])])
         return simulate_scan(self.world, pose, model, self._rng(t, 3) if self.noise else None)
+
+    def laser_scan(self, t: float, stamp_ns: int, frame_id: str = "laser") -> m.LaserScan:
+        """:meth:`ranges_at` ``t`` as the sensor_msgs/LaserScan of the robot's laser, stamped ``stamp_ns``."""
+        model = self.model.laser_model
+        return m.LaserScan(stamp_ns, frame_id, model.angle_min, model.angle_max, model.angle_increment,
+                           model.time_increment, model.scan_time, model.range_min, model.range_max,
+                           self.ranges_at(t).astype(np.float32))
 
     def camera_pose_at(self, t: float) -> CameraPose:
         x, y, yaw = self.sensor_pose_at(t, self.model.camera)

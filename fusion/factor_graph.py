@@ -27,7 +27,7 @@ import scipy.sparse as sp
 
 from trundle.fusion.geometry import compose, wrap_angle
 from trundle.fusion.observation_models import range_bearing, relative_position
-from trundle.fusion.pose_graph import ROBUST_KERNELS, OptimizeResult, PoseGraph, _errors, _solve_spd, robust_weights
+from trundle.fusion.pose_graph import ROBUST_KERNELS, OptimizeResult, PoseGraph, _errors, _factor_spd, _solve_spd, robust_weights
 
 POSE, POINT = "pose", "point"
 BETWEEN, RANGE_BEARING, POSITION, POINT_PRIOR, POSE_PRIOR = (
@@ -42,6 +42,7 @@ Kernel = tuple[str | None, float]
 # (Measured on Victoria Park: Nielsen's gentler schedule of the pose graph takes over 300 iterations.)
 LAMBDA_FACTOR = 10.0
 MIN_MODEL_FIDELITY = 1e-3  # robust kernel name (None, "huber", "cauchy") and width (whitened units)
+MARGINAL_SOLVE_VALUES = 1 << 22   # right-hand side values per solve of marginal_covariances (32 MB)
 
 
 @dataclass
@@ -385,17 +386,20 @@ class FactorGraph:
         free = np.flatnonzero(starts >= 0)
         if n and len(free):
             jac, _ = self._system(self.poses, self.points, dict(kernels or {}), columns)
-            picks = np.concatenate([starts[k] + np.arange(widths[k]) for k in free])
-            rhs = np.zeros((n, len(picks)))
-            rhs[picks, np.arange(len(picks))] = 1.0
-            solution = _solve_spd((jac.T @ jac).tocsc(), rhs)
-            offset = 0
-            for k in free:
-                w = widths[k]
-                rows = picks[offset:offset + w]
-                block = solution[rows, offset:offset + w] if solution.ndim == 2 else np.full((w, w), np.nan)
-                blocks[k] = 0.5 * (block + block.T)
-                offset += w
+            factor = _factor_spd((jac.T @ jac).tocsc())
+            per_solve = max(1, MARGINAL_SOLVE_VALUES // (3 * n))   # variables per solve: its right-hand side stays small
+            for chunk in np.array_split(free, -(-len(free) // per_solve)):
+                picks = np.concatenate([starts[k] + np.arange(widths[k]) for k in chunk])
+                rhs = np.zeros((n, len(picks)))
+                rhs[picks, np.arange(len(picks))] = 1.0
+                solution = factor.solve(rhs) if factor is not None else None
+                offset = 0
+                for k in chunk:
+                    w = widths[k]
+                    block = solution[picks[offset:offset + w], offset:offset + w] if solution is not None \
+                        else np.full((w, w), np.nan)
+                    blocks[k] = 0.5 * (block + block.T)
+                    offset += w
         pose_blocks = np.array(blocks[:len(pose_ids)]).reshape(-1, 3, 3)
         point_blocks = np.array(blocks[len(pose_ids):]).reshape(-1, 2, 2)
         return pose_blocks, point_blocks

@@ -47,6 +47,7 @@ LANDMARK_KERNEL_WIDTH = 3.0
 POSITION_FLOOR_M2 = 1e-6       # variance added to a sighting's position: the motion since the scan
 TIME_OFFSET_STEP_S = 0.002
 MIN_SIGHTINGS_FOR_OFFSET = 20  # fewer cannot tell a time offset from noise
+TIME_OFFSET_CHI2 = 10.83       # chi2, 1 degree of freedom, 99.9 %: an offset the sightings call for
 
 
 @dataclass(frozen=True)
@@ -68,17 +69,21 @@ class _Sighting:
     def oriented(self) -> bool:
         return self.yaw_variance > 0
 
-    def measurement(self, time_offset_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    def measurement(self, time_offset_s: float = 0.0, heading_variance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """The landmark in the keyframe's frame, (x, y) or (x, y, yaw), and its covariance, with the
-        stamp moved by ``time_offset_s``."""
+        stamp moved by ``time_offset_s``; ``heading_variance`` (rad^2) is the keyframe's own heading
+        uncertainty, for a keyframe held fixed: it swings the landmark by its range times the angle."""
         here = compose(self.here, self.velocity * time_offset_s)
         turn = rotation(float(here[2]))
         position = here[:2] + turn @ self.position
         xy_cov = turn @ self.position_covariance @ turn.T + np.eye(2) * POSITION_FLOOR_M2
+        swing = np.array([-position[1], position[0]])   # d position / d keyframe heading (m/rad)
         if not self.oriented:
-            return position, xy_cov
+            return position, xy_cov + np.outer(swing, swing) * heading_variance
         yaw = float(here[2]) + self.yaw
-        return np.array([*position, yaw]), between_covariance(xy_cov, self.yaw_variance, yaw)
+        lever = np.array([*(rotation(yaw).T @ swing), 1.0])   # the same in the factor's (marker's) frame, and its yaw
+        return (np.array([*position, yaw]),
+                between_covariance(xy_cov, self.yaw_variance, yaw) + np.outer(lever, lever) * heading_variance)
 
 
 @dataclass
@@ -150,7 +155,12 @@ class LandmarkGridSlam(Slam):
     def _optimize_graph(self, max_iterations: int, kernel: str | None) -> None:
         """Keyframes and the landmarks seen on more than one visit in one factor graph (the keyframes'
         optimised poses go back to the pose graph); then the landmarks of a single visit, which close no
-        loop and would only bend the laser's locally better path, placed on the keyframes held fixed."""
+        loop and would only bend the laser's locally better path, placed on the keyframes held fixed.
+        A fixed keyframe's heading uncertainty (its marginal in the joint graph) joins each of its
+        sightings: a marker's corners give its bearing to a few hundredths of a degree, so without it
+        the small turns between successive sightings triangulate the landmark with more weight than
+        the range itself has (5 cm off at 4 m in the demo), where the keyframes' heading is good to
+        a few tenths of a degree only."""
         if not self._sightings:
             super()._optimize_graph(max_iterations, kernel)
             return
@@ -169,9 +179,11 @@ class LandmarkGridSlam(Slam):
             self._estimate_noise(graph, edges, joint, kernels, max_iterations)
         single = [s for s in self._sightings if s.landmark not in revisited]
         if single:
+            nodes = sorted({s.node for s in single})
+            headings = dict(zip(nodes, graph.marginal_covariances(nodes, kernels=kernels)[0][:, 2, 2]))
             graph.fixed_poses = set(range(len(graph.poses)))
             graph.fixed_points = set(range(len(graph.points)))
-            self._add_sightings(graph, single, variables)
+            self._add_sightings(graph, single, variables, headings)
             graph.optimize(max_iterations, kernels)
         self.graph.poses = graph.poses[: len(self.graph)]
         self._graph, self._variables = graph, variables
@@ -181,14 +193,16 @@ class LandmarkGridSlam(Slam):
         self._nodes_at_landmark_optimization = len(self.graph)
         self.landmark_stats.joint_optimizations += 1
 
-    def _add_sightings(self, graph: FactorGraph, sightings: list[_Sighting], variables: dict[str, tuple[bool, int]]
-                       ) -> dict[bool, list[tuple[int, _Sighting]]]:
+    def _add_sightings(self, graph: FactorGraph, sightings: list[_Sighting], variables: dict[str, tuple[bool, int]],
+                       heading_variances: dict[int, float] | None = None) -> dict[bool, list[tuple[int, _Sighting]]]:
         """Landmark variables (first sight: the last estimate, else placed by its keyframe) and a factor
-        per sighting; the factors' rows by kind (oriented or not), with their sightings."""
+        per sighting, with the heading variance (rad^2) of keyframes held fixed; the factors' rows by
+        kind (oriented or not), with their sightings."""
         rows: dict[bool, list[tuple[int, _Sighting]]] = {True: [], False: []}
         offset = self.landmark_stats.time_offset_s
+        heading_variances = heading_variances or {}
         for s in sightings:
-            z, covariance = s.measurement(offset)
+            z, covariance = s.measurement(offset, float(heading_variances.get(s.node, 0.0)))
             if s.landmark not in variables:
                 keyframe = graph.pose(s.node)
                 guess = self._estimates.get(s.landmark)
@@ -262,34 +276,49 @@ class LandmarkGridSlam(Slam):
     def estimate_time_offset(self) -> float:
         """The sightings' time offset (s) that makes each landmark's sightings, placed by the keyframes
         as the laser alone has them, agree best (least robust information-weighted scatter), searched
-        over +-``max_time_offset_s``; 0 with fewer than ``MIN_SIGHTINGS_FOR_OFFSET`` sightings."""
+        over +-``max_time_offset_s``; 0 with fewer than ``MIN_SIGHTINGS_FOR_OFFSET`` sightings, and 0
+        unless it explains significantly more than no offset (the scatter's drop, in units of its
+        variance factor, over ``TIME_OFFSET_CHI2``): driving straight at a marker, an offset only moves
+        every sighting along the line of sight, and the noise alone would pick one."""
         if len(self._sightings) < MIN_SIGHTINGS_FOR_OFFSET or self.max_time_offset_s <= 0:
             return 0.0
         laser = copy.deepcopy(self.graph)   # the keyframes by the laser alone: the sightings have not bent them
         laser.optimize(max_iterations=100, robust_kernel=self.config.robust_kernel
                        if self.config.robust_kernel in ("huber", "cauchy") else None, kernel_width=3.0)
-        poses = laser.poses
         names = np.unique([s.landmark for s in self._sightings], return_inverse=True)[1]
-        best = (math.inf, 0.0)
-        for offset in np.arange(-self.max_time_offset_s, self.max_time_offset_s + 1e-12, TIME_OFFSET_STEP_S):
-            where, information = [], []
-            for s in self._sightings:
-                z, covariance = s.measurement(float(offset))
-                turn = rotation(float(poses[s.node, 2]))
-                where.append(poses[s.node, :2] + turn @ z[:2])
-                information.append(np.linalg.inv(turn @ (covariance[:2, :2] if not s.oriented else
-                                                         _position_block(z, covariance)) @ turn.T))
-            where, information = np.array(where), np.array(information)
-            cost = 0.0
-            for k in range(names.max() + 1):
-                mine = names == k
-                total = information[mine].sum(axis=0)
-                mean = np.linalg.solve(total, np.einsum("nij,nj->i", information[mine], where[mine]))
-                d = where[mine] - mean
-                s2 = np.einsum("ni,nij,nj->n", d, information[mine], d)
-                cost += float(np.sum(LANDMARK_KERNEL_WIDTH ** 2 * np.log1p(s2 / LANDMARK_KERNEL_WIDTH ** 2)))
-            best = min(best, (cost, float(offset)))
-        return best[1]
+        nodes = sorted({s.node for s in self._sightings})
+        headings = dict(zip(nodes, FactorGraph.from_pose_graph(laser).marginal_covariances(nodes)[0][:, 2, 2]))
+        offsets = np.arange(-self.max_time_offset_s, self.max_time_offset_s + 1e-12, TIME_OFFSET_STEP_S)
+        costs = np.array([self._scatter(float(offset), laser.poses, names, headings) for offset in offsets])
+        best, zero = int(np.argmin(costs)), int(np.argmin(np.abs(offsets)))
+        redundancy = 2 * (len(self._sightings) - int(names.max()) - 1) - 1   # positions less means, less the offset
+        if redundancy < 1 or costs[best] <= 0:
+            return 0.0
+        variance_factor = costs[best] / redundancy
+        return float(offsets[best]) if (costs[zero] - costs[best]) / variance_factor > TIME_OFFSET_CHI2 else 0.0
+
+    def _scatter(self, offset: float, poses: np.ndarray, names: np.ndarray, heading_variances: dict[int, float]
+                 ) -> float:
+        """The robust information-weighted scatter of each landmark's sightings about their mean, placed
+        by keyframe ``poses`` (with their heading variances, rad^2) with the stamps moved by ``offset``
+        (s); ``names``: each sighting's landmark."""
+        where, information = [], []
+        for s in self._sightings:
+            z, covariance = s.measurement(offset, float(heading_variances[s.node]))
+            turn = rotation(float(poses[s.node, 2]))
+            where.append(poses[s.node, :2] + turn @ z[:2])
+            information.append(np.linalg.inv(turn @ (covariance[:2, :2] if not s.oriented else
+                                                     _position_block(z, covariance)) @ turn.T))
+        where, information = np.array(where), np.array(information)
+        cost = 0.0
+        for k in range(names.max() + 1):
+            mine = names == k
+            total = information[mine].sum(axis=0)
+            mean = np.linalg.solve(total, np.einsum("nij,nj->i", information[mine], where[mine]))
+            d = where[mine] - mean
+            s2 = np.einsum("ni,nij,nj->n", d, information[mine], d)
+            cost += float(np.sum(LANDMARK_KERNEL_WIDTH ** 2 * np.log1p(s2 / LANDMARK_KERNEL_WIDTH ** 2)))
+        return cost
 
     def finish(self) -> None:
         """The final optimisation, then the sightings' time offset and a last optimisation with it."""

@@ -356,13 +356,19 @@ class PoseGraph:
 read_g2o = PoseGraph.read_g2o
 
 
-def _solve_spd(matrix: sp.csc_matrix, rhs: np.ndarray) -> np.ndarray:
-    """Solve a sparse symmetric positive-definite system with SuperLU (COLAMD order, diagonal pivots)."""
+def _factor_spd(matrix: sp.csc_matrix) -> spla.SuperLU | None:
+    """SuperLU factors (COLAMD order, diagonal pivots) of a sparse symmetric positive-definite matrix;
+    None when it is exactly singular."""
     try:
-        factor = spla.splu(matrix, permc_spec="COLAMD", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    except RuntimeError:  # exactly singular
-        return np.full(matrix.shape[0], np.nan)
-    return factor.solve(rhs)
+        return spla.splu(matrix, permc_spec="COLAMD", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    except RuntimeError:
+        return None
+
+
+def _solve_spd(matrix: sp.csc_matrix, rhs: np.ndarray) -> np.ndarray:
+    """Solve a sparse symmetric positive-definite system (NaN when it is exactly singular)."""
+    factor = _factor_spd(matrix)
+    return np.full(matrix.shape[0], np.nan) if factor is None else factor.solve(rhs)
 
 
 def _solve_linear_chain(values: np.ndarray, ij: np.ndarray, measured: np.ndarray, whitening: np.ndarray,

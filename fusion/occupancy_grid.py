@@ -22,6 +22,7 @@ from trundle.logs.messages import OccupancyGrid
 
 T = TypeVar("T")
 MAX_CELLS = 1 << 27  # 134 M cells (670 MB of log-odds and flags): 580 m square at 5 cm; beyond it, a mistake
+WINDOW_SLACK_CELLS = 10   # a match-field window grows by this much more than asked (the next scans move a little)
 
 
 def log_odds(probability: float) -> float:
@@ -52,6 +53,124 @@ def ray_cells(start: np.ndarray, ends: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class TracedRays:
+    """Rays traced on the cell lattice whose cell (0, 0) starts at ``origin`` (m): the cells crossed
+    and the cells of the returns as (row, col), the returns' offsets in their cells (u, v in [0, 1))
+    and the bounding box (m) of sensor, returns and free ends."""
+
+    origin: np.ndarray
+    crossed: np.ndarray
+    hits: np.ndarray
+    offsets: np.ndarray
+    xy_min: np.ndarray
+    xy_max: np.ndarray
+
+
+def trace_rays(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hits_xy: np.ndarray,
+               free_ends_xy: np.ndarray | None = None) -> TracedRays:
+    """Rays from ``sensor_xy`` to returns ``hits_xy`` (N, 2) and to ``free_ends_xy`` (M, 2) (metres) on
+    the lattice of ``resolution`` m cells whose cell (0, 0) starts at ``origin``."""
+    origin = np.asarray(origin, np.float64).reshape(2).copy()
+    sensor_xy = np.asarray(sensor_xy, dtype=np.float64).reshape(2)
+    hits_xy = np.asarray(hits_xy, dtype=np.float64).reshape(-1, 2)
+    free_ends_xy = np.zeros((0, 2)) if free_ends_xy is None else np.asarray(free_ends_xy, np.float64).reshape(-1, 2)
+    everything = np.vstack([sensor_xy[None], hits_xy, free_ends_xy])
+    hit_coords = (hits_xy - origin) / resolution
+    hit_cells = np.floor(hit_coords).astype(np.int64)
+    crossed = ray_cells((sensor_xy - origin) / resolution, np.vstack([hit_coords, (free_ends_xy - origin) / resolution]))
+    return TracedRays(origin, crossed, hit_cells[:, ::-1], hit_coords - hit_cells, everything.min(axis=0),
+                      everything.max(axis=0))
+
+
+@dataclass(frozen=True)
+class FieldWindow:
+    """Match fields over the cells ``[row0, row0 + h) x [col0, col0 + w)`` of a grid: the distance (m)
+    to the nearest occupied cell, capped; the likelihood; and the walls (None without them)."""
+
+    row0: int
+    col0: int
+    distance: np.ndarray
+    likelihood: np.ndarray
+    lines: WallLines | None
+
+
+class MatchFields:
+    """The fields a scan match reads, computed over a window where its points fall rather than over
+    the whole grid (a scan covers about a fifth of a submap's cells, measured on fr079): the
+    distance (m) to the nearest occupied cell capped at ``max_distance_m``; the likelihood
+    ``exp(-d^2 / (2 sigma^2))``, 0 beyond 4 sigma; and with ``lines`` the walls the returns describe
+    (:meth:`LogOddsGrid.line_data`), each cell pointing at its nearest occupied cell's. Every value
+    in the window is exact: it is computed on the window grown by the larger cap. A request outside
+    the window grows it (by ``WINDOW_SLACK_CELLS`` more, for the next scans and the match's steps)."""
+
+    def __init__(self, grid: LogOddsGrid, max_distance_m: float, sigma_m: float, lines: bool, min_flatness: float) -> None:
+        self.grid = grid
+        self.max_distance_m = float(max_distance_m)
+        self.sigma_m = float(sigma_m)
+        self.lines = lines
+        self.min_flatness = min_flatness
+        self.margin = int(math.ceil(max(self.max_distance_m, 4.0 * self.sigma_m) / grid.resolution)) + 2
+        self._window: FieldWindow | None = None
+        self._bounds = (0, 0, 0, 0)   # rows [r0, r1), cols [c0, c1) of the window
+
+    def around(self, cols: np.ndarray, rows: np.ndarray) -> FieldWindow:
+        """The fields over a window holding the cells at continuous cell coordinates ``cols``, ``rows``
+        (x, y: column and row) and the cells next to them."""
+        height, width = self.grid.shape
+        if not len(cols):
+            return self._window or self._compute(0, 0, 0, 0)
+        c_lo, c_hi = int(np.floor(np.min(cols))) - 1, int(np.floor(np.max(cols))) + 2
+        r_lo, r_hi = int(np.floor(np.min(rows))) - 1, int(np.floor(np.max(rows))) + 2
+        r_lo, c_lo, r_hi, c_hi = max(r_lo, 0), max(c_lo, 0), min(r_hi, height), min(c_hi, width)
+        r0, r1, c0, c1 = self._bounds
+        if self._window is not None and r_lo >= r0 and c_lo >= c0 and r_hi <= r1 and c_hi <= c1:
+            return self._window
+        if self._window is None:
+            r0, c0, r1, c1 = height, width, 0, 0
+        slack = WINDOW_SLACK_CELLS
+        return self._compute(max(min(r0, r_lo - slack), 0), min(max(r1, r_hi + slack), height),
+                             max(min(c0, c_lo - slack), 0), min(max(c1, c_hi + slack), width))
+
+    def _compute(self, r0: int, r1: int, c0: int, c1: int) -> FieldWindow:
+        grid, margin = self.grid, self.margin
+        height, width = grid.shape
+        pr0, pr1, pc0, pc1 = max(r0 - margin, 0), min(r1 + margin, height), max(c0 - margin, 0), min(c1 + margin, width)
+        occupied = grid.log_odds[pr0:pr1, pc0:pc1] > 0.0
+        inner = (slice(r0 - pr0, r1 - pr0), slice(c0 - pc0, c1 - pc0))
+        shape = (max(r1 - r0, 0), max(c1 - c0, 0))
+        lines = None
+        if not occupied.any():
+            distance = np.full(shape, np.float32(self.max_distance_m), np.float32)
+            likelihood = np.zeros(shape, np.float32)
+            if self.lines:
+                lines = WallLines(np.full(shape, -1, np.int32), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, bool))
+        else:
+            free = np.where(occupied, 0, 255).astype(np.uint8)
+            cells = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[inner]
+            distance = np.minimum(cells * np.float32(grid.resolution), np.float32(self.max_distance_m))
+            likelihood = _likelihood(cells, grid.resolution, self.sigma_m)
+            if self.lines:
+                _, labels = cv2.distanceTransformWithLabels(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
+                                                            labelType=cv2.DIST_LABEL_PIXEL)
+                rows, cols = np.nonzero(occupied)
+                mean, normal, is_line = grid.line_data(rows + pr0, cols + pc0, self.min_flatness)
+                index = np.zeros(int(labels.max()) + 1, np.int32)
+                index[labels[rows, cols]] = np.arange(len(rows), dtype=np.int32)
+                lines = WallLines(index[labels[inner]], mean, normal, is_line)
+        self._bounds = (r0, r1, c0, c1)
+        self._window = FieldWindow(r0, c0, distance, likelihood, lines)
+        return self._window
+
+
+def _likelihood(cells: np.ndarray, resolution: float, sigma_m: float) -> np.ndarray:
+    """``exp(-d^2 / (2 sigma^2))`` of distances ``cells`` (in cells), 0 beyond 4 sigma."""
+    scale = np.float32(resolution / sigma_m)
+    field = np.exp(np.float32(-0.5) * np.square(np.minimum(cells, np.float32(4.0 / scale)) * scale))
+    field[cells * scale >= 4.0] = 0.0
+    return field.astype(np.float32, copy=False)
+
+
+@dataclass(frozen=True)
 class WallLines:
     """Walls of a grid as its returns describe them: ``nearest`` (H, W) the index of each cell's nearest
     occupied cell (-1: none), and per occupied cell the ``mean`` (K, 2, metres, grid frame) of its
@@ -71,7 +190,7 @@ class LogOddsGrid:
     clamp the log-odds so the map can still change; ``grow_cells`` is the margin added when a scan
     falls outside (growth is amortised). With ``subcell`` each cell also keeps the moments of the
     returns that fell in it, so matching can use the walls those returns describe rather than the
-    cell lattice (see :meth:`wall_lines`).
+    cell lattice (see :meth:`line_data`).
     """
 
     def __init__(self, resolution: float = 0.05, *, p_hit: float = 0.7, p_miss: float = 0.4,
@@ -141,35 +260,28 @@ class LogOddsGrid:
         Coordinates in metres in the grid's frame. ``free_ends_xy`` (M, 2) are the ends of rays that
         saw nothing (cleared, but no hit marked), e.g. no-return beams cut at a chosen distance.
         """
-        sensor_xy = np.asarray(sensor_xy, dtype=np.float64).reshape(2)
-        hits_xy = np.asarray(hits_xy, dtype=np.float64).reshape(-1, 2)
-        free_ends_xy = np.zeros((0, 2)) if free_ends_xy is None else np.asarray(free_ends_xy, np.float64).reshape(-1, 2)
-        everything = np.vstack([sensor_xy[None], hits_xy, free_ends_xy])
-        self.ensure_contains(everything.min(axis=0), everything.max(axis=0))
+        self.insert_traced(trace_rays(self.origin, self.resolution, sensor_xy, hits_xy, free_ends_xy))
+
+    def insert_traced(self, rays: TracedRays) -> None:
+        """Update with rays traced on this grid's cell lattice (:func:`trace_rays`): one trace serves
+        every grid on the lattice, as the two active submaps that take each keyframe are."""
+        self.ensure_contains(rays.xy_min, rays.xy_max)
+        shift = (rays.origin - self.origin) / self.resolution   # this grid's cell of the trace's cell (0, 0)
+        col_shift, row_shift = np.rint(shift).astype(np.int64)
+        if not np.allclose(shift, (col_shift, row_shift), atol=1e-6):
+            raise ValueError("rays traced on another cell lattice")
         width = self.shape[1]
-        start = self.world_to_cell(sensor_xy)
-        hit_coords = self.world_to_cell(hits_xy)
-        hit_cells = np.floor(hit_coords).astype(np.int64)
-        if self.moments is not None and len(hit_cells):
-            u, v = (hit_coords - hit_cells).T
-            flat_hits = hit_cells[:, 1] * width + hit_cells[:, 0]
+        hit_flat = (rays.hits[:, 0] + row_shift) * width + rays.hits[:, 1] + col_shift
+        crossed_flat = (rays.crossed[:, 0] + row_shift) * width + rays.crossed[:, 1] + col_shift
+        if self.moments is not None and len(hit_flat):
+            u, v = rays.offsets.T
             for k, values in enumerate((np.ones_like(u), u, v, u * u, u * v, v * v)):
-                np.add.at(self.moments[k].reshape(-1), flat_hits, values.astype(np.float32))
-        crossed = ray_cells(start, np.vstack([self.world_to_cell(hits_xy), self.world_to_cell(free_ends_xy)]))
-        # Each cell once per scan, hits winning over misses. A mark per cell beats sorting for grids
-        # up to a few dozen times the number of cells the rays touch; beyond, sort.
-        crossed_flat = crossed[:, 0] * width + crossed[:, 1]
-        hit_flat = hit_cells[:, 1] * width + hit_cells[:, 0]
-        if self.log_odds.size <= 32 * (len(crossed_flat) + len(hit_flat)):
-            mark = np.zeros(self.log_odds.size, np.int8)
-            mark[crossed_flat] = 1
-            mark[hit_flat] = 2
-            touched = np.flatnonzero(mark)
-            kind = mark[touched]
-            free_flat, hit_flat = touched[kind == 1], touched[kind == 2]
-        else:
-            hit_flat = np.unique(hit_flat)
-            free_flat = np.setdiff1d(np.unique(crossed_flat), hit_flat, assume_unique=True)
+                np.add.at(self.moments[k].reshape(-1), hit_flat, values.astype(np.float32))
+        # each cell once per scan, hits winning over misses; a repeated index takes the same value
+        # twice, so no cell needs sorting out
+        is_hit = np.zeros(self.log_odds.size, bool)
+        is_hit[hit_flat] = True
+        free_flat = crossed_flat[~is_hit[crossed_flat]]
         flat = self.log_odds.reshape(-1)
         flat[free_flat] = np.maximum(flat[free_flat] + self.l_miss, self.l_min)
         flat[hit_flat] = np.minimum(flat[hit_flat] + self.l_hit, self.l_max)
@@ -212,28 +324,25 @@ class LogOddsGrid:
                            lambda: np.minimum(self._distance_cells() * np.float32(self.resolution),
                                               np.float32(max_distance_m)))
 
-    def wall_lines(self, min_flatness: float = 0.8) -> WallLines:
-        """The walls the returns describe, for point-to-line matching (a grid built with ``subcell``).
+    def match_fields(self, max_distance_m: float, sigma_m: float, lines: bool = False,
+                     min_flatness: float = 0.8) -> MatchFields:
+        """The fields a scan match reads (:class:`MatchFields`), for this version of the grid."""
+        return self.cached(("match", float(max_distance_m), float(sigma_m), bool(lines), float(min_flatness)),
+                           lambda: MatchFields(self, max_distance_m, sigma_m, lines, min_flatness))
+
+    def line_data(self, rows: np.ndarray, cols: np.ndarray, min_flatness: float = 0.8
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The walls the returns describe at occupied cells ``(rows, cols)`` (a grid built with ``subcell``):
+        the mean of each cell's returns (m) and, where the returns of its 3 x 3 occupied neighbourhood
+        lie on a line (``flatness`` at least ``min_flatness``, as in :class:`trundle.fusion.icp.LineReference`),
+        that line's normal; returns mean (N, 2), normal (N, 2), is_line (N,).
 
         Occupied cells put every wall on the cell lattice, up to half a cell from where it is, and a
-        match inherits that error, the same each time the wall is seen. The returns themselves know
-        better: each occupied cell gets the mean of its returns and, where the returns of its 3 x 3
-        occupied neighbourhood lie on a line (``flatness``, as in :class:`trundle.fusion.icp.LineReference`),
-        that line's normal; and each cell the index of its nearest occupied cell.
+        match inherits that error, the same each time the wall is seen. The returns themselves know better.
         """
-        return self.cached(("wall_lines", float(min_flatness)), lambda: self._wall_lines(min_flatness))
-
-    def _wall_lines(self, min_flatness: float) -> WallLines:
         if self.moments is None:
-            raise ValueError("wall_lines needs a grid built with subcell=True")
-        occupied = self.occupied() & (self.moments[0] > 0)
+            raise ValueError("wall lines need a grid built with subcell=True")
         height, width = self.shape
-        if not occupied.any():
-            return WallLines(np.full(self.shape, -1, np.int32), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, bool))
-        free = np.where(occupied, 0, 255).astype(np.uint8)
-        _, labels = cv2.distanceTransformWithLabels(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
-                                                    labelType=cv2.DIST_LABEL_PIXEL)
-        rows, cols = np.nonzero(occupied)
         m = self.moments[:, rows, cols].astype(np.float64)
         mean = np.stack([cols + m[1] / m[0], rows + m[2] / m[0]], axis=1)  # returns' mean, absolute cell units
         sums = np.zeros((len(rows), 6))  # moments of the occupied neighbourhood about the cell's mean
@@ -241,7 +350,7 @@ class LogOddsGrid:
             for dc in (-1, 0, 1):
                 r, c = rows + dr, cols + dc
                 ok = (r >= 0) & (c >= 0) & (r < height) & (c < width)
-                ok[ok] &= occupied[r[ok], c[ok]]
+                ok[ok] &= self.log_odds[r[ok], c[ok]] > 0.0
                 n = self.moments[:, r[ok], c[ok]].astype(np.float64)
                 ox, oy = c[ok] - mean[ok, 0], r[ok] - mean[ok, 1]
                 sums[ok] += np.stack([n[0], n[1] + ox * n[0], n[2] + oy * n[0], n[3] + 2 * ox * n[1] + ox * ox * n[0],
@@ -254,20 +363,13 @@ class LogOddsGrid:
         spread = np.sqrt(((sxx - syy) / 2.0) ** 2 + sxy ** 2)
         centre = (sxx + syy) / 2.0
         flat = 1.0 - (centre - spread) / np.maximum(centre + spread, 1e-12)
-        index = np.zeros(int(labels.max()) + 1, np.int32)
-        index[labels[rows, cols]] = np.arange(len(rows), dtype=np.int32)
-        return WallLines(index[labels], self.origin + mean * self.resolution,
-                         np.stack([-np.sin(angle), np.cos(angle)], axis=1), (flat >= min_flatness) & (sums[:, 0] >= 3))
+        return (self.origin + mean * self.resolution, np.stack([-np.sin(angle), np.cos(angle)], axis=1),
+                (flat >= min_flatness) & (sums[:, 0] >= 3))
 
     def likelihood_field(self, sigma_m: float) -> np.ndarray:
         """``exp(-d^2 / (2 sigma^2))`` of the distance to the nearest occupied cell, 0 beyond 4 sigma."""
-        def compute() -> np.ndarray:
-            cells = self._distance_cells()
-            scale = np.float32(self.resolution / sigma_m)
-            field = np.exp(np.float32(-0.5) * np.square(np.minimum(cells, np.float32(4.0 / scale)) * scale))
-            field[cells * scale >= 4.0] = 0.0
-            return field.astype(np.float32, copy=False)
-        return self.cached(("likelihood", float(sigma_m)), compute)
+        return self.cached(("likelihood", float(sigma_m)),
+                           lambda: _likelihood(self._distance_cells(), self.resolution, sigma_m))
 
     def to_message(self, stamp_ns: int, frame_id: str = "map") -> OccupancyGrid:
         """The grid as nav_msgs/OccupancyGrid: percent occupancy, -1 where never observed."""

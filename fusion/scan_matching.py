@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 
 from trundle.fusion.geometry import rotation, wrap_angle
-from trundle.fusion.occupancy_grid import LogOddsGrid
+from trundle.fusion.occupancy_grid import FieldWindow, LogOddsGrid
 
 _CHUNK_ELEMENTS = 1 << 21
 
@@ -308,7 +308,7 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
     On a grid that keeps its returns' moments (``subcell``) and with ``wall_lines`` (a scan that
     samples walls densely enough, see :func:`samples_walls_densely`), a second refinement follows from
     there, with ``d_i`` the signed distance to the wall line of the nearest occupied cell where
-    its returns lie on one (:meth:`LogOddsGrid.wall_lines`; the field elsewhere): the
+    its returns lie on one (:meth:`LogOddsGrid.line_data`; the field elsewhere): the
     interpolated distance field has the wide basin, but it cannot put a wall's zero between two
     cell centres; a line can, so the match is not pulled onto the cell lattice.
     The covariance is ``s^2 (J^T W J)^-1`` with ``s^2`` the weighted residual variance, plus a floor
@@ -320,18 +320,21 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
     huber = res if huber_m is None else huber_m
     inlier = 2.0 * res if inlier_m is None else inlier_m
     sigma = res if sigma_m is None else sigma_m
-    field = grid.distance_field(max_distance_m)
-    likelihood = grid.likelihood_field(sigma)
+    fields = grid.match_fields(max_distance_m, sigma, lines=grid.moments is not None and wall_lines)
     origin = grid.origin
 
     px, py = points[:, 0], points[:, 1]
 
-    def evaluate_field(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def placed(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, FieldWindow]:
+        """The points rotated by the pose (about the robot), their continuous cell coordinates and the fields there."""
         c, s = math.cos(pose[2]), math.sin(pose[2])
         rx, ry = c * px - s * py, s * px + c * py  # rotated points; d(q)/d(theta) = (-ry, rx)
-        u = (rx + (pose[0] - origin[0])) / res - 0.5
-        v = (ry + (pose[1] - origin[1])) / res - 0.5
-        d, du, dv, inside = _bilinear(field, u, v)
+        cx, cy = (rx + (pose[0] - origin[0])) / res, (ry + (pose[1] - origin[1])) / res
+        return rx, ry, cx, cy, fields.around(cx, cy)
+
+    def evaluate_field(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        rx, ry, cx, cy, window = placed(pose)
+        d, du, dv, inside = _bilinear(window.distance, cx - 0.5 - window.col0, cy - 0.5 - window.row0)
         active = inside & (d < max_distance_m)
         d[~inside] = max_distance_m
         jac = np.empty((len(d), 3))
@@ -342,12 +345,12 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
         return cost, d, jac, weight, active
 
     def evaluate_lines(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        rx, ry = c * px - s * py, s * px + c * py
+        rx, ry, cx, cy, window = placed(pose)
+        lines = window.lines
         qx, qy = rx + pose[0], ry + pose[1]
-        d, du, dv, inside = _bilinear(field, (qx - origin[0]) / res - 0.5, (qy - origin[1]) / res - 0.5)
-        col = np.clip(np.floor((qx - origin[0]) / res).astype(np.int64), 0, field.shape[1] - 1)
-        row = np.clip(np.floor((qy - origin[1]) / res).astype(np.int64), 0, field.shape[0] - 1)
+        d, du, dv, inside = _bilinear(window.distance, cx - 0.5 - window.col0, cy - 0.5 - window.row0)
+        col = np.clip(np.floor(cx).astype(np.int64) - window.col0, 0, window.distance.shape[1] - 1)
+        row = np.clip(np.floor(cy).astype(np.int64) - window.row0, 0, window.distance.shape[0] - 1)
         k = lines.nearest[row, col]
         active = inside & (d < max_distance_m)
         line = active & (k >= 0) & lines.is_line[np.maximum(k, 0)]
@@ -362,21 +365,19 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
         cost, weight = huber_loss(d, huber)
         return cost, d, jac, weight, active
 
-    lines = grid.wall_lines() if grid.moments is not None and wall_lines else None
     pose, iterations, (d, jac, weight, active) = levenberg_marquardt(evaluate_field, initial_pose_xyt, max_iterations)
-    if lines is not None and len(lines.mean) and max_iterations > 0:  # from the field's wide basin to the walls
+    if fields.lines and max_iterations > 0 and len(placed(pose)[4].lines.mean):  # from the field's wide basin to the walls
         pose, more, (d, jac, weight, active) = levenberg_marquardt(evaluate_lines, pose, max_iterations)
         iterations += more
     inliers = active & (np.abs(d) <= inlier)
     n_in = int(inliers.sum())
     covariance = match_covariance(jac[inliers], d[inliers], weight[inliers], min_std_xy_m, min_std_theta_rad,
                                   shaped=shaped_covariance)
-    rot = rotation(pose[2])
-    q = points @ rot.T + pose[:2]
-    lik, _, _, inside = _bilinear(likelihood, (q[:, 0] - origin[0]) / res - 0.5, (q[:, 1] - origin[1]) / res - 0.5)
+    _, _, cx, cy, window = placed(pose)
+    lik, _, _, inside = _bilinear(window.likelihood, cx - 0.5 - window.col0, cy - 0.5 - window.row0)
     lik = np.where(inside, lik, 0.0)
     score = float(np.mean(lik)) if len(points) else 0.0
-    cells = np.floor((q - origin) / res).astype(np.int64)
+    cells = np.floor(np.stack([cx, cy], axis=1)).astype(np.int64)
     on_grid = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < grid.shape[1]) & (cells[:, 1] < grid.shape[0])
     known = np.zeros(len(points), bool)
     known[on_grid] = grid.observed[cells[on_grid, 1], cells[on_grid, 0]]

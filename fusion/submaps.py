@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from trundle.fusion.geometry import compose, inverse, transform_points
-from trundle.fusion.occupancy_grid import LogOddsGrid
+from trundle.fusion.occupancy_grid import LogOddsGrid, TracedRays, trace_rays
 
 
 @dataclass
@@ -34,12 +34,9 @@ class Submap:
     def scans(self) -> int:
         return len(self.nodes)
 
-    def insert(self, node: int, pose_local: np.ndarray, points_robot: np.ndarray, sensor_robot: np.ndarray,
-               free_ends_robot: np.ndarray | None = None) -> None:
-        """Add a keyframe scan: ``points_robot`` (N, 2) returns, ``sensor_robot`` the laser origin, robot frame."""
-        origin = transform_points(pose_local, np.asarray(sensor_robot, dtype=np.float64).reshape(1, 2))[0]
-        free = None if free_ends_robot is None else transform_points(pose_local, free_ends_robot)
-        self.grid.insert_rays(origin, transform_points(pose_local, points_robot), free)
+    def insert(self, node: int, pose_local: np.ndarray, rays: TracedRays) -> None:
+        """Add a keyframe (graph node) at ``pose_local`` with its scan's rays, traced in the local frame."""
+        self.grid.insert_traced(rays)
         self.nodes.append(node)
         self.positions.append(np.asarray(pose_local[:2], dtype=np.float64).copy())
 
@@ -87,9 +84,13 @@ class SubmapStack:
         if not active or active[-1].scans >= self.scans_per_submap:
             self.submaps.append(Submap(len(self.submaps), node, np.asarray(pose_local, np.float64).copy(),
                                        LogOddsGrid(self.resolution, **self.grid_options)))
+        origin = transform_points(pose_local, np.asarray(sensor_robot, dtype=np.float64).reshape(1, 2))[0]
+        free = None if free_ends_robot is None else transform_points(pose_local, free_ends_robot)
+        rays = trace_rays(self.submaps[-1].grid.origin, self.resolution, origin, transform_points(pose_local, points_robot),
+                          free)
         done = []
         for submap in self.active:
-            submap.insert(node, pose_local, points_robot, sensor_robot, free_ends_robot)
+            submap.insert(node, pose_local, rays)
             if submap.scans >= 2 * self.scans_per_submap:
                 submap.finished = True
                 done.append(submap)

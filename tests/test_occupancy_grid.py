@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.fusion.occupancy_grid import LogOddsGrid, log_odds, ray_cells
+from trundle.fusion.occupancy_grid import LogOddsGrid, log_odds, ray_cells, trace_rays
 from trundle.logs import ros2
 
 
@@ -111,7 +111,7 @@ def test_message_export_percent_and_unknown_round_trips_through_cdr() -> None:
 
 
 def test_large_and_small_grids_update_identically() -> None:
-    """The per-cell mark (small grids) and the sorted path (large grids) give the same map."""
+    """A grid grown far beyond the rays (its lattice shifted by whole cells) gets the same map."""
     rng = np.random.default_rng(0)
     ends = rng.uniform(-3, 3, (200, 2))
     small, large = LogOddsGrid(0.05, grow_cells=4), LogOddsGrid(0.05, grow_cells=4)
@@ -123,3 +123,66 @@ def test_large_and_small_grids_update_identically() -> None:
         assert grid.observed.sum() == small.observed.sum()
     np.testing.assert_allclose(np.sort(small.occupied_points(), axis=0), np.sort(large.occupied_points(), axis=0), atol=1e-9)
     np.testing.assert_array_equal(np.sort(small.log_odds[small.observed]), np.sort(large.log_odds[large.observed]))
+
+
+def test_rays_traced_once_update_every_grid_on_the_lattice() -> None:
+    """One trace serves two grids whose arrays start at different cells (as the two active submaps'),
+    exactly as tracing for each; a grid on another lattice refuses it."""
+    rng = np.random.default_rng(1)
+    ends = rng.uniform(-4, 4, (150, 2))
+    free = rng.uniform(-6, 6, (20, 2))
+    sensor = np.array([0.013, -0.021])
+    shared, first, second = LogOddsGrid(0.05, subcell=True), LogOddsGrid(0.05, subcell=True), LogOddsGrid(0.05, subcell=True)
+    second.ensure_contains(np.array([-9.0, -2.0]), np.array([1.0, 8.0]))
+    shared_second = LogOddsGrid(0.05, subcell=True)
+    shared_second.ensure_contains(np.array([-9.0, -2.0]), np.array([1.0, 8.0]))
+    rays = trace_rays(shared.origin, 0.05, sensor, ends, free)
+    for grid in (shared, shared_second):
+        grid.insert_traced(rays)
+    first.insert_rays(sensor, ends, free)
+    second.insert_rays(sensor, ends, free)
+    for traced, own in ((shared, first), (shared_second, second)):
+        np.testing.assert_array_equal(traced.origin, own.origin)
+        np.testing.assert_array_equal(traced.log_odds, own.log_odds)
+        np.testing.assert_allclose(traced.moments, own.moments, atol=1e-5)
+    with pytest.raises(ValueError, match="lattice"):
+        LogOddsGrid(0.05, origin_xy=(0.02, 0.0)).insert_traced(rays)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(0.1, 4.0))
+def test_match_field_windows_equal_the_whole_grid_fields(seed: int, x: float, y: float, size: float) -> None:
+    """Over the window a match asks for, the distance (capped), the likelihood and the nearest wall are
+    what the whole grid's fields give; asking outside the window grows it."""
+    rng = np.random.default_rng(seed)
+    grid = LogOddsGrid(0.05, subcell=True)
+    for _ in range(3):
+        sensor = rng.uniform(-1, 1, 2)
+        angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
+        walls = sensor + rng.uniform(1.0, 5.0, (90, 1)) * np.column_stack([np.cos(angles), np.sin(angles)])
+        grid.insert_rays(sensor, walls)
+    fields = grid.match_fields(0.5, 0.05, lines=True)
+    corner = grid.world_to_cell(np.array([[x, y], [x + size, y + size]]))
+    window = fields.around(corner[:, 0], corner[:, 1])
+    h, w = window.distance.shape
+    rows, cols = np.mgrid[window.row0:window.row0 + h, window.col0:window.col0 + w]
+    assert rows.min() <= max(math.floor(corner[:, 1].min()) - 1, 0) and cols.max() >= min(
+        math.floor(corner[:, 0].max()) + 1, grid.shape[1] - 1)
+    np.testing.assert_allclose(window.distance, grid.distance_field(0.5)[rows, cols], atol=1e-6)
+    np.testing.assert_allclose(window.likelihood, grid.likelihood_field(0.05)[rows, cols], atol=1e-6)
+    exact_cells = grid.distance_field(10.0)[rows, cols] / 0.05
+    near = exact_cells < 0.5 / 0.05
+    k = window.lines.nearest[near]
+    assert np.all(k >= 0)
+    nearest_cells = np.floor(grid.world_to_cell(window.lines.mean[k])).astype(np.int64)
+    assert np.all(grid.log_odds[nearest_cells[:, 1], nearest_cells[:, 0]] > 0)
+    reach = np.hypot(nearest_cells[:, 0] - cols[near], nearest_cells[:, 1] - rows[near])
+    assert np.all(reach <= exact_cells[near] + 1.0)
+    mean, normal, is_line = grid.line_data(nearest_cells[:, 1], nearest_cells[:, 0])
+    np.testing.assert_allclose(window.lines.mean[k], mean)
+    np.testing.assert_allclose(window.lines.normal[k], normal)
+    np.testing.assert_array_equal(window.lines.is_line[k], is_line)
+    if (h, w) != grid.shape:   # a cell of the grid outside the window grows it
+        far = np.array([0.5, 0.5]) if window.row0 or window.col0 else np.array(grid.shape[::-1]) - 0.5
+        grown = fields.around(far[:1], far[1:])
+        assert grown.distance.size > window.distance.size

@@ -55,6 +55,7 @@ class MotionModel:
         self.warmup = int(warmup)
         self._errors = {name: deque(maxlen=history) for name in self.PREDICTORS}
         self._intervals: deque[float] = deque(maxlen=history)
+        self._typical_interval: float | None = None   # their median, until the next interval
         self._last: tuple[int, np.ndarray] | None = None
         self._tracked: deque[tuple[int, np.ndarray]] = deque(maxlen=history)
         self._velocity: np.ndarray | None = None  # per second, robot frame
@@ -66,7 +67,9 @@ class MotionModel:
 
     def typical_interval_s(self) -> float:
         """Median interval between tracked scans (s); 0 before two scans."""
-        return float(np.median(self._intervals)) if self._intervals else 0.0
+        if self._typical_interval is None:
+            self._typical_interval = float(np.median(self._intervals)) if self._intervals else 0.0
+        return self._typical_interval
 
     def _guess(self, name: str, dt: float) -> np.ndarray:
         if name == "constant_velocity" and self._velocity is not None:
@@ -102,6 +105,7 @@ class MotionModel:
             step = relative(last_pose, pose)
             if dt > 0:
                 self._intervals.append(dt)
+                self._typical_interval = None
                 typical = self.typical_interval_s()
                 scale = max(1.0, dt / typical) if typical > 0 else 1.0
                 for name in self.PREDICTORS:

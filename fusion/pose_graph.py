@@ -67,6 +67,7 @@ class PoseGraph:
         self._edge_ij: list[tuple[int, int]] = []
         self._edge_z: list[np.ndarray] = []
         self._edge_info: list[np.ndarray] = []
+        self._edge_arrays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None   # the lists as arrays, until they change
         self.fixed: set[int] = {0}
 
     # ----------------------------------------------------------------- building
@@ -97,6 +98,7 @@ class PoseGraph:
         self._edge_ij.append((int(i), int(j)))
         self._edge_z.append(z)
         self._edge_info.append(info)
+        self._edge_arrays = None
         return len(self._edge_ij) - 1
 
     @property
@@ -113,10 +115,12 @@ class PoseGraph:
 
     @property
     def edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(E, 2) node ids, (E, 3) measurements, (E, 3, 3) information matrices."""
-        return (np.array(self._edge_ij, dtype=np.int64).reshape(-1, 2),
-                np.array(self._edge_z, dtype=np.float64).reshape(-1, 3),
-                np.array(self._edge_info, dtype=np.float64).reshape(-1, 3, 3))
+        """(E, 2) node ids, (E, 3) measurements, (E, 3, 3) information matrices; copies."""
+        if self._edge_arrays is None:
+            self._edge_arrays = (np.array(self._edge_ij, dtype=np.int64).reshape(-1, 2),
+                                 np.array(self._edge_z, dtype=np.float64).reshape(-1, 3),
+                                 np.array(self._edge_info, dtype=np.float64).reshape(-1, 3, 3))
+        return tuple(a.copy() for a in self._edge_arrays)  # type: ignore[return-value]
 
     def remove_edges(self, indices) -> None:
         """Drop the edges at ``indices`` (e.g. loop closures found to be false)."""
@@ -125,6 +129,7 @@ class PoseGraph:
         self._edge_ij = [self._edge_ij[k] for k in keep]
         self._edge_z = [self._edge_z[k] for k in keep]
         self._edge_info = [self._edge_info[k] for k in keep]
+        self._edge_arrays = None
 
     def __len__(self) -> int:
         return len(self._poses)

@@ -19,18 +19,22 @@ class RobustWindow:
 
     def __init__(self, size: int = 50) -> None:
         self._values: deque[np.ndarray] = deque(maxlen=size)
+        self._cache: dict[bool | str, np.ndarray] = {}   # median and scales until the next value
 
     def __len__(self) -> int:
         return len(self._values)
 
     def add(self, value: float | np.ndarray) -> None:
         self._values.append(np.asarray(value, np.float64))
+        self._cache.clear()
 
     def median(self) -> np.ndarray:
         """Median per component (NaN while empty)."""
         if not self._values:
             return np.asarray(np.nan)
-        return np.median(np.array(self._values), axis=0)
+        if "median" not in self._cache:
+            self._cache["median"] = np.median(np.array(self._values), axis=0)
+        return self._cache["median"].copy()
 
     def scale(self, about_zero: bool = False) -> np.ndarray:
         """Robust standard deviation ``1.4826 * median(|v - median|)`` per component (NaN while empty).
@@ -40,6 +44,7 @@ class RobustWindow:
         """
         if not self._values:
             return np.asarray(np.nan)
-        values = np.array(self._values)
-        centre = 0.0 if about_zero else np.median(values, axis=0)
-        return MAD_TO_SIGMA * np.median(np.abs(values - centre), axis=0)
+        if about_zero not in self._cache:
+            centre = 0.0 if about_zero else self.median()
+            self._cache[about_zero] = MAD_TO_SIGMA * np.median(np.abs(np.array(self._values) - centre), axis=0)
+        return self._cache[about_zero].copy()

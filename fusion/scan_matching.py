@@ -227,8 +227,9 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple], initial_pose_xy
     """Minimise a robust cost over a planar pose by Levenberg-Marquardt (shared by the matchers).
 
     ``evaluate(pose)`` returns ``(cost, residuals, jacobian (N, 3), weights, mask)``; the normal
-    equations use the IRLS ``weights``. Stops when a step is below 0.5 mm and 0.2 mrad or lowers
-    the cost by less than 0.1 %. Returns the pose, the iterations run and the last
+    equations use the IRLS ``weights``. Stops when a step is below 1 mm and 0.5 mrad (a tenth of the
+    least uncertainty a match claims, 1 cm and 0.25 deg) or lowers the cost by less than 0.1 %.
+    Returns the pose, the iterations run and the last
     ``(residuals, jacobian, weights, mask)`` at that pose.
     """
     pose = np.asarray(initial_pose_xyt, dtype=np.float64).copy()
@@ -247,7 +248,7 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple], initial_pose_xy
         trial = pose + delta
         trial[2] = wrap_angle(trial[2])
         trial_cost, *trial_state = evaluate(trial)
-        small = abs(delta[0]) < 5e-4 and abs(delta[1]) < 5e-4 and abs(delta[2]) < 2e-4
+        small = abs(delta[0]) < 1e-3 and abs(delta[1]) < 1e-3 and abs(delta[2]) < 5e-4
         if trial_cost < cost:
             gain = cost - trial_cost
             pose, cost, state = trial, trial_cost, trial_state

@@ -27,6 +27,7 @@ from trundle.tools.demo.scoring import (MarkerScore, camera_from_info, camera_po
                                         score_trajectory)
 from trundle.tools.demo.slam import SlamRun
 from trundle.tools.demo.topics import IMAGE_TOPIC
+from trundle.tools.jobs.slam import map_check_report
 from trundle.tools.sim.camera_render import CameraRenderer
 from trundle.tools.sim.robot import Mount
 from trundle.tools.sim.world import World
@@ -115,6 +116,7 @@ def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, s
     stats = run.slam.stats
     plain_ate = score_trajectory(plain.trajectory, plain.odometry, truth).ate if plain is not None else None
     markers = marker_map(run, world, ate.alignment_xyt)
+    check = run.slam.check_map()
     report: dict[str, Any] = {
         "ate_rmse_m": ate.rmse_m,
         "ate_rmse_without_markers_m": plain_ate.rmse_m if plain_ate is not None else None,
@@ -128,6 +130,7 @@ def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, s
             "every marker in view detected": set(expected) <= detected,
             "no false marker ids": all(row["false_detections"] == 0 for row in detected_rows),
             "every logged scan and frame has ground truth": not any(recording.unmatched.values()),
+            "the map passes its self-check": check.passed,
             **({f"a loop of at least {LOOP_MIN_M:.0f} m": path_length(truth.poses) >= LOOP_MIN_M
                 and float(np.hypot(*(truth.poses[-1, :2] - truth.poses[0, :2]))) < 1.0}
                if settings["duration_s"] is None else {}),
@@ -141,6 +144,7 @@ def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, s
             "odometry_path_length_m": path_length(run.odometry.poses),
             "start_to_end_m": float(np.hypot(*(truth.poses[-1, :2] - truth.poses[0, :2]))) if len(truth) else 0.0,
         },
+        "map_check": map_check_report(check, run.slam.keyframe_stamps(), info.start_ns or 0),
         "map": {"resolution_m": float(run.grid.resolution), "width": run.grid.width, "height": run.grid.height,
                 "occupied_cells": int(walls.size), "wall_distance_m": _stats(walls),
                 "occupied_within_0.1_m_of_a_wall": float(np.mean(walls <= 0.1)) if walls.size else 0.0},

@@ -289,7 +289,8 @@ class LandmarkGridSlam(Slam):
         nodes = sorted({s.node for s in self._sightings})
         headings = dict(zip(nodes, FactorGraph.from_pose_graph(laser).marginal_covariances(nodes)[0][:, 2, 2]))
         offsets = np.arange(-self.max_time_offset_s, self.max_time_offset_s + 1e-12, TIME_OFFSET_STEP_S)
-        costs = np.array([self._scatter(float(offset), laser.poses, names, headings) for offset in offsets])
+        poses = laser.poses   # a copy per call: once, not once per offset
+        costs = np.array([self._scatter(float(offset), poses, names, headings) for offset in offsets])
         best, zero = int(np.argmin(costs)), int(np.argmin(np.abs(offsets)))
         redundancy = 2 * (len(self._sightings) - int(names.max()) - 1) - 1   # positions less means, less the offset
         if redundancy < 1 or costs[best] <= 0:

@@ -111,7 +111,8 @@ class MatchFields:
         self.min_flatness = min_flatness
         self.margin = int(math.ceil(max(self.max_distance_m, 4.0 * self.sigma_m) / grid.resolution)) + 2
         self._window: FieldWindow | None = None
-        self._bounds = (0, 0, 0, 0)   # rows [r0, r1), cols [c0, c1) of the window
+        height, width = grid.shape
+        self._bounds = (height, 0, width, 0)   # rows [r0, r1), cols [c0, c1) of the window: none yet
 
     def around(self, cols: np.ndarray, rows: np.ndarray) -> FieldWindow:
         """The fields over a window holding the cells at continuous cell coordinates ``cols``, ``rows``
@@ -125,8 +126,6 @@ class MatchFields:
         r0, r1, c0, c1 = self._bounds
         if self._window is not None and r_lo >= r0 and c_lo >= c0 and r_hi <= r1 and c_hi <= c1:
             return self._window
-        if self._window is None:
-            r0, c0, r1, c1 = height, width, 0, 0
         slack = WINDOW_SLACK_CELLS
         return self._compute(max(min(r0, r_lo - slack), 0), min(max(r1, r_hi + slack), height),
                              max(min(c0, c_lo - slack), 0), min(max(c1, c_hi + slack), width))

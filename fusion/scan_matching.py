@@ -333,9 +333,14 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
         cx, cy = (rx + (pose[0] - origin[0])) / res, (ry + (pose[1] - origin[1])) / res
         return rx, ry, cx, cy, fields.around(cx, cy)
 
+    def sample(values: np.ndarray, window: FieldWindow, cx: np.ndarray, cy: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Bilinear value, gradient and inside mask of a window's field at cell coordinates (cx, cy)."""
+        return _bilinear(values, cx - 0.5 - window.col0, cy - 0.5 - window.row0)
+
     def evaluate_field(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         rx, ry, cx, cy, window = placed(pose)
-        d, du, dv, inside = _bilinear(window.distance, cx - 0.5 - window.col0, cy - 0.5 - window.row0)
+        d, du, dv, inside = sample(window.distance, window, cx, cy)
         active = inside & (d < max_distance_m)
         d[~inside] = max_distance_m
         jac = np.empty((len(d), 3))
@@ -349,7 +354,7 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
         rx, ry, cx, cy, window = placed(pose)
         lines = window.lines
         qx, qy = rx + pose[0], ry + pose[1]
-        d, du, dv, inside = _bilinear(window.distance, cx - 0.5 - window.col0, cy - 0.5 - window.row0)
+        d, du, dv, inside = sample(window.distance, window, cx, cy)
         col = np.clip(np.floor(cx).astype(np.int64) - window.col0, 0, window.distance.shape[1] - 1)
         row = np.clip(np.floor(cy).astype(np.int64) - window.row0, 0, window.distance.shape[0] - 1)
         k = lines.nearest[row, col]
@@ -375,7 +380,7 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
     covariance = match_covariance(jac[inliers], d[inliers], weight[inliers], min_std_xy_m, min_std_theta_rad,
                                   shaped=shaped_covariance)
     _, _, cx, cy, window = placed(pose)
-    lik, _, _, inside = _bilinear(window.likelihood, cx - 0.5 - window.col0, cy - 0.5 - window.row0)
+    lik, _, _, inside = sample(window.likelihood, window, cx, cy)
     lik = np.where(inside, lik, 0.0)
     score = float(np.mean(lik)) if len(points) else 0.0
     cells = np.floor(np.stack([cx, cy], axis=1)).astype(np.int64)

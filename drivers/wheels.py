@@ -1,5 +1,5 @@
 """Wheel-encoder driver on a CAN bus: raw frames on ``/can/rx``, wheel angles on ``/wheels``.
-Odometry is ``trundle.fusion.odometry.OdometrySink`` wrapped around the driver's sink (live) or run over
+Odometry is ``trundle.fusion.odometry.diff_drive.OdometrySink`` wrapped around the driver's sink (live) or run over
 a log's ``/wheels`` (replay): the same code either way.
 
 Configuration (the ``[can]`` table of the robot TOML; ``encoders`` also from ``--encoders``)::
@@ -10,7 +10,7 @@ Configuration (the ``[can]`` table of the robot TOML; ``encoders`` also from ``-
     direction = [1, -1]              # +1 / -1 per wheel (or one number): forward = positive
     gear_ratio = 1.0                 # motor turns per wheel turn (per wheel or one number)
     counts_per_rev = 8192            # override the device's counts per motor turn (optional)
-    wheel_radius_m = 0.08            # with track_m: odometry (trundle.fusion.odometry.OdometrySink)
+    wheel_radius_m = 0.08            # with track_m: odometry (trundle.fusion.odometry.diff_drive.OdometrySink)
     track_m = 0.35
     [can.odrive]   firmware = "auto", source = "estimates", poll_hz = 0, heartbeat_timeout_s = 0.35
     [can.cia406]   eds = "...", counts_per_rev = 4096, tpdo_period_ms = 10, heartbeat_ms = 100

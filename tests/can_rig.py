@@ -16,7 +16,7 @@ import numpy as np
 
 from trundle.drivers.dbc_wheels import VESC_DBC
 from trundle.drivers.wheels import WheelsDriver, driver_from_url
-from trundle.fusion.odometry import DiffDriveOdometry, OdometrySink, odometry_from_config
+from trundle.fusion.odometry.diff_drive import DiffDriveOdometry, OdometrySink, odometry_from_config
 from trundle.logs import messages as m
 from trundle.tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes,
                                                odrive_nodes, vesc_nodes)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from trundle.fusion.geometry import compose, relative, wrap_angle
-from trundle.fusion.odometry_increments import MotionNoise
+from trundle.fusion.odometry.increments import MotionNoise
 from trundle.logs import messages as m
 
 SIGMA_RANGE_M = 0.05

@@ -14,7 +14,7 @@ import pytest
 
 from trundle.drivers import odrive
 from trundle.drivers.wheels import MAX_CARRY_S
-from trundle.fusion.odometry import odometry_from_config
+from trundle.fusion.odometry.diff_drive import odometry_from_config
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
 

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from trundle.fusion.map_io import save_map
+from trundle.fusion.mapping.map_io import save_map
 from trundle.logs import messages as m
 from trundle.tools.cli.main import COMMANDS, build_parser, main
 

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.fusion.map_io import load_map, read_trajectory_csv
+from trundle.fusion.mapping.map_io import load_map, read_trajectory_csv
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main

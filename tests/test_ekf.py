@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from trundle.fusion.ekf import GATE_CHI2_99, PoseEKF, odometry_noise
+from trundle.fusion.odometry.ekf import GATE_CHI2_99, PoseEKF, odometry_noise
 
 
 def test_gate_constant_is_the_chi2_quantile():

@@ -11,11 +11,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.fusion.evaluation import (Relations, Trajectory, absolute_trajectory_error, align_se2, read_reference,
+from trundle.fusion.evaluation.trajectory_errors import (Relations, Trajectory, absolute_trajectory_error, align_se2, read_reference,
                                        read_relations, relation_error, relative_pose_error, revisit_relations,
                                        seconds_to_ns, trajectory_relations)
 from trundle.fusion.geometry import compose
-from trundle.fusion.map_io import write_trajectory_csv
+from trundle.fusion.mapping.map_io import write_trajectory_csv
 from trundle.logs.errors import UserError
 
 INTEL = Path(__file__).parents[2] / "shared" / "data" / "intel" / "intel.gfs.log"
@@ -159,7 +159,7 @@ def test_trajectory_csv_and_carmen_references(tmp_path):
 
 @pytest.mark.skipif(not INTEL.exists(), reason=f"{INTEL} absent (shared data)")
 def test_intel_reference_and_drifting_odometry():
-    from trundle.fusion.odometry_drift import drifting_odometry
+    from trundle.fusion.odometry.drift import drifting_odometry
 
     reference = read_reference(INTEL)
     assert isinstance(reference, Trajectory) and len(reference) == 910

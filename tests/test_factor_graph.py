@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from trundle.fusion.factor_graph import BETWEEN, POINT_PRIOR, POSITION, RANGE_BEARING, FactorGraph, retract
+from trundle.fusion.optimization.factor_graph import BETWEEN, POINT_PRIOR, POSITION, RANGE_BEARING, FactorGraph, retract
 from trundle.fusion.geometry import compose, relative
-from trundle.fusion.pose_graph import PoseGraph
+from trundle.fusion.optimization.pose_graph import PoseGraph
 
 
 def _spd(rng: np.random.Generator, d: int) -> np.ndarray:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from trundle.fusion.geometry import inverse, relative, scan_to_points, transform_points, wrap_angle
-from trundle.fusion.icp import LineReference, icp
+from trundle.fusion.matching.icp import LineReference, icp
 from tests.planar_world import CORRIDOR, ROOM, scan
 
 

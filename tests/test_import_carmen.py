@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trundle.fusion.geometry import relative
-from trundle.fusion.odometry_drift import drifting_odometry
+from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.logs import messages as m
 from trundle.logs.importers.carmen import (CarmenLaser, CarmenOdom, import_carmen, messages, parse_line, read_carmen,
                                            scan_poses)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from trundle.fusion.geometry import wrap_angle
-from trundle.fusion.odometry import DiffDriveOdometry
+from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.logs import messages as m
 from trundle.logs.importers import write_log
 from trundle.logs.reader import LogReader

@@ -13,8 +13,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.fusion.factor_graph import BETWEEN, RANGE_BEARING
-from trundle.fusion.isam_graph import edge_covariance, landmark_sigmas, read_isam_graph
+from trundle.fusion.optimization.factor_graph import BETWEEN, RANGE_BEARING
+from trundle.fusion.optimization.isam_graph import edge_covariance, landmark_sigmas, read_isam_graph
 from trundle.logs.errors import UserError
 
 VICTORIA = Path(__file__).resolve().parents[1] / "../shared/data/victoria-park/gtsam_victoria_park.txt"

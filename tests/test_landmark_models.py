@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.fusion.error_correlation import ar1_weights, correlation_time, previous_gaps
+from trundle.fusion.optimization.error_correlation import ar1_weights, correlation_time, previous_gaps
 from trundle.fusion.geometry import compose
-from trundle.fusion.odometry_increments import IncrementAccumulator, MotionNoise, OdometryIncrements, compose_jacobians
+from trundle.fusion.odometry.increments import IncrementAccumulator, MotionNoise, OdometryIncrements, compose_jacobians
 from trundle.fusion.observation_models import point_from_range_bearing, range_bearing, relative_position
 from trundle.logs import messages as m
 

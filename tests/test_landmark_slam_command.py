@@ -12,9 +12,9 @@ import pytest
 from tests.planar_world import ROOM, scan
 from tests.test_landmark_perception import _on_segment
 from tests.test_slam import loop_path
-from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error
+from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error
 from trundle.fusion.geometry import compose
-from trundle.fusion.map_io import read_landmarks_csv, read_trajectory_csv
+from trundle.fusion.mapping.map_io import read_landmarks_csv, read_trajectory_csv
 from trundle.logs import messages as m
 from trundle.logs.importers import write_log
 from trundle.tools.cli.main import main

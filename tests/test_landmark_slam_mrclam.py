@@ -10,8 +10,8 @@ import json
 import pytest
 
 from tests.conftest import shared_file
-from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error, landmark_error
-from trundle.fusion.map_io import read_landmarks_csv, read_trajectory_csv
+from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error, landmark_error
+from trundle.fusion.mapping.map_io import read_landmarks_csv, read_trajectory_csv
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
 

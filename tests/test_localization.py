@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 from trundle.fusion.geometry import compose, inverse, relative, scan_to_points, transform_points, voxel_filter
-from trundle.fusion.localization import (CoarseMap, Localizer, LocalizerConfig, coarse_map, correlate_headings,
+from trundle.fusion.localization.grid_localization import (CoarseMap, Localizer, LocalizerConfig, coarse_map, correlate_headings,
                                          global_search, grid_from_map)
-from trundle.fusion.map_io import read_trajectory_csv
-from trundle.fusion.occupancy_grid import LogOddsGrid
-from trundle.fusion.odometry_drift import drifting_odometry
+from trundle.fusion.mapping.map_io import read_trajectory_csv
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
+from trundle.fusion.odometry.drift import drifting_odometry
 
 INTEL = Path(__file__).parents[2] / "shared" / "data" / "intel" / "intel.gfs.log"
 
@@ -215,8 +215,8 @@ EXP2 = Path(__file__).parents[2] / "shared" / "data" / "breezyslam" / "exp2.dat"
 @pytest.mark.skipif(not EXP2.exists(), reason=f"{EXP2} absent (shared data)")
 def test_exp2_converges_and_recovers_on_its_slam_map():
     """exp2 (real URG-04LX scans, real wheel odometry): map by our SLAM, then localise from unknown starts."""
-    from trundle.fusion.odometry import DiffDriveOdometry
-    from trundle.fusion.slam import Slam
+    from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
+    from trundle.fusion.slam.grid_slam import Slam
     from trundle.logs.importers.breezyslam import ROBOT, messages, read_dat
 
     slam = Slam(odometry=DiffDriveOdometry(ROBOT["wheel_radius_m"], ROBOT["track_m"]),
@@ -253,7 +253,7 @@ def test_exp2_converges_and_recovers_on_its_slam_map():
 
 def test_localize_command_on_a_spliced_intel_log(intel, tmp_path, capsys):
     """`trundle localize` on a saved map and an MCAP whose scans jump 500 scans ahead half way."""
-    from trundle.fusion.map_io import save_map
+    from trundle.fusion.mapping.map_io import save_map
     from trundle.logs.importers import write_log
     from trundle.logs.importers.carmen import CarmenLog, messages, read_carmen
     from trundle.tools.cli.main import main

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from trundle.fusion.geometry import compose
-from trundle.fusion.motion_model import MotionModel
+from trundle.fusion.odometry.motion_model import MotionModel
 
 FLOOR = (0.05, 0.05, math.radians(0.5))
 PRIOR = (0.3, 0.3, math.radians(10.0))

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.fusion.occupancy_grid import LogOddsGrid, log_odds, ray_cells, trace_rays
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, log_odds, ray_cells, trace_rays
 from trundle.logs import ros2
 
 

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trundle.fusion.geometry import wrap_angle
-from trundle.fusion.odometry import (DiffDriveOdometry, OdometrySink, integrate, integrate_path, odometry_from_config,
+from trundle.fusion.odometry.diff_drive import (DiffDriveOdometry, OdometrySink, integrate, integrate_path, odometry_from_config,
                                      odometry_transform)
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError

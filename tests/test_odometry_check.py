@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from trundle.fusion.odometry_check import OdometryCheck
+from trundle.fusion.odometry.check import OdometryCheck
 
 MODEL = np.diag([0.01 ** 2, 0.01 ** 2, math.radians(1.0) ** 2])  # configured noise of an increment
 MATCH = np.diag([0.002 ** 2, 0.002 ** 2, math.radians(0.1) ** 2])

@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trundle.fusion.geometry import relative, wrap_angle
-from trundle.fusion.odometry import DiffDriveOdometry
-from trundle.fusion.odometry_faults import OdometryFault, dropped, faulty_poses, faulty_wheels, random_glitches
+from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
+from trundle.fusion.odometry.faults import OdometryFault, dropped, faulty_poses, faulty_wheels, random_glitches
 
 R, B = 0.1, 0.5  # wheel radius, track (m)
 

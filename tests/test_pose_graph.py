@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trundle.fusion.geometry import wrap_angle
-from trundle.fusion.pose_graph import PoseGraph, _errors, read_g2o, robust_weights
+from trundle.fusion.optimization.pose_graph import PoseGraph, _errors, read_g2o, robust_weights
 from trundle.logs.errors import UserError
 
 INTEL_G2O = Path(__file__).parents[2] / "shared" / "data" / "intel-posegraph" / "input_INTEL.g2o"

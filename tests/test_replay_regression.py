@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error
-from trundle.fusion.map_io import read_trajectory_csv
+from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error
+from trundle.fusion.mapping.map_io import read_trajectory_csv
 from trundle.logs.reader import LogReader
 from trundle.tools.demo.scoring import map_wall_distances, path_length, score_markers, sensor_mount
 from trundle.tools.demo.slam import run_slam, wheel_odometry

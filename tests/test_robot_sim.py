@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from trundle.fusion.odometry import DiffDriveOdometry
+from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.logs import messages as m
 from trundle.tools.sim.robot import Mount, RobotModel, RobotSim
 from trundle.tools.sim.world import cast_rays, load_world, parse_world, simulate_scan
@@ -42,7 +42,7 @@ def test_office_loop_returns_near_its_start_without_touching_walls(noisy, office
 
 
 def test_odometry_of_perfect_wheels_reproduces_ground_truth_between_control_ticks(perfect, office):
-    """trundle.fusion.odometry (the CAN helper's code) fed with wheel angles at every control tick and at
+    """trundle.fusion.odometry.diff_drive (the CAN helper's code) fed with wheel angles at every control tick and at
     times in between gives the ground truth exactly: wheels and poses are one consistent motion,
     and poses inside a control step lie on that step's arc."""
     model = perfect.model

@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from trundle.fusion.geometry import scan_to_points, transform_points, wrap_angle
-from trundle.fusion.occupancy_grid import LogOddsGrid
-from trundle.fusion.scan_matching import (angular_step, correlative_search, match_scan, refine_pose,
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
+from trundle.fusion.matching.scan_matching import (angular_step, correlative_search, match_scan, refine_pose,
                                           samples_walls_densely, score_pyramid)
 from tests.planar_world import CORRIDOR, ROOM, scan
 

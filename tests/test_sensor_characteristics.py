@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from trundle.fusion import sensor_characteristics as sc
+from trundle.fusion.evaluation import sensor_characteristics as sc
 
 
 def test_range_dynamic_range_and_resolution() -> None:

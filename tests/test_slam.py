@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from trundle.fusion.geometry import compose, relative, wrap_angle
-from trundle.fusion.odometry_drift import drifting_odometry
-from trundle.fusion.slam import Slam, SlamConfig
+from trundle.fusion.odometry.drift import drifting_odometry
+from trundle.fusion.slam.grid_slam import Slam, SlamConfig
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from tests.planar_world import ROOM, scan

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from trundle.fusion.map_io import load_map, read_trajectory_csv
-from trundle.fusion.odometry_drift import drifting_odometry
+from trundle.fusion.mapping.map_io import load_map, read_trajectory_csv
+from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.logs import messages as m
 from trundle.logs.importers import write_log
 from trundle.logs.reader import LogReader

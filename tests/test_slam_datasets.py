@@ -11,10 +11,10 @@ import json
 import numpy as np
 import pytest
 
-from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
-from trundle.fusion.odometry import DiffDriveOdometry
-from trundle.fusion.odometry_drift import drifting_odometry
-from trundle.fusion.slam import Slam, SlamConfig
+from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
+from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
+from trundle.fusion.odometry.drift import drifting_odometry
+from trundle.fusion.slam.grid_slam import Slam, SlamConfig
 from trundle.logs.importers import breezyslam, carmen
 from tests.conftest import shared_file
 from trundle.tools.cli.main import main

@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error
-from trundle.fusion.odometry import DiffDriveOdometry
-from trundle.fusion.odometry_faults import OdometryFault, dropped, faulty_wheels
-from trundle.fusion.slam import Slam, SlamConfig
+from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error
+from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
+from trundle.fusion.odometry.faults import OdometryFault, dropped, faulty_wheels
+from trundle.fusion.slam.grid_slam import Slam, SlamConfig
 from trundle.logs import messages as m
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world

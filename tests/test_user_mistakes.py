@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from trundle.fusion.map_io import save_map
+from trundle.fusion.mapping.map_io import save_map
 from trundle.logs import messages as m
 from trundle.tools.cli.main import main
 

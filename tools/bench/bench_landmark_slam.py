@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from trundle.fusion.ekf_slam import EkfSlam
-from trundle.fusion.isam_graph import read_isam_graph
+from trundle.fusion.slam.ekf_slam import EkfSlam
+from trundle.fusion.optimization.isam_graph import read_isam_graph
 from trundle.logs import messages as m
 from trundle.logs.importers.mrclam import import_mrclam
 from trundle.logs.reader import LogReader
@@ -120,9 +120,9 @@ def draw_mrclam(path: Path, run, outputs: dict[str, Path]) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from trundle.fusion.evaluation import Trajectory, absolute_trajectory_error, landmark_error
+    from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error, landmark_error
     from trundle.fusion.geometry import compose
-    from trundle.fusion.map_io import read_landmarks_csv, read_trajectory_csv
+    from trundle.fusion.mapping.map_io import read_landmarks_csv, read_trajectory_csv
 
     truth = Trajectory(run.groundtruth_ns, run.groundtruth)
     survey_ids = [str(s) for s in sorted(run.landmarks) if s > 5]

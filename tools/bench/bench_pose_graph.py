@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trundle.fusion.pose_graph import PoseGraph, read_g2o
+from trundle.fusion.optimization.pose_graph import PoseGraph, read_g2o
 from trundle.tools.bench import report
 
 INTEL_G2O = Path(__file__).resolve().parents[3] / "shared" / "data" / "intel-posegraph" / "input_INTEL.g2o"

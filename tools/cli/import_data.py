@@ -2,7 +2,7 @@
 
 ``carmen``: CARMEN ``.clf``/``.log``/``.gfs.log`` (ODOM, FLASER, RLASER, ROBOTLASER1). With
 ``--drift`` the odometry is made from the laser lines' poses (in GMapping output: the corrected
-path) with systematic and random drift (:mod:`trundle.fusion.odometry_drift`), for evaluating SLAM
+path) with systematic and random drift (:mod:`trundle.fusion.odometry.drift`), for evaluating SLAM
 against those poses; ``--reference`` writes those poses as ``t_ns,x,y,theta`` CSV.
 ``breezyslam``: BreezySLAM ``.dat`` (wheel ticks -> JointState, URG-04LX ranges -> LaserScan).
 ``mrclam``: one robot of a UTIAS MRCLAM dataset folder (speeds -> Odometry, barcode sightings ->
@@ -18,8 +18,8 @@ import math
 import sys
 from pathlib import Path
 
-from trundle.fusion.map_io import write_landmarks_csv, write_trajectory_csv
-from trundle.fusion.odometry_drift import drifting_odometry
+from trundle.fusion.mapping.map_io import write_landmarks_csv, write_trajectory_csv
+from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.logs.importers.breezyslam import import_breezyslam
 from trundle.logs.errors import UserError
 from trundle.logs.importers.carmen import ODOMETRY_SOURCES, choose_odometry, import_carmen, read_carmen, scan_poses

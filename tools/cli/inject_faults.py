@@ -17,7 +17,7 @@ import json
 import math
 from pathlib import Path
 
-from trundle.fusion.odometry_faults import OdometryFault, random_glitches
+from trundle.fusion.odometry.faults import OdometryFault, random_glitches
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
 from trundle.tools.config.arguments import finite, non_negative_int, positive

@@ -20,7 +20,7 @@ from typing import Any
 from trundle.drivers.devices import FAMILIES, make_driver
 from trundle.drivers.health import HealthReporter
 from trundle.drivers.lifecycle import Driver, SignalFlag
-from trundle.fusion.odometry import OdometrySink, odometry_from_config
+from trundle.fusion.odometry.diff_drive import OdometrySink, odometry_from_config
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.writer import Logger

@@ -9,7 +9,7 @@ Tables (``example.toml`` has them all; ``trundle daemon --print-example-config``
   opened), so a bad URL or option is found before anything runs;
 - ``[robot]``, ``[frames]``, ``[[transforms]]``, ``[logger]``, ``[disk]``, ``[processing]``,
   ``[status]``, ``[supervision]``, ``[live]``: the daemon's own;
-- ``[slam]``: :class:`trundle.fusion.slam.SlamConfig` options; ``[odometry]``: the wheel model
+- ``[slam]``: :class:`trundle.fusion.slam.grid_slam.SlamConfig` options; ``[odometry]``: the wheel model
   ``slam`` and ``localize`` use instead of the log's (``wheel_radius_m``, ``track_m``, ``wheels``,
   ``wheel_variance_per_m``); ``[laser]``: the laser mount (``x_m``, ``y_m``, ``yaw_rad``).
 
@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from trundle.drivers.devices import FAMILIES, make_driver
-from trundle.fusion.odometry import odometry_from_config
+from trundle.fusion.odometry.diff_drive import odometry_from_config
 from trundle.logs.errors import UserError
 from trundle.logs.paths import read_text
 
@@ -377,14 +377,14 @@ def parse_config(data: dict[str, Any], source: str = "") -> RobotConfig:
     frames = _build(FramesConfig, _table(data, "frames", source), "frames", source)
     devices = _devices(data, source)
     slam = _table(data, "slam", source)
-    from trundle.fusion.slam import SlamConfig  # SciPy: only once a config is read
+    from trundle.fusion.slam.grid_slam import SlamConfig  # SciPy: only once a config is read
 
     try:
         SlamConfig.from_mapping(slam)  # checked even while SLAM is off, so a typo shows at once
     except UserError as error:
         raise UserError(f"{_where(source, str(error))}") from None
     landmarks = _table(data, "landmarks", source)
-    from trundle.fusion.landmark_slam import landmark_configs
+    from trundle.fusion.slam.landmark_slam import landmark_configs
 
     try:
         landmark_configs(landmarks)

@@ -24,7 +24,7 @@ from trundle.drivers.lifecycle import wall_ns
 from trundle.logs import messages as m
 
 if TYPE_CHECKING:
-    from trundle.fusion.slam import Slam
+    from trundle.fusion.slam.grid_slam import Slam
     from trundle.perception.landmarks import StaticFrames
     from trundle.perception.markers import MarkerDetector
     from trundle.tools.config.robot import FramesConfig, ProcessingConfig
@@ -54,9 +54,9 @@ class Processing:
         self.detector: MarkerDetector | None = None
         self.static_frames: StaticFrames | None = None
         if config.slam:
-            from trundle.fusion.slam import Slam, SlamConfig
+            from trundle.fusion.slam.grid_slam import Slam, SlamConfig
             if config.markers:
-                from trundle.fusion.landmark_grid_slam import LandmarkGridSlam
+                from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
                 self.slam = LandmarkGridSlam(SlamConfig.from_mapping(slam))
             else:
                 self.slam = Slam(SlamConfig.from_mapping(slam))

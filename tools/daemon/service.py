@@ -9,7 +9,7 @@
 - logs everything to MCAP in the configured folder (``trundle.logs.writer.Logger``: ``.active`` files,
   flush timer, splits repeating ``/tf_static`` and camera info), with a disk guard (``disk_guard``)
   that deletes the oldest logs or stops recording below a free-space floor, and resumes above it;
-- runs wheel odometry on the wheels driver's messages (``trundle.fusion.odometry.OdometrySink``, when the
+- runs wheel odometry on the wheels driver's messages (``trundle.fusion.odometry.diff_drive.OdometrySink``, when the
   ``[can]`` table has ``wheel_radius_m`` and ``track_m``) and online processing off the drivers'
   threads (``processing``: SLAM on ``/scan`` + ``/odom``, ArUco markers on camera images);
 - streams the same topics to Foxglove over a WebSocket when ``[live] enabled`` (``live_view``);
@@ -36,7 +36,7 @@ from typing import Any, Callable
 from trundle.drivers import devices
 from trundle.drivers.health import HealthReporter
 from trundle.drivers.lifecycle import Driver, wall_ns
-from trundle.fusion.odometry import OdometrySink, odometry_from_config
+from trundle.fusion.odometry.diff_drive import OdometrySink, odometry_from_config
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.writer import Logger, LoggerError

@@ -17,7 +17,7 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from trundle.fusion.evaluation import Trajectory
+from trundle.fusion.evaluation.trajectory_errors import Trajectory
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
 from trundle.tools.demo.topics import IMAGE_TOPIC, SCAN_TOPIC

@@ -15,9 +15,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from trundle.fusion.evaluation import Trajectory, landmark_error, poses_at
-from trundle.fusion.landmark_grid_slam import LandmarkGridSlam
-from trundle.fusion.map_io import plot_trajectory
+from trundle.fusion.evaluation.trajectory_errors import Trajectory, landmark_error, poses_at
+from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
+from trundle.fusion.mapping.map_io import plot_trajectory
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
@@ -165,7 +165,7 @@ def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, s
         "load_average": list(os.getloadavg()),
         "seconds": seconds,
         "settings": settings,
-        "slam_config": "defaults (trundle.fusion.slam.SlamConfig)",
+        "slam_config": "defaults (trundle.fusion.slam.grid_slam.SlamConfig)",
     }
     return report
 

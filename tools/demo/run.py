@@ -37,7 +37,7 @@ from typing import Any, Callable
 import numpy as np
 
 from trundle.fusion.geometry import compose, inverse
-from trundle.fusion.map_io import save_map, write_trajectory_csv
+from trundle.fusion.mapping.map_io import save_map, write_trajectory_csv
 from trundle.logs.errors import UserError
 from trundle.logs.paths import output_folder
 from trundle.tools.demo import daemon_process

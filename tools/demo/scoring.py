@@ -13,10 +13,10 @@ from typing import Any
 
 import numpy as np
 
-from trundle.fusion.evaluation import (AbsoluteError, RelativeError, Trajectory, absolute_trajectory_error, poses_at,
+from trundle.fusion.evaluation.trajectory_errors import (AbsoluteError, RelativeError, Trajectory, absolute_trajectory_error, poses_at,
                                        relative_pose_error)
 from trundle.fusion.geometry import compose, transform_points
-from trundle.fusion.map_io import OCCUPIED_THRESH
+from trundle.fusion.mapping.map_io import OCCUPIED_THRESH
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader

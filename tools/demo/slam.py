@@ -1,9 +1,9 @@
-"""SLAM over a demo log: the log replayed (as fast as possible) through ``trundle.fusion.slam.Slam``
+"""SLAM over a demo log: the log replayed (as fast as possible) through ``trundle.fusion.slam.grid_slam.Slam``
 with wheel odometry from ``/wheels`` (the wheel model of the daemon's config, stored in the log)
 and the laser mount from ``/tf_static``, with the default SLAM configuration (the one every log
 gets: nothing here is tuned to the simulated robot); with ``markers`` the daemon's marker
 sightings on ``/landmarks`` join the pose graph as landmarks
-(``trundle.fusion.landmark_grid_slam.LandmarkGridSlam``).
+(``trundle.fusion.slam.landmark_grid_slam.LandmarkGridSlam``).
 """
 
 from __future__ import annotations
@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from trundle.fusion.evaluation import Trajectory
-from trundle.fusion.odometry import DiffDriveOdometry, odometry_from_config
-from trundle.fusion.landmark_grid_slam import LandmarkGridSlam
-from trundle.fusion.slam import Slam, SlamConfig
+from trundle.fusion.evaluation.trajectory_errors import Trajectory
+from trundle.fusion.odometry.diff_drive import DiffDriveOdometry, odometry_from_config
+from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
+from trundle.fusion.slam.grid_slam import Slam, SlamConfig
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.metadata import read_metadata

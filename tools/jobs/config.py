@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from trundle.fusion.odometry import DiffDriveOdometry, odometry_from_config
+from trundle.fusion.odometry.diff_drive import DiffDriveOdometry, odometry_from_config
 from trundle.logs.errors import UserError
 from trundle.logs.metadata import read_metadata
 from trundle.logs.reader import LogInfo

@@ -1,7 +1,7 @@
 """The inject-faults job: a copy of a log whose wheel odometry has realistic faults, for testing on real scans.
 
 Every record is copied as it is except the odometry: ``nav_msgs/Odometry`` poses and the wheel
-angles of ``sensor_msgs/JointState`` get the faults of :mod:`trundle.fusion.odometry_faults`
+angles of ``sensor_msgs/JointState`` get the faults of :mod:`trundle.fusion.odometry.faults`
 (heading glitches, slip, scale error, dropouts). Fault times are seconds after the first odometry
 reading. The faults are stored in the output's ``faults`` metadata record (JSON), so a test or
 a reader of the log knows what was done to it. The wheel model that turns a heading glitch into
@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from trundle.fusion.odometry_faults import OdometryFault, dropped, faulty_poses, faulty_wheels
+from trundle.fusion.odometry.faults import OdometryFault, dropped, faulty_poses, faulty_wheels
 from trundle.logs import messages as m
 from trundle.logs import ros2
 from trundle.logs.errors import UserError

@@ -27,10 +27,10 @@ from typing import Any
 import numpy as np
 
 from trundle.fusion.geometry import compose, inverse, scan_to_points
-from trundle.fusion.landmark_slam import (LANDMARK_TOPIC, EkfLandmarkSlam, GraphLandmarkSlam, LandmarkMap,
+from trundle.fusion.slam.landmark_slam import (LANDMARK_TOPIC, EkfLandmarkSlam, GraphLandmarkSlam, LandmarkMap,
                                           landmark_configs)
-from trundle.fusion.map_io import plot_trajectory, save_map, write_landmarks_csv, write_trajectory_csv
-from trundle.fusion.occupancy_grid import LogOddsGrid
+from trundle.fusion.mapping.map_io import plot_trajectory, save_map, write_landmarks_csv, write_trajectory_csv
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.importers import write_log

@@ -6,7 +6,7 @@ from the log's ``robot`` metadata or the config's ``[odometry]`` table, as for t
 without either, the localizer runs on the scans alone. The laser mount comes from ``/tf_static``
 or the config's ``[laser]`` table. When the map folder has ``landmarks.csv`` (``trundle slam`` of a
 log with markers) and the log has landmark sightings (``/landmarks``), sightings of two mapped
-landmarks give absolute fixes (:mod:`trundle.fusion.landmark_localization`): global localisation
+landmarks give absolute fixes (:mod:`trundle.fusion.localization.landmark_localization`): global localisation
 at once, and kidnap recovery when the fixes keep disagreeing with the track.
 """
 
@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 
 from trundle.fusion.geometry import compose, relative, scan_to_points, voxel_filter
-from trundle.fusion.landmark_localization import LandmarkFixer
-from trundle.fusion.landmark_slam import LANDMARK_TOPIC
-from trundle.fusion.localization import TRACKING, Localizer, grid_from_map
-from trundle.fusion.map_io import load_map, read_landmarks_csv, write_trajectory_csv
+from trundle.fusion.localization.landmark_localization import LandmarkFixer
+from trundle.fusion.slam.landmark_slam import LANDMARK_TOPIC
+from trundle.fusion.localization.grid_localization import TRACKING, Localizer, grid_from_map
+from trundle.fusion.mapping.map_io import load_map, read_landmarks_csv, write_trajectory_csv
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader

@@ -1,7 +1,7 @@
 """A sensor's characteristics from its messages: the figures (SI units) and the data of their plots.
 
 Laser, wheel encoders and camera each have one function returning ``(figures, plots)``; the
-figures come from :mod:`trundle.fusion.sensor_characteristics`.
+figures come from :mod:`trundle.fusion.evaluation.sensor_characteristics`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from trundle.fusion import sensor_characteristics as sc
+from trundle.fusion.evaluation import sensor_characteristics as sc
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader

@@ -4,12 +4,12 @@ Outputs: ``map.pgm`` + ``map.yaml`` (map_server), ``map.png``, ``trajectory.png`
 loop closures over the map, the stretches that fail the map self-check in magenta), ``scans.png``
 (every keyframe's scan endpoints at its optimised pose: doubled walls show here, not in the
 occupancy map), ``trajectory.csv`` (``t_ns,x,y,theta`` of every scan in the map frame),
-``report.json`` (with ``map_check``, see :mod:`trundle.fusion.map_check`) and ``slam.mcap`` with
+``report.json`` (with ``map_check``, see :mod:`trundle.fusion.mapping.map_check`) and ``slam.mcap`` with
 ``/map``, ``/tf`` (map -> odom per scan) and ``/path``. A log with landmark sightings (``/landmarks``) puts them into the pose graph
-(:class:`trundle.fusion.landmark_grid_slam.LandmarkGridSlam`) and adds ``landmarks.csv``
+(:class:`trundle.fusion.slam.landmark_grid_slam.LandmarkGridSlam`) and adds ``landmarks.csv``
 (``id,x,y,sx,sy``), the landmarks on ``trajectory.png`` and ``/landmarks/map`` in ``slam.mcap``. The wheel model comes from the config's ``[odometry]`` table or the log's metadata (see
 :func:`trundle.tools.jobs.config.make_odometry`); ``[slam]`` holds
-:class:`trundle.fusion.slam.SlamConfig`; ``[laser]`` (``x_m``, ``y_m``, ``yaw_rad``) overrides the
+:class:`trundle.fusion.slam.grid_slam.SlamConfig`; ``[laser]`` (``x_m``, ``y_m``, ``yaw_rad``) overrides the
 laser mount of the log's ``/tf_static``.
 """
 
@@ -23,10 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from trundle.fusion.landmark_grid_slam import LandmarkGridSlam
-from trundle.fusion.map_check import MapCheck
-from trundle.fusion.map_io import plot_scans, plot_trajectory, save_map, write_trajectory_csv
-from trundle.fusion.slam import Slam, SlamConfig
+from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
+from trundle.fusion.mapping.map_check import MapCheck
+from trundle.fusion.mapping.map_io import plot_scans, plot_trajectory, save_map, write_trajectory_csv
+from trundle.fusion.slam.grid_slam import Slam, SlamConfig
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.importers import write_log

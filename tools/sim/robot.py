@@ -4,7 +4,7 @@ The whole run is simulated once, at construction, with a fixed control period: a
 controller (look-ahead point on the route, curvature-limited and acceleration-limited speed)
 commands wheel speeds; each wheel slips by a random, slowly varying fraction (an
 Ornstein-Uhlenbeck process), so the ground moves less (or more) than the wheel turns. The
-ground motion of every step is an exact arc (``trundle.fusion.odometry.integrate_path``), so the ground
+ground motion of every step is an exact arc (``trundle.fusion.odometry.diff_drive.integrate_path``), so the ground
 truth pose is exact at any time ``t``, not just at control ticks.
 
 Sensors are sampled at any ``t`` (seconds from the start) by the device emulators:
@@ -23,7 +23,7 @@ from functools import cached_property
 import numpy as np
 
 from trundle.fusion.geometry import compose, wrap_angle
-from trundle.fusion.odometry import integrate, integrate_path
+from trundle.fusion.odometry.diff_drive import integrate, integrate_path
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.tools.sim.camera_render import CameraPose, CameraRenderer, PinholeCamera

@@ -3,7 +3,7 @@
 Per scan (``process`` takes messages, so the same object runs on a live driver or a log):
 
 1. **Predict**: the wheel odometry increment since the previous scan moves an EKF
-   (``trundle.fusion.ekf.PoseEKF``) in the local tracking frame; without odometry a constant-velocity
+   (``trundle.fusion.odometry.ekf.PoseEKF``) in the local tracking frame; without odometry a constant-velocity
    guess with a wide covariance stands in.
 2. **Match**: the scan is matched against the older active submap: Levenberg-Marquardt from the
    prediction when the prediction is tight, otherwise (or when that fails) a correlative search
@@ -31,19 +31,19 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from trundle.fusion.ekf import GATE_CHI2_99, PoseEKF, odometry_noise
+from trundle.fusion.odometry.ekf import GATE_CHI2_99, PoseEKF, odometry_noise
 from trundle.fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance,
                                      scan_to_points, transform_points, voxel_filter, wrap_angle)
-from trundle.fusion.icp import LineReference, icp
-from trundle.fusion.map_check import MapCheck, check_map
-from trundle.fusion.motion_model import MotionModel, MotionPrediction
-from trundle.fusion.occupancy_grid import LogOddsGrid
-from trundle.fusion.odometry import DiffDriveOdometry
-from trundle.fusion.odometry_check import OdometryCheck
-from trundle.fusion.pose_graph import PoseGraph
-from trundle.fusion.robust_window import RobustWindow
-from trundle.fusion.scan_matching import MatchResult, match_scan, refine_pose, samples_walls_densely
-from trundle.fusion.submaps import Submap, SubmapStack
+from trundle.fusion.matching.icp import LineReference, icp
+from trundle.fusion.mapping.map_check import MapCheck, check_map
+from trundle.fusion.odometry.motion_model import MotionModel, MotionPrediction
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
+from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
+from trundle.fusion.odometry.check import OdometryCheck
+from trundle.fusion.optimization.pose_graph import PoseGraph
+from trundle.fusion.optimization.robust_window import RobustWindow
+from trundle.fusion.matching.scan_matching import MatchResult, match_scan, refine_pose, samples_walls_densely
+from trundle.fusion.mapping.submaps import Submap, SubmapStack
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 
@@ -712,7 +712,7 @@ class Slam:
         return grid
 
     def check_map(self) -> MapCheck:
-        """The map self-check (:func:`trundle.fusion.map_check.check_map`) at the optimised poses: each
+        """The map self-check (:func:`trundle.fusion.mapping.map_check.check_map`) at the optimised poses: each
         keyframe against the submaps outside the two it was tracked against and inserted into."""
         poses = self.graph.poses
         frames = np.array([s.local_to_map(poses[s.anchor_node]) for s in self.submaps.submaps]).reshape(-1, 3)

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from trundle.fusion.geometry import compose, relative, wrap_angle
-from trundle.fusion.map_io import read_trajectory_csv
+from trundle.fusion.mapping.map_io import read_trajectory_csv
 from trundle.logs.errors import UserError
 from trundle.logs.paths import input_file
 

@@ -1,7 +1,7 @@
 """Grid SLAM with landmarks in its pose graph: marker sightings tighten the map as Cartographer's
 landmark constraints do.
 
-:class:`LandmarkGridSlam` is the grid SLAM of :mod:`trundle.fusion.slam` plus LandmarkList
+:class:`LandmarkGridSlam` is the grid SLAM of :mod:`trundle.fusion.slam.grid_slam` plus LandmarkList
 messages. A sighting (an id is needed: the grid SLAM does not associate anonymous features) is
 tied to the keyframe of the latest scan: the robot's pose at the sighting's stamp in that
 keyframe's frame is the scan's offset from its keyframe composed with the odometry since the
@@ -10,7 +10,7 @@ a landmark *pose* with a between factor (x, y, yaw), like Cartographer's transla
 weights; a point landmark has a relative-position factor. Whenever the pose graph is optimised
 (loop closures, the end of the run, or a landmark seen again from a keyframe far from where it
 was first seen) the keyframes and the landmarks are optimised together as one
-:class:`trundle.fusion.factor_graph.FactorGraph`, the landmark factors under a Cauchy kernel, so
+:class:`trundle.fusion.optimization.factor_graph.FactorGraph`, the landmark factors under a Cauchy kernel, so
 one bad sighting pulls with a bounded force.
 
 Three things are read from the data rather than assumed:
@@ -18,9 +18,9 @@ Three things are read from the data rather than assumed:
 - the relative weight of the laser edges and the sightings: the pose graph's edge covariances
   are deliberately conservative (a floor per keyframe), which would let a sighting bend the
   laser's locally exact path; variance component estimation (``vce_rounds``, by
-  :meth:`trundle.fusion.factor_graph.FactorGraph.redundancy`) rescales each group to its
+  :meth:`trundle.fusion.optimization.factor_graph.FactorGraph.redundancy`) rescales each group to its
   residuals;
-- the error correlation of successive sightings (:mod:`trundle.fusion.error_correlation`);
+- the error correlation of successive sightings (:mod:`trundle.fusion.optimization.error_correlation`);
 - the sightings' time offset: a camera stamped on arrival lags the capture, and while the robot
   turns, a few tens of milliseconds move a marker metres away by centimetres. At the end of the
   run the offset that makes each landmark's sightings agree best (their information-weighted
@@ -35,12 +35,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from trundle.fusion.error_correlation import decorrelated_information
-from trundle.fusion.factor_graph import BETWEEN, POSITION, FactorGraph
+from trundle.fusion.optimization.error_correlation import decorrelated_information
+from trundle.fusion.optimization.factor_graph import BETWEEN, POSITION, FactorGraph
 from trundle.fusion.geometry import compose, relative, rotation, wrap_angle
-from trundle.fusion.landmark_slam import LANDMARK_TOPIC, LandmarkMap, between_covariance
-from trundle.fusion.odometry import DiffDriveOdometry
-from trundle.fusion.slam import ScanResult, Slam, SlamConfig
+from trundle.fusion.slam.landmark_slam import LANDMARK_TOPIC, LandmarkMap, between_covariance
+from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
+from trundle.fusion.slam.grid_slam import ScanResult, Slam, SlamConfig
 from trundle.logs import messages as m
 
 LANDMARK_KERNEL_WIDTH = 3.0

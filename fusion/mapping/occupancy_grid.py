@@ -333,7 +333,7 @@ class LogOddsGrid:
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The walls the returns describe at occupied cells ``(rows, cols)`` (a grid built with ``subcell``):
         the mean of each cell's returns (m) and, where the returns of its 3 x 3 occupied neighbourhood
-        lie on a line (``flatness`` at least ``min_flatness``, as in :class:`trundle.fusion.icp.LineReference`),
+        lie on a line (``flatness`` at least ``min_flatness``, as in :class:`trundle.fusion.matching.icp.LineReference`),
         that line's normal; returns mean (N, 2), normal (N, 2), is_line (N,).
 
         Occupied cells put every wall on the cell lattice, up to half a cell from where it is, and a

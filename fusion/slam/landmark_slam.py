@@ -3,7 +3,7 @@
 Two estimators with one interface (``process(topic, msg)``, ``finish()``, ``trajectory()``,
 ``landmarks()``), so the same object runs on a live stream or a log:
 
-- :class:`EkfLandmarkSlam`: the EKF-SLAM of :mod:`trundle.fusion.ekf_slam`, predicting with the
+- :class:`EkfLandmarkSlam`: the EKF-SLAM of :mod:`trundle.fusion.slam.ekf_slam`, predicting with the
   odometry composed up to each sighting's stamp and updating with the sightings; causal, online.
 - :class:`GraphLandmarkSlam`: the same EKF as front end (data association of anonymous
   sightings, outlier rejection, initial values), and a factor graph as back end: a pose node at
@@ -12,7 +12,7 @@ Two estimators with one interface (``process(topic, msg)``, ``finish()``, ``traj
   marker's full pose: a landmark pose and a between factor), optimised when the run ends. The
   noise models come from the messages. Sightings of one landmark in quick succession share much
   of their error, so after a first fit the correlation time of the sighting errors is read from
-  the residuals and each sighting weighs what it adds (:mod:`trundle.fusion.error_correlation`),
+  the residuals and each sighting weighs what it adds (:mod:`trundle.fusion.optimization.error_correlation`),
   then the graph is optimised again.
 
 Odometry arrives as nav_msgs/Odometry poses (odom frame) with their twist; sightings as
@@ -29,11 +29,11 @@ from typing import Any
 
 import numpy as np
 
-from trundle.fusion.ekf_slam import ASSOCIATIONS, EkfSlam, EkfSlamConfig
-from trundle.fusion.error_correlation import decorrelated_information
-from trundle.fusion.factor_graph import BETWEEN, RANGE_BEARING, FactorGraph
+from trundle.fusion.slam.ekf_slam import ASSOCIATIONS, EkfSlam, EkfSlamConfig
+from trundle.fusion.optimization.error_correlation import decorrelated_information
+from trundle.fusion.optimization.factor_graph import BETWEEN, RANGE_BEARING, FactorGraph
 from trundle.fusion.geometry import compose, rotation
-from trundle.fusion.odometry_increments import Increment, MotionNoise, OdometryIncrements
+from trundle.fusion.odometry.increments import Increment, MotionNoise, OdometryIncrements
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 
@@ -143,7 +143,7 @@ class GraphLandmarkSlamConfig:
     make one). ``robust_kernel`` and ``kernel_width`` (whitened units) act on the landmark factors,
     so an outlier the front end let through pulls with a bounded force. ``correlation_rounds``:
     rounds of estimating the sightings' error correlation time and reweighting them
-    (:mod:`trundle.fusion.error_correlation`; 0: treat every sighting as independent).
+    (:mod:`trundle.fusion.optimization.error_correlation`; 0: treat every sighting as independent).
     """
 
     ekf: EkfSlamConfig = field(default_factory=EkfSlamConfig)

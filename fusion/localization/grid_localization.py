@@ -5,7 +5,7 @@ The map (a ``LogOddsGrid``) is only read, never updated. Three pieces:
 - :func:`global_search`: an exhaustive correlative search over every free cell of a coarse copy
   of the map and every heading (Olson 2009's correlative matching; the per-heading correlation
   runs as one ``cv2.filter2D`` over the map), whose best distinct peaks are refined against the
-  full-resolution map by ``trundle.fusion.scan_matching.match_scan``.
+  full-resolution map by ``trundle.fusion.matching.scan_matching.match_scan``.
 - :class:`Localizer` keeps those candidates as weighted hypotheses, moves them with odometry,
   re-matches each scan locally and reweights them by match score (``log w += beta (score - 1)``),
   until one holds ``converged_probability`` of the weight and has been tracked ``min_scans``.
@@ -17,7 +17,7 @@ The map (a ``LogOddsGrid``) is only read, never updated. Three pieces:
   where it was tracking, the odometry merely slipped (counted in ``stats.false_alarms``) and
   tracking resumes there, otherwise it reports the kidnapping and follows the new hypotheses.
 - :meth:`Localizer.fix` takes an absolute pose fix (landmarks with known map positions,
-  :mod:`trundle.fusion.landmark_localization`): it localises globally at once, corrects the
+  :mod:`trundle.fusion.localization.landmark_localization`): it localises globally at once, corrects the
   track, and fixes that keep disagreeing with it reveal a kidnapping.
 """
 
@@ -29,10 +29,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from trundle.fusion.ekf import PoseEKF, odometry_noise
+from trundle.fusion.odometry.ekf import PoseEKF, odometry_noise
 from trundle.fusion.geometry import compose, relative, voxel_filter, wrap_angle
-from trundle.fusion.occupancy_grid import LogOddsGrid
-from trundle.fusion.scan_matching import MatchResult, match_scan
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
+from trundle.fusion.matching.scan_matching import MatchResult, match_scan
 from trundle.logs.errors import UserError
 from trundle.logs.messages import OccupancyGrid
 
@@ -53,7 +53,7 @@ class CoarseMap:
 
 
 def grid_from_map(occupancy: OccupancyGrid) -> LogOddsGrid:
-    """A read-only ``LogOddsGrid`` from a saved map (e.g. ``trundle.fusion.map_io.load_map``).
+    """A read-only ``LogOddsGrid`` from a saved map (e.g. ``trundle.fusion.mapping.map_io.load_map``).
 
     Cells of at least 50 % occupancy become occupied (``l_max``), known cells below free
     (``l_min``), -1 unknown (unobserved). The arrays are made read-only so nothing can update the

@@ -6,7 +6,7 @@ other landmark (the feature-map SLAM of Smith, Self and Cheeseman; Thrun, Burgar
 "Probabilistic Robotics", ch. 10). The map frame is the robot's pose at the start.
 
 - :meth:`EkfSlam.predict` moves the pose by an odometry increment (robot frame) with its covariance
-  (:class:`trundle.fusion.motion_model.IncrementAccumulator` composes many readings into one);
+  (:class:`trundle.fusion.odometry.motion_model.IncrementAccumulator` composes many readings into one);
   only the pose rows and columns change, O(n).
 - :meth:`EkfSlam.update` takes one instant's :class:`trundle.logs.messages.LandmarkObservation` s
   (range, bearing and their covariance in the robot frame). A sighting with an id goes to that
@@ -14,7 +14,7 @@ other landmark (the feature-map SLAM of Smith, Self and Cheeseman; Thrun, Burgar
   range-bearing model, its covariance and cross-covariances from both Jacobians); a sighting
   farther than ``outlier_chi2`` (Mahalanobis) from its landmark is rejected as an outlier. An
   anonymous sighting is associated with the anonymous landmarks by JCBB (default) or nearest
-  neighbour (:mod:`trundle.fusion.data_association`); one left unpaired becomes a new landmark
+  neighbour (:mod:`trundle.fusion.slam.data_association`); one left unpaired becomes a new landmark
   only when it is far (``new_landmark_chi2``) from every landmark, else it is dropped as
   ambiguous. All pairings of an instant update the state together, O(n^2).
 """
@@ -27,9 +27,9 @@ from typing import Sequence
 import numpy as np
 from scipy.stats import chi2
 
-from trundle.fusion.data_association import UNPAIRED, Association, individual_d2, jcbb, nearest_neighbour
+from trundle.fusion.slam.data_association import UNPAIRED, Association, individual_d2, jcbb, nearest_neighbour
 from trundle.fusion.geometry import wrap_angle
-from trundle.fusion.odometry_increments import MotionNoise, compose_jacobians
+from trundle.fusion.odometry.increments import MotionNoise, compose_jacobians
 from trundle.fusion.observation_models import point_from_range_bearing, range_bearing
 from trundle.logs.messages import LandmarkObservation
 

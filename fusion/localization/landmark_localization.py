@@ -5,10 +5,10 @@ sightings into absolute fixes. One sighting of a point fixes the robot only to a
 :class:`LandmarkFixer` keeps the recent sightings (those within ``window_s`` and ``window_m`` of
 motion) carried into the current robot frame by odometry; once two distinct mapped landmarks are
 among them, the pose that best explains them is solved for (a weighted rigid alignment: the robot
-pose as the one free variable of a :class:`trundle.fusion.factor_graph.FactorGraph` whose points
+pose as the one free variable of a :class:`trundle.fusion.optimization.factor_graph.FactorGraph` whose points
 are the fixed landmarks, started at the unweighted SE(2) alignment) with its covariance. The fix
 then starts tracking (global localisation) or, when it disagrees with a tracked pose again and
-again, reveals a kidnapping (:meth:`trundle.fusion.localization.Localizer.fix`).
+again, reveals a kidnapping (:meth:`trundle.fusion.localization.grid_localization.Localizer.fix`).
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trundle.fusion.evaluation import align_se2
-from trundle.fusion.factor_graph import POSITION, FactorGraph
+from trundle.fusion.evaluation.trajectory_errors import align_se2
+from trundle.fusion.optimization.factor_graph import POSITION, FactorGraph
 from trundle.fusion.geometry import compose, relative, rotation
 from trundle.logs.messages import LandmarkList
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from trundle.fusion.geometry import compose, inverse, transform_points
-from trundle.fusion.occupancy_grid import LogOddsGrid, TracedRays, trace_rays
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, TracedRays, trace_rays
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """Planar factor graph: SE(2) poses and 2-D points, optimised by sparse Levenberg-Marquardt.
 
-The pose graph of :mod:`trundle.fusion.pose_graph` holds poses only; a landmark map needs points
+The pose graph of :mod:`trundle.fusion.optimization.pose_graph` holds poses only; a landmark map needs points
 too (a tree trunk, a barcode cylinder, a laser corner) and factors between a pose and a point.
 Variables are poses ``(x, y, theta)`` and points ``(x, y)`` (metres, radians, map frame). Factors,
 each with an information matrix (the inverse of its measurement covariance):
@@ -15,7 +15,7 @@ each with an information matrix (the inverse of its measurement covariance):
 ``chi2 = sum e^T I e`` over all factors. ``optimize`` linearises with analytic Jacobians, whitens
 each factor by the Cholesky factor of its information, applies per-kind robust kernels by
 iteratively reweighted least squares and solves the damped normal equations with SciPy's sparse
-LU, as :meth:`trundle.fusion.pose_graph.PoseGraph.optimize` does, but moves poses along SE(2)'s
+LU, as :meth:`trundle.fusion.optimization.pose_graph.PoseGraph.optimize` does, but moves poses along SE(2)'s
 exponential map (:func:`retract`); fixed variables stay put.
 """
 
@@ -27,7 +27,7 @@ import scipy.sparse as sp
 
 from trundle.fusion.geometry import compose, wrap_angle
 from trundle.fusion.observation_models import range_bearing, relative_position
-from trundle.fusion.pose_graph import ROBUST_KERNELS, OptimizeResult, PoseGraph, _errors, _factor_spd, _solve_spd, robust_weights
+from trundle.fusion.optimization.pose_graph import ROBUST_KERNELS, OptimizeResult, PoseGraph, _errors, _factor_spd, _solve_spd, robust_weights
 
 POSE, POINT = "pose", "point"
 BETWEEN, RANGE_BEARING, POSITION, POINT_PRIOR, POSE_PRIOR = (

@@ -6,7 +6,7 @@ instant. The laser sees the same motion, so each odometry increment is compared 
 match of that step: their disagreement ``e = odometry_pose^-1 (+) match_pose`` (robot frame).
 
 How far odometry and laser normally disagree is learned from the log: the configured noise model
-``Q(u)`` (a floor plus a share per metre and per radian, :func:`trundle.fusion.ekf.odometry_noise`)
+``Q(u)`` (a floor plus a share per metre and per radian, :func:`trundle.fusion.odometry.ekf.odometry_noise`)
 gives the shape, and a factor per axis, ``kappa^2``, the level: the median of ``e^2 / Q`` over the
 recent increments that were used, divided by the median of a squared standard normal (so a
 Gaussian disagreement of variance ``kappa^2 Q`` gives ``kappa^2``). The disagreement holds the
@@ -33,7 +33,7 @@ from collections import deque
 
 import numpy as np
 
-from trundle.fusion.robust_window import RobustWindow
+from trundle.fusion.optimization.robust_window import RobustWindow
 
 CHI2_3DOF_999 = 16.266236196238129  # scipy.stats.chi2.ppf(0.999, 3)
 CHI2_1DOF_MEDIAN = 0.454936423119572  # scipy.stats.chi2.ppf(0.5, 1): median of a squared standard normal

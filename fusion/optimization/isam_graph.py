@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trundle.fusion.factor_graph import FactorGraph
+from trundle.fusion.optimization.factor_graph import FactorGraph
 from trundle.fusion.geometry import compose
 from trundle.logs.errors import UserError
 

@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from trundle.fusion.geometry import rotation
-from trundle.fusion.scan_matching import huber_loss, levenberg_marquardt, match_covariance
+from trundle.fusion.matching.scan_matching import huber_loss, levenberg_marquardt, match_covariance
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 
 from trundle.fusion.geometry import rotation, wrap_angle
-from trundle.fusion.occupancy_grid import FieldWindow, LogOddsGrid
+from trundle.fusion.mapping.occupancy_grid import FieldWindow, LogOddsGrid
 
 _CHUNK_ELEMENTS = 1 << 21
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from trundle.fusion.geometry import inverse, transform_points
-from trundle.fusion.submaps import Submap
+from trundle.fusion.mapping.submaps import Submap
 
 HALF_DIAGONAL = 0.5 ** 0.5  # cells from a cell's centre to its corner
 

@@ -1,0 +1,1 @@
+"""Evaluation: trajectory errors against references, sensor characteristics."""

@@ -1,0 +1,1 @@
+"""Localization in a known map: grid (laser) and landmarks."""

@@ -1,0 +1,1 @@
+"""Maps: occupancy grids, submaps, map files and the map self-check."""

@@ -1,0 +1,1 @@
+"""Scan matching: correlative search with refinement, and ICP."""

@@ -1,0 +1,1 @@
+"""Odometry: wheel odometry, increments and their noise, motion models, checks and faults."""

@@ -1,0 +1,1 @@
+"""Optimisation: the sparse Levenberg-Marquardt core, robust kernels, pose and factor graphs."""

@@ -1,0 +1,1 @@
+"""SLAM: the grid SLAM, landmark SLAM (EKF and graph), data association."""

@@ -16,7 +16,7 @@ import sys
 from typing import NoReturn
 
 from trundle import __version__
-from trundle.logs.errors import UserError
+from trundle.logs.errors import TrundleError
 
 EXIT_USER_ERROR = 2
 
@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         return done.code if isinstance(done.code, int) else 0
     try:
         return int(args.func(args) or 0)
-    except UserError as error:
+    except TrundleError as error:
         print(f"trundle {args.command}: {error}", file=sys.stderr)
         return EXIT_USER_ERROR
     except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as error:

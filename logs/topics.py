@@ -1,8 +1,8 @@
 """The topic names trundle publishes and reads (ROS conventions where there is one): the one place
 they are spelt, so a driver, a job and the daemon cannot disagree on a name.
 
-A camera's topics hang under its namespace (``/camera`` by default, ``topic_prefix`` in its
-config): ``NS/image_raw/compressed``, ``NS/image_raw`` and ``NS/camera_info``.
+A camera's topics hang under its namespace (``/`` + its ``name``, ``/camera`` by default):
+``NS/image_raw/compressed``, ``NS/image_raw`` and ``NS/camera_info``.
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ ODOM_TOPIC = "/odom"                                # nav_msgs/Odometry: wheel o
 WHEELS_TOPIC = "/wheels"                            # sensor_msgs/JointState: the wheel encoders of the CAN driver
 JOINT_STATES_TOPIC = "/joint_states"                # sensor_msgs/JointState: ROS's default wheel topic
 CAN_RX_TOPIC = "/can/rx"                            # every CAN frame received
-CAMERA_NAMESPACE = "/camera"                        # a camera's default namespace
 IMAGE_TOPIC = "/camera/image_raw/compressed"        # the default camera's JPEG frames
 CAMERA_INFO_TOPIC = "/camera/camera_info"           # the default camera's calibration, latched
 DIAGNOSTICS_TOPIC = "/diagnostics"                  # diagnostic_msgs/DiagnosticArray of drivers and daemon

@@ -3,8 +3,10 @@ static and dynamic edges at a time, missing frames named, configured mounts winn
 
 from __future__ import annotations
 
+import ast
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ from hypothesis import strategies as st
 from trundle.logs import messages as m
 from trundle.logs.errors import DataError
 from trundle.logs.frames import FrameTree, planar, quaternion_from_rpy, rotation_matrix
+from trundle.logs import topics
 from trundle.logs.topics import TF_STATIC_TOPIC, TF_TOPIC
 
 S = 1_000_000_000  # ns in a second
@@ -139,3 +142,52 @@ def test_any_lookup_composes_with_its_inverse(chain, i, j) -> None:
     got = planar(tree.transform("f0", f"f{len(chain)}"))
     np.testing.assert_allclose(got[:2], [x, y], atol=1e-9)
     assert abs(math.remainder(got[2] - yaw, 2 * math.pi)) < 1e-9
+
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE_ROOMS = ("logs", "drivers", "perception", "fusion", "tools")
+# who may look inside a TFMessage: the tree itself, the CDR codec, and the logger's latch key (a split
+# repeats each publisher's static transforms)
+MAY_READ_TRANSFORMS = {"logs/frames.py", "logs/ros2.py", "logs/writer.py"}
+
+
+def _code_strings(tree: ast.AST) -> set[str]:
+    """The string constants of a module that are not docstrings."""
+    docstrings = {id(node.body[0].value) for node in ast.walk(tree)
+                  if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef)
+                  and node.body and isinstance(node.body[0], ast.Expr) and isinstance(node.body[0].value, ast.Constant)}
+    return {node.value for node in ast.walk(tree)
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docstrings}
+
+
+def _reads_transforms(tree: ast.AST) -> bool:
+    """Whether the module iterates over or indexes ``<something>.transforms`` (a TFMessage's content)."""
+    def is_transforms(node: ast.AST) -> bool:
+        return isinstance(node, ast.Attribute) and node.attr == "transforms"
+    for node in ast.walk(tree):
+        if isinstance(node, ast.For | ast.comprehension) and is_transforms(node.iter):
+            return True
+        if isinstance(node, ast.Subscript) and is_transforms(node.value):
+            return True
+        if isinstance(node, ast.Starred) and is_transforms(node.value):
+            return True
+    return False
+
+
+def test_only_the_frames_module_reads_tf_and_only_the_topics_module_spells_its_names() -> None:
+    """No module takes a TFMessage apart but the tree (so every /tf_static read goes through it), and no
+    topic name of logs/topics.py is written out in code anywhere else. Syntactic: a module that copied
+    the transforms into a list first would pass; the name rule catches how it found them."""
+    names = {value for key, value in vars(topics).items() if key.endswith("_TOPIC")}
+    assert {"/tf_static", "/tf", "/scan"} <= names
+    spelled, readers = [], []
+    for room in PACKAGE_ROOMS:
+        for path in sorted((REPO / room).rglob("*.py")):
+            name = path.relative_to(REPO).as_posix()
+            tree = ast.parse(path.read_text(), name)
+            if name != "logs/topics.py" and _code_strings(tree) & names:
+                spelled.append(name)
+            if name not in MAY_READ_TRANSFORMS and _reads_transforms(tree):
+                readers.append(name)
+    assert spelled == [], f"topic names spelt outside logs/topics.py: {spelled}"
+    assert readers == [], f"TFMessage taken apart outside logs/frames.py: {readers}"

@@ -66,7 +66,7 @@ def quaternion_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
 def rpy_transform(stamp_ns: int, parent: str, child: str, xyz: Iterable[float],
                   rpy: Iterable[float]) -> m.TransformStamped:
     """``child`` in ``parent`` at ``xyz`` (m), rotated by roll, pitch, yaw ``rpy`` (rad), stamped ``stamp_ns``."""
-    return m.TransformStamped(stamp_ns, parent, child, tuple(xyz), quaternion_from_rpy(*rpy))
+    return m.TransformStamped(stamp_ns, parent, child, np.array(tuple(xyz), np.float64), quaternion_from_rpy(*rpy))
 
 
 def rotation_matrix(quaternion: Iterable[float]) -> np.ndarray:

@@ -37,7 +37,6 @@ from typing import Any, Callable, Mapping
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from trundle.drivers.camera_config import CameraConfig, parse_camera_url
 from trundle.drivers.camera_info import load_camera_info, uncalibrated_camera_info
@@ -50,6 +49,8 @@ from trundle.drivers.v4l2_capture import V4L2Source, device_path
 from trundle.drivers.video_file import JPEG_SUFFIXES, ImageFolderSource, VideoFileSource, folder_images, probe_video
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.frames import rpy_transform
+from trundle.logs.topics import TF_STATIC_TOPIC
 
 # camera body (x forward, y left, z up) -> optical frame (x right, y down, z forward): rpy (-pi/2, 0, -pi/2)
 OPTICAL_ROTATION = (-0.5, 0.5, -0.5, 0.5)
@@ -60,8 +61,7 @@ log = logging.getLogger("trundle.camera")
 def static_transforms(config: CameraConfig, stamp_ns: int) -> m.TFMessage:
     """parent_frame -> frame_id from ``config.transform`` and frame_id -> optical_frame_id."""
     x, y, z, roll, pitch, yaw = config.transform
-    mount = m.TransformStamped(stamp_ns, config.parent_frame, config.frame_id, (x, y, z),
-                               Rotation.from_euler("xyz", (roll, pitch, yaw)).as_quat())
+    mount = rpy_transform(stamp_ns, config.parent_frame, config.frame_id, (x, y, z), (roll, pitch, yaw))
     optical = m.TransformStamped(stamp_ns, config.frame_id, config.optical_frame_id, (0.0, 0.0, 0.0), OPTICAL_ROTATION)
     return m.TFMessage((mount, optical))
 
@@ -99,7 +99,7 @@ class CameraDriver(Driver):
         self.camera_info = camera_info or uncalibrated_camera_info(config.width, config.height,
                                                                    config.optical_frame_id, stamp)
         self._info_topic = f"{config.topic_prefix}/camera_info"
-        self._static = [("/tf_static", static_transforms(config, stamp))]
+        self._static = [(TF_STATIC_TOPIC, static_transforms(config, stamp))]
         if self.camera_info.width:  # else the first frame tells the size (never a 0x0 CameraInfo)
             self._static.insert(0, (self._info_topic, self.camera_info))
         self._checker = JpegChecker(config.decode_check_every)

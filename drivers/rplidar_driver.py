@@ -31,6 +31,7 @@ from trundle.drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_n
 from trundle.drivers.serial_link import STREAM_BATCH_S, SerialLink, set_modem_line
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.topics import SCAN_TOPIC, TF_STATIC_TOPIC
 
 
 @dataclass(frozen=True)
@@ -83,7 +84,7 @@ class RplidarConfig:
     beams: int = 0
     frame_id: str = "laser"
     parent_frame: str = "base_link"
-    topic: str = "/scan"
+    topic: str = SCAN_TOPIC
     x: float = 0.0
     y: float = 0.0
     z: float = 0.0
@@ -298,7 +299,7 @@ class RplidarDriver(Driver):
         self._static = laser_transform(config, clock())
 
     def static_messages(self) -> list[tuple[str, m.Message]]:
-        return [("/tf_static", self._static)]
+        return [(TF_STATIC_TOPIC, self._static)]
 
     # --- transport ---------------------------------------------------------------------------
 

@@ -25,6 +25,7 @@ from trundle.drivers.sensor_clock import SensorClock
 from trundle.drivers.serial_link import STREAM_BATCH_S, SerialLink
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.topics import SCAN_TIMING_TOPIC, SCAN_TOPIC, TF_STATIC_TOPIC
 
 ABNORMAL = {"0L"} | {f"{n:02d}" for n in range(21, 98)}  # stop, reboot with RB (notes 1.6.5)
 RESUMED = "98"
@@ -49,8 +50,8 @@ class ScipConfig:
     baudrate: int = 115200
     frame_id: str = "laser"
     parent_frame: str = "base_link"
-    topic: str = "/scan"
-    timing_topic: str = "/scan/timing"
+    topic: str = SCAN_TOPIC
+    timing_topic: str = SCAN_TIMING_TOPIC
     x: float = 0.0
     y: float = 0.0
     z: float = 0.0
@@ -256,7 +257,7 @@ class ScipDriver(Driver):
         self._static = laser_transform(config, clock())
 
     def static_messages(self) -> list[tuple[str, m.Message]]:
-        return [("/tf_static", self._static)]
+        return [(TF_STATIC_TOPIC, self._static)]
 
     # --- transport ---------------------------------------------------------------------------
 

@@ -39,6 +39,7 @@ from trundle.drivers.lifecycle import Driver, Sink
 from trundle.drivers.odrive_encoders import OdriveEncoders
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.topics import CAN_RX_TOPIC, WHEELS_TOPIC
 
 PROTOCOLS = ("odrive", "cia406", "dbc")
 # the [can] table's keys: the driver's, the protocols' subtables and the wheel model odometry reads
@@ -171,7 +172,7 @@ class WheelsDriver(Driver):
         if len(self.seen_ids) < MAX_SEEN_IDS and not msg.is_error_frame:
             self.seen_ids.add(msg.arbitration_id)
         if self.publish_frames:
-            self.publish("/can/rx", m.CanFrame(received.stamp_ns, self.frame_id, msg.arbitration_id, bytes(msg.data),
+            self.publish(CAN_RX_TOPIC, m.CanFrame(received.stamp_ns, self.frame_id, msg.arbitration_id, bytes(msg.data),
                                                msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame),
                          received.host_ns)
         if msg.is_error_frame:
@@ -274,7 +275,7 @@ class WheelsDriver(Driver):
 
     def _emit(self, state: m.JointState, log_ns: int) -> None:
         self.counters["joint_states"] += 1
-        self.publish("/wheels", state, log_ns)
+        self.publish(WHEELS_TOPIC, state, log_ns)
 
     # -- health --------------------------------------------------------------------------------
     def silence_reason(self) -> str:

@@ -31,6 +31,7 @@ from trundle.logs import messages as m
 from trundle.logs import metadata as log_metadata
 from trundle.logs import ros2
 from trundle.logs.errors import UserError
+from trundle.logs.topics import TF_STATIC_TOPIC
 
 ACTIVE_SUFFIX = ".active"
 _SPLIT = object()  # queued by Logger.split: the writer starts a new file at the next message
@@ -58,7 +59,7 @@ class LoggerError(UserError):
 
 def is_latched(topic: str, extra: Iterable[str] = ()) -> bool:
     """Topics whose last message must be present in every file (ROS transient-local)."""
-    return topic == "/tf_static" or topic.endswith("camera_info") or topic in extra
+    return topic == TF_STATIC_TOPIC or topic.endswith("camera_info") or topic in extra
 
 
 @dataclass

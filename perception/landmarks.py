@@ -9,9 +9,10 @@ is small in the image and a slanted one foreshortened, so the same pixel noise m
 no separate distance model is needed. ``sigma`` is the larger of ``pixel_sigma`` and the fit's own
 RMS reprojection error, divided by the cosine of the viewing angle: a slanted marker's edges
 foreshorten and its corners smear along them (the projection alone makes a slanted marker's yaw
-*better* known, and barely changes its position). The static transforms of ``/tf_static`` (camera mount and
-optical frame) carry position and covariance into the robot frame (``base_link``): the
-observation's planar position and its landmark yaw, the direction the marker faces.
+*better* known, and barely changes its position). The camera's pose on the robot (the tf tree of
+:mod:`trundle.logs.frames`: camera mount and optical frame) carries position and covariance into
+the robot frame (``base_link``): the observation's planar position and its landmark yaw, the
+direction the marker faces.
 """
 
 from __future__ import annotations
@@ -22,44 +23,12 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from trundle.logs.messages import CameraInfo, LandmarkObservation, TFMessage, TransformStamped
+from trundle.logs.messages import CameraInfo, LandmarkObservation
 from trundle.perception.markers import Marker, MarkerPose, marker_object_points
 
 PIXEL_SIGMA = 1.0  # px: corner noise of a detected marker seen face-on (sub-pixel refinement, JPEG, blur)
 MIN_SIDE_PX = 30.0  # px: a smaller marker's pose is too rough for its first-order covariance (ambiguity, bias)
 MIN_VIEWING_COSINE = 0.25  # beyond 75 deg off the normal the noise stops growing (detection fails first)
-
-
-def transform_matrix(transform: TransformStamped) -> np.ndarray:
-    """The 4x4 homogeneous pose of ``child_frame_id`` in ``frame_id``."""
-    matrix = np.eye(4)
-    matrix[:3, :3] = Rotation.from_quat(np.asarray(transform.rotation, np.float64)).as_matrix()
-    matrix[:3, 3] = transform.translation
-    return matrix
-
-
-class StaticFrames:
-    """The static transform tree of a log or a robot (``/tf_static``): the pose of any frame in an ancestor."""
-
-    def __init__(self) -> None:
-        self._parent: dict[str, TransformStamped] = {}
-
-    def add(self, msg: TFMessage) -> None:
-        for transform in msg.transforms:
-            self._parent[transform.child_frame_id] = transform
-
-    def pose_in(self, frame: str, base: str = "base_link") -> np.ndarray | None:
-        """The 4x4 pose of ``frame`` in ``base``, chaining static transforms; None when not connected."""
-        matrix = np.eye(4)
-        seen = set()
-        while frame != base:
-            transform = self._parent.get(frame)
-            if transform is None or frame in seen:
-                return None
-            seen.add(frame)
-            matrix = transform_matrix(transform) @ matrix
-            frame = transform.frame_id
-        return matrix
 
 
 def viewing_cosine(pose: MarkerPose) -> float:

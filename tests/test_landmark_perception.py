@@ -20,19 +20,20 @@ from trundle.drivers.camera import OPTICAL_ROTATION
 from trundle.logs import messages as m
 from scipy.stats import chi2
 
-from trundle.perception.landmarks import StaticFrames, marker_observation, viewing_cosine
+from trundle.perception.landmarks import marker_observation, viewing_cosine
 from trundle.perception.markers import Marker, marker_object_points, marker_pose
 from trundle.perception.scan_features import corner_observations, corners
+from trundle.logs.frames import FrameTree
 
 CAMERA = m.CameraInfo(0, "camera_optical", 480, 640, "plumb_bob", np.zeros(5),
                       [[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 SIZE = 0.25
 
 
-def _frames() -> StaticFrames:
+def _frames() -> FrameTree:
     """base_link -> camera 0.2 m ahead, 0.4 m up, turned 0.1 rad left -> camera_optical (REP 103)."""
-    frames = StaticFrames()
-    frames.add(m.TFMessage((m.TransformStamped.planar(0, "base_link", "camera", 0.2, 0.0, 0.1, z=0.4),
+    frames = FrameTree()
+    frames.add_static(m.TFMessage((m.TransformStamped.planar(0, "base_link", "camera", 0.2, 0.0, 0.1, z=0.4),
                             m.TransformStamped(0, "camera", "camera_optical", (0, 0, 0), OPTICAL_ROTATION))))
     return frames
 
@@ -56,21 +57,20 @@ def _detected(rotation: np.ndarray, translation: np.ndarray, noise_px: float = 0
     return Marker(23, pixels)
 
 
-def test_static_frames_chain_to_the_robot_frame():
-    pose = _frames().pose_in("camera_optical")
-    assert pose is not None
+def test_the_camera_optical_frame_chains_to_the_robot_frame():
+    pose = _frames().transform("base_link", "camera_optical")
     np.testing.assert_allclose(pose[:3, 3], [0.2, 0.0, 0.4])
     # the optical z axis (forward) is the camera's x axis, turned 0.1 rad
     np.testing.assert_allclose(pose[:3, 2], [math.cos(0.1), math.sin(0.1), 0.0], atol=1e-12)
     np.testing.assert_allclose(pose[:3, 1], [0.0, 0.0, -1.0], atol=1e-12)   # optical y is down
-    assert _frames().pose_in("nowhere") is None
+    assert _frames().try_transform("base_link", "nowhere") is None
 
 
 def test_marker_observation_is_the_marker_in_the_robot_frame():
     rotation, translation = _marker_in_camera(3.0, 30.0)
     marker = _detected(rotation, translation)
     pose = marker_pose(marker, CAMERA, SIZE)
-    base = _frames().pose_in("camera_optical")
+    base = _frames().transform("base_link", "camera_optical")
     o = marker_observation(marker, pose, CAMERA, SIZE, base)
     truth = base[:3, :3] @ translation + base[:3, 3]
     np.testing.assert_allclose(o.translation, truth, atol=1e-6)
@@ -84,7 +84,7 @@ def test_marker_observation_is_the_marker_in_the_robot_frame():
 def test_covariance_matches_the_monte_carlo_spread():
     rng = np.random.default_rng(5)
     rotation, translation = _marker_in_camera(3.0, 20.0)
-    base = _frames().pose_in("camera_optical")
+    base = _frames().transform("base_link", "camera_optical")
     exact = _detected(rotation, translation)
     truth = marker_observation(exact, marker_pose(exact, CAMERA, SIZE), CAMERA, SIZE, base, pixel_sigma=0.5)
     sigma = 0.5 / viewing_cosine(marker_pose(exact, CAMERA, SIZE))   # the noise the model expects at this angle
@@ -103,7 +103,7 @@ def test_covariance_matches_the_monte_carlo_spread():
 
 def test_covariance_grows_with_distance_and_viewing_angle():
     """Farther: position and yaw less certain. More slanted: the position less certain (the corner noise grows)."""
-    base = _frames().pose_in("camera_optical")
+    base = _frames().transform("base_link", "camera_optical")
 
     def observed(distance, facing):
         rotation, translation = _marker_in_camera(distance, facing)
@@ -120,7 +120,7 @@ def test_covariance_grows_with_distance_and_viewing_angle():
 
 def test_a_marker_too_small_in_the_image_is_no_landmark():
     """0.25 m at 5 m is 25 px with this camera: detected, but its pose too rough to place a landmark."""
-    base = _frames().pose_in("camera_optical")
+    base = _frames().transform("base_link", "camera_optical")
     rotation, translation = _marker_in_camera(5.0, 0.0)
     marker = _detected(rotation, translation)
     assert marker_observation(marker, marker_pose(marker, CAMERA, SIZE), CAMERA, SIZE, base) is None
@@ -132,7 +132,7 @@ def test_a_failed_pose_gives_no_landmark_not_nan():
     marker = _detected(rotation, translation)
     good = marker_pose(marker, CAMERA, SIZE)
     broken = dataclasses.replace(good, translation=np.full(3, np.nan))
-    assert marker_observation(marker, broken, CAMERA, SIZE, _frames().pose_in("camera_optical")) is None
+    assert marker_observation(marker, broken, CAMERA, SIZE, _frames().transform("base_link", "camera_optical")) is None
 
 
 def test_corners_are_where_walls_meet():

@@ -16,7 +16,7 @@ from trundle.fusion.mapping.map_io import read_trajectory_csv
 from trundle.logs.reader import LogReader
 from trundle.tools.demo.scoring import map_wall_distances, path_length, score_markers, sensor_mount
 from trundle.tools.demo.slam import run_slam, wheel_odometry
-from trundle.tools.demo.topics import IMAGE_TOPIC, SCAN_TOPIC, WHEELS_TOPIC
+from trundle.logs.topics import IMAGE_TOPIC, SCAN_TOPIC, WHEELS_TOPIC
 from trundle.tools.sim.world import load_world
 
 DATA = Path(__file__).parent / "data" / "demo_short"

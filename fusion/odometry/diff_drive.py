@@ -20,6 +20,7 @@ import numpy as np
 from trundle.fusion.geometry import wrap_angle
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.topics import DIAGNOSTICS_TOPIC, ODOM_TOPIC, TF_TOPIC, WHEELS_TOPIC
 
 
 def _sinc(u: np.ndarray) -> np.ndarray:
@@ -303,7 +304,7 @@ class OdometrySink:
     and a ``/diagnostics`` status whenever the odometry goes stale (a wheel lost) or recovers."""
 
     def __init__(self, sink: Callable[[str, m.Message, int], object], odometry: DiffDriveOdometry, *,
-                 wheels_topic: str = "/wheels", name: str = "odometry") -> None:
+                 wheels_topic: str = WHEELS_TOPIC, name: str = "odometry") -> None:
         self.sink, self.odometry = sink, odometry
         self.wheels_topic, self.name = wheels_topic, name
 
@@ -313,10 +314,10 @@ class OdometrySink:
             was_stale = self.odometry.stale
             odom = self.odometry.update(msg)
             if odom is not None:
-                self.sink("/odom", odom, log_time_ns)
-                self.sink("/tf", odometry_transform(odom), log_time_ns)
+                self.sink(ODOM_TOPIC, odom, log_time_ns)
+                self.sink(TF_TOPIC, odometry_transform(odom), log_time_ns)
             if self.odometry.stale != was_stale:
-                self.sink("/diagnostics", m.DiagnosticArray(msg.stamp_ns, (self.status(),)), log_time_ns)
+                self.sink(DIAGNOSTICS_TOPIC, m.DiagnosticArray(msg.stamp_ns, (self.status(),)), log_time_ns)
         return result
 
     def status(self) -> m.DiagnosticStatus:

@@ -46,6 +46,8 @@ from trundle.fusion.matching.scan_matching import MatchResult, match_scan, refin
 from trundle.fusion.mapping.submaps import Submap, SubmapStack
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.frames import FrameTree
+from trundle.logs.topics import SCAN_TOPIC
 
 # chi-square 3 dof: 99.9 % quantile, for pruning loop edges that disagree after optimisation
 CHI2_3DOF_999 = 16.266236196238129
@@ -63,7 +65,7 @@ class SlamConfig:
     """Parameters of :class:`Slam` (the ``[slam]`` table of a config file). Metres, radians, seconds."""
 
     resolution: float = 0.05
-    scan_topic: str = "/scan"
+    scan_topic: str = SCAN_TOPIC
     min_range_m: float = 0.0
     max_range_m: float = 30.0
     voxel_m: float = 0.05
@@ -202,7 +204,8 @@ class Slam:
 
     ``odometry`` turns ``JointState`` wheel angles into odometry (None: use ``Odometry``
     messages if any arrive); ``laser_pose`` is the laser's pose in base_link (also taken from
-    ``/tf_static`` when it arrives).
+    ``/tf_static`` when it arrives, chained to base_link by :class:`trundle.logs.frames.FrameTree`; a
+    scan frame the log never places is taken as base_link itself).
     """
 
     def __init__(self, config: SlamConfig | None = None, odometry: DiffDriveOdometry | None = None,
@@ -225,7 +228,7 @@ class Slam:
         self.odometry_check = OdometryCheck()
         self._scores = RobustWindow()
         self._dense = True  # does the current scan sample walls densely (point-to-line refinement)?
-        self._static: dict[str, np.ndarray] = {}
+        self.frames = FrameTree()
         self._mount = np.zeros(3)
         self._kf_cov = np.zeros((3, 3))
         self.map_to_odom = np.zeros(3)
@@ -258,9 +261,8 @@ class Slam:
                 self.add_odometry(odom)
         elif isinstance(msg, m.Odometry) and self.wheels is None:
             self.add_odometry(msg)
-        elif isinstance(msg, m.TFMessage) and topic == "/tf_static":
-            for t in msg.transforms:
-                self._static[t.child_frame_id] = np.array([t.translation[0], t.translation[1], t.yaw])
+        else:
+            self.frames.add(topic, msg)
         return None
 
     def add_odometry(self, odom: m.Odometry) -> None:
@@ -299,7 +301,8 @@ class Slam:
     def add_scan(self, scan: m.LaserScan) -> ScanResult:
         """Track one scan, add a keyframe if due, close loops; returns its map pose."""
         cfg = self.config
-        mount = self.laser_pose if self.laser_pose is not None else self._static.get(scan.frame_id, np.zeros(3))
+        mount = (self.laser_pose if self.laser_pose is not None
+                 else self.frames.mount(scan.frame_id, unknown_is_base=True))
         self._mount = mount
         odom = self.odometry_at(scan.stamp_ns)
         dt = 0.0 if self._last_stamp is None else max(0.0, (scan.stamp_ns - self._last_stamp) * 1e-9)

@@ -38,10 +38,11 @@ import numpy as np
 from trundle.fusion.optimization.error_correlation import decorrelated_information
 from trundle.fusion.optimization.factor_graph import BETWEEN, POSITION, FactorGraph
 from trundle.fusion.geometry import compose, relative, rotation, wrap_angle
-from trundle.fusion.slam.landmark_slam import LANDMARK_TOPIC, LandmarkMap, between_covariance
+from trundle.fusion.slam.landmark_slam import LandmarkMap, between_covariance
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.fusion.slam.grid_slam import ScanResult, Slam, SlamConfig
 from trundle.logs import messages as m
+from trundle.logs.topics import LANDMARK_TOPIC
 
 LANDMARK_KERNEL_WIDTH = 3.0
 POSITION_FLOOR_M2 = 1e-6       # variance added to a sighting's position: the motion since the scan

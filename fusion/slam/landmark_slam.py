@@ -36,8 +36,7 @@ from trundle.fusion.geometry import compose, rotation
 from trundle.fusion.odometry.increments import Increment, MotionNoise, OdometryIncrements
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-
-LANDMARK_TOPIC = "/landmarks"
+from trundle.logs.topics import LANDMARK_TOPIC
 
 
 @dataclass(frozen=True)

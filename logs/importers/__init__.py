@@ -16,6 +16,7 @@ from typing import Iterable
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.paths import input_file
+from trundle.logs.topics import TF_STATIC_TOPIC
 from trundle.logs.writer import Logger
 
 Item = tuple[str, m.Message, int]  # topic, message, log time (ns)
@@ -32,7 +33,7 @@ def write_log(items: Iterable[Item], out: str | os.PathLike[str], *, metadata: d
     if out.suffix != ".mcap":
         raise UserError(f"output must be an .mcap file, got {out}")
     counts: dict[str, int] = {}
-    logger = Logger(out, compression=compression, metadata=metadata, latched_topics=("/tf_static",), salvage=False)
+    logger = Logger(out, compression=compression, metadata=metadata, latched_topics=(TF_STATIC_TOPIC,), salvage=False)
     try:
         for topic, msg, log_time_ns in items:
             while logger.queue_length >= logger.queue_size // 2:

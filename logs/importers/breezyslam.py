@@ -30,6 +30,7 @@ import numpy as np
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.importers import Item, open_text, write_log
+from trundle.logs.topics import JOINT_STATES_TOPIC, SCAN_TOPIC, TF_STATIC_TOPIC
 
 TICKS_PER_REV = 2000
 WHEEL_RADIUS_M = 0.077
@@ -104,11 +105,11 @@ def messages(lines: list[DatLine]) -> Iterator[Item]:
         stamp = line.time_us * 1000
         last = max(last, stamp)
         if k == 0:
-            yield "/tf_static", m.TFMessage((m.TransformStamped.planar(stamp, "base_link", "laser", LASER_OFFSET_M,
+            yield TF_STATIC_TOPIC, m.TFMessage((m.TransformStamped.planar(stamp, "base_link", "laser", LASER_OFFSET_M,
                                                                        0.0, 0.0),)), last
         angles = np.array([line.left_ticks, line.right_ticks], np.float64) * (2.0 * math.pi / TICKS_PER_REV)
-        yield "/joint_states", m.JointState(stamp, "base_link", ("left", "right"), angles), last
-        yield "/scan", m.LaserScan(stamp - SWEEP_NS, "laser", ANGLE_MIN, ANGLE_MIN + ANGLE_STEP * (BEAMS - 1), ANGLE_STEP,
+        yield JOINT_STATES_TOPIC, m.JointState(stamp, "base_link", ("left", "right"), angles), last
+        yield SCAN_TOPIC, m.LaserScan(stamp - SWEEP_NS, "laser", ANGLE_MIN, ANGLE_MIN + ANGLE_STEP * (BEAMS - 1), ANGLE_STEP,
                                    STEP_S, SCAN_TIME_S, RANGE_MIN_M, RANGE_MAX_M,
                                    ranges_to_metres(line.ranges_mm)), last
 

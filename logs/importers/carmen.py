@@ -29,6 +29,7 @@ import numpy as np
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.importers import Item, open_text, write_log
+from trundle.logs.topics import ODOM_TOPIC, REAR_SCAN_TOPIC, SCAN_TOPIC, TF_STATIC_TOPIC
 
 GMAPPING_STEPS = {180: 180, 181: 180, 360: 360, 361: 360, 540: 540, 541: 540, 720: 720, 721: 720}
 
@@ -237,7 +238,7 @@ def messages(log: CarmenLog, *, odometry: str = "odom", laser_odometry: np.ndarr
             record = log.odometry[index]
             log_ns = last_log_ns = max(last_log_ns, _ns(record.logger_s))
             if odometry == "odom":
-                yield "/odom", m.Odometry(_ns(record.stamp_s), "odom", "base_link", record.x, record.y, record.theta,
+                yield ODOM_TOPIC, m.Odometry(_ns(record.stamp_s), "odom", "base_link", record.x, record.y, record.theta,
                                           vx=record.tv, wz=record.rv), log_ns
             continue
         laser = log.lasers[index]
@@ -247,12 +248,12 @@ def messages(log: CarmenLog, *, odometry: str = "odom", laser_odometry: np.ndarr
         if frame not in mounted:
             mounted.add(frame)
             offset = (0.0, 0.0, math.pi) if rear and laser.laser_offset == (0.0, 0.0, 0.0) else laser.laser_offset
-            yield "/tf_static", m.TFMessage((m.TransformStamped.planar(_ns(laser.stamp_s), "base_link", frame,
+            yield TF_STATIC_TOPIC, m.TFMessage((m.TransformStamped.planar(_ns(laser.stamp_s), "base_link", frame,
                                                                        *offset),)), log_ns
         if odometry == "laser" and not rear:
             x, y, theta = laser.odom_pose if laser_odometry is None else laser_odometry[front_index[index]]
-            yield "/odom", m.Odometry(_ns(laser.stamp_s), "odom", "base_link", float(x), float(y), float(theta)), log_ns
-        yield ("/scan_rear" if rear else "/scan"), to_scan(laser, frame, no_return), log_ns
+            yield ODOM_TOPIC, m.Odometry(_ns(laser.stamp_s), "odom", "base_link", float(x), float(y), float(theta)), log_ns
+        yield (REAR_SCAN_TOPIC if rear else SCAN_TOPIC), to_scan(laser, frame, no_return), log_ns
 
 
 def to_scan(laser: CarmenLaser, frame_id: str, no_return_m: float | None) -> m.LaserScan:

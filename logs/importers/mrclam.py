@@ -35,6 +35,7 @@ import numpy as np
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.importers import Item, open_text, write_log
+from trundle.logs.topics import LANDMARK_TOPIC, ODOM_TOPIC
 
 RANGE_SIGMA_M = 0.02
 RANGE_SIGMA_FRACTION = 0.03
@@ -183,7 +184,7 @@ def messages(run: MrclamRun, sightings: list[m.LandmarkList]) -> Iterator[Item]:
     odometry = [(int(t), 0, m.Odometry(int(t), "odom", "base_link", *pose, vx=float(v), wz=float(w)))
                 for t, pose, (v, w) in zip(run.odometry_ns, poses, run.odometry)]
     for t, kind, msg in sorted(odometry + [(s.stamp_ns, 1, s) for s in sightings], key=lambda item: item[:2]):
-        yield ("/odom" if kind == 0 else "/landmarks"), msg, t
+        yield (ODOM_TOPIC if kind == 0 else LANDMARK_TOPIC), msg, t
 
 
 def import_mrclam(folder: str | os.PathLike[str], robot: int, out: str | os.PathLike[str]

@@ -28,6 +28,7 @@ from trundle.drivers.camera import driver_from_url
 from trundle.drivers.jpeg_check import JpegChecker
 from trundle.logs import messages as m
 from trundle.logs import ros2
+from trundle.logs.topics import IMAGE_TOPIC
 from trundle.logs.writer import Logger
 from trundle.tools.bench import report
 from trundle.tools.emulators.camera_emulator import synthetic_frame
@@ -58,7 +59,7 @@ def cpu_per_frame(jpegs: list[bytes], to_message: Callable[[bytes, int], m.Compr
             if logger is None:
                 ros2.encode(msg)
             else:
-                logger.write("/camera/image_raw/compressed", msg, i)
+                logger.write(IMAGE_TOPIC, msg, i)
         if logger is not None:
             logger.close()
         best = min(best, (time.process_time() - start) / len(jpegs))
@@ -117,7 +118,7 @@ def main() -> None:
                 driver.finished.wait(120)
                 driver.stop()
             assert driver.counters["frames"] == len(frames), driver.counters
-            assert logger.stats_dict()["/camera/image_raw/compressed"]["dropped"] == 0
+            assert logger.stats_dict()[IMAGE_TOPIC]["dropped"] == 0
 
         demux_s = report.best_of(demux, repeat=3)
         figures["demux_fps"] = len(frames) / demux_s

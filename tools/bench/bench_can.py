@@ -37,6 +37,7 @@ import can  # noqa: E402
 
 from trundle.drivers import odrive  # noqa: E402
 from trundle.drivers.can_bus import CanBus  # noqa: E402
+from trundle.logs.topics import CAN_RX_TOPIC, WHEELS_TOPIC  # noqa: E402
 
 PAYLOAD = struct.Struct("<II")  # sequence, send time (monotonic us, low 32 bits)
 
@@ -186,7 +187,7 @@ def driver_end_to_end(duration_s: float) -> dict:
     proc = ctx.Process(target=_odrive_emulator, args=(link, duration_s, ready, done, result), daemon=True)
     proc.start()
     ready.wait(60)
-    counts = {"/wheels": 0, "/can/rx": 0}
+    counts = {WHEELS_TOPIC: 0, CAN_RX_TOPIC: 0}
 
     def sink(topic, msg, t):
         counts[topic] = counts.get(topic, 0) + 1
@@ -203,7 +204,7 @@ def driver_end_to_end(duration_s: float) -> dict:
     proc.join(10)
     return {"axes": 4, "encoder_hz": 200, "heartbeat_hz": 10, "sent": info["sent"],
             "driver_frames": driver.counters["frames"], "lost": info["sent"] - driver.counters["frames"],
-            "joint_states": counts["/wheels"], "decode_errors": driver.counters.get("decode_errors", 0),
+            "joint_states": counts[WHEELS_TOPIC], "decode_errors": driver.counters.get("decode_errors", 0),
             "frames_per_s": info["sent"] / duration_s, "host_cpu_percent": 100 * (time.process_time() - cpu0) / wall}
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from trundle.logs import messages as m
+from trundle.logs.topics import SCAN_TOPIC
 from trundle.logs.writer import Logger
 from trundle.tools.bench import report
 
@@ -34,7 +35,7 @@ def small_log(path: Path, scans: int = SCANS) -> Path:
     stamp = time.time_ns()
     for i in range(scans):
         ranges = np.round(rng.uniform(0.1, 30.0, 1081), 3)
-        logger.write("/scan", m.LaserScan(stamp + i * 25_000_000, "laser", -2.356, 2.356, np.radians(0.25), 1.7e-5,
+        logger.write(SCAN_TOPIC, m.LaserScan(stamp + i * 25_000_000, "laser", -2.356, 2.356, np.radians(0.25), 1.7e-5,
                                           0.025, 0.023, 30.0, ranges))
     logger.close()
     return path

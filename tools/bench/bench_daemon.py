@@ -27,6 +27,7 @@ from pathlib import Path
 import cv2
 
 from trundle.logs.reader import LogReader
+from trundle.logs.topics import CAN_RX_TOPIC, IMAGE_TOPIC, SCAN_TOPIC, WHEELS_TOPIC
 from trundle.tools.bench import report
 from trundle.tools.sim.camera_render import CameraRenderer
 from trundle.tools.daemon.status import query_status
@@ -37,7 +38,7 @@ from trundle.tools.sim.world import load_world
 
 REPO = Path(__file__).resolve().parents[2]
 WIDTH, HEIGHT, FPS = 1280, 720, 30.0
-TOPICS = {"/scan": "scan", "/wheels": "wheels", "/can/rx": "can_frames", "/camera/image_raw/compressed": "camera"}
+TOPICS = {SCAN_TOPIC: "scan", WHEELS_TOPIC: "wheels", CAN_RX_TOPIC: "can_frames", IMAGE_TOPIC: "camera"}
 
 
 def cpu_seconds(pid: int) -> float:

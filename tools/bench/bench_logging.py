@@ -20,6 +20,7 @@ from mcap.writer import CompressionType, Writer
 
 from trundle.logs import messages as m
 from trundle.logs import ros2
+from trundle.logs.topics import SCAN_TOPIC
 from trundle.logs.writer import COMPRESSION, Logger
 from trundle.tools.bench import report
 
@@ -40,7 +41,7 @@ def bare(path: Path, pool: list[bytes], n: int, compression: str) -> float:
         w = Writer(f, compression=COMPRESSION[compression])
         w.start(profile="ros2", library="bench")
         sid = w.register_schema("sensor_msgs/msg/LaserScan", "ros2msg", ros2.schema_text("sensor_msgs/msg/LaserScan").encode())
-        cid = w.register_channel("/scan", "cdr", sid)
+        cid = w.register_channel(SCAN_TOPIC, "cdr", sid)
         for i in range(n):
             w.add_message(cid, i, pool[i % len(pool)], i, i)
         w.finish()
@@ -51,9 +52,9 @@ def ours(path: Path, pool: list[bytes], n: int, compression: str) -> float:
     start = time.process_time()
     logger = Logger(path, compression=compression, queue_size=n + 1, salvage=False)
     for i in range(n):
-        logger.write_encoded("/scan", "sensor_msgs/msg/LaserScan", pool[i % len(pool)], i, i)
+        logger.write_encoded(SCAN_TOPIC, "sensor_msgs/msg/LaserScan", pool[i % len(pool)], i, i)
     logger.close()
-    assert logger.stats_dict()["/scan"] == {"written": n, "dropped": 0}
+    assert logger.stats_dict()[SCAN_TOPIC] == {"written": n, "dropped": 0}
     return time.process_time() - start
 
 

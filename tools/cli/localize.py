@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from trundle.logs.paths import new_file
+from trundle.logs.topics import SCAN_TOPIC
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.arguments import positive
 from trundle.tools.config.robot import load_config
@@ -31,7 +32,7 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("log", type=Path, help="MCAP log with LaserScan (and Odometry or wheel JointState)")
     p.add_argument("--map", type=Path, required=True, help="folder with map.yaml + map.pgm, or the map YAML itself")
     p.add_argument("--config", type=Path, help="TOML with [odometry] and [laser] tables (as for trundle slam)")
-    p.add_argument("--scan-topic", default="/scan", help="LaserScan topic (default /scan)")
+    p.add_argument("--scan-topic", default=SCAN_TOPIC, help=f"LaserScan topic (default {SCAN_TOPIC})")
     p.add_argument("--max-range", type=positive, default=30.0, help="ignore returns farther than this (m, default 30)")
     p.add_argument("--no-odometry", action="store_true", help="ignore the log's odometry (scans alone)")
     p.add_argument("-o", "--output", type=Path, help="write the tracked poses as t_ns,x,y,theta CSV (must not exist)")

@@ -23,6 +23,8 @@ from trundle.drivers.lifecycle import Driver, SignalFlag
 from trundle.fusion.odometry.diff_drive import OdometrySink, odometry_from_config
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.frames import FrameTree
+from trundle.logs.topics import DIAGNOSTICS_TOPIC, TF_STATIC_TOPIC
 from trundle.logs.writer import Logger
 from trundle.tools.config.arguments import positive
 from trundle.tools.config.robot import Device, RobotConfig, load_config
@@ -125,21 +127,26 @@ def run(args: argparse.Namespace) -> int:
         stop = SignalFlag()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, stop.raise_)
+        static_frames = FrameTree.configured(config.transforms, time.time_ns())
         for driver in drivers:
             for topic, msg in driver.static_messages():
-                logger.write(topic, msg)
+                if not static_frames.add(topic, msg):
+                    logger.write(topic, msg)
+        if static_frames.frames:  # the config's [[transforms]] and the drivers' mounts; the config wins
+            logger.write(TF_STATIC_TOPIC, static_frames.static_message())
+        for driver in drivers:
             driver.start()
         deadline = time.monotonic() + args.duration if args.duration else None
         while not stop.wait(1.0 if deadline is None else max(0.0, min(1.0, deadline - time.monotonic()))):
             status = diagnostics(drivers)
-            logger.write("/diagnostics", status)
+            logger.write(DIAGNOSTICS_TOPIC, status)
             health.update(status.status)
             if logger.error is not None or (deadline is not None and time.monotonic() >= deadline):
                 break
     finally:
         for driver in drivers:
             driver.stop()
-        logger.write("/diagnostics", diagnostics(drivers))
+        logger.write(DIAGNOSTICS_TOPIC, diagnostics(drivers))
         logger.close()
     for path in logger.files:
         print(f"wrote {path}")

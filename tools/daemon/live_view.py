@@ -21,6 +21,7 @@ from typing import Any
 from trundle.logs import messages as m
 from trundle.logs import ros2
 from trundle.logs.errors import UserError
+from trundle.logs.writer import is_latched
 
 
 class LiveView:
@@ -46,7 +47,7 @@ class LiveView:
         return int(self.server.port)
 
     def __call__(self, topic: str, msg: m.Message, log_time_ns: int) -> None:
-        if topic == "/tf_static" or topic.endswith("camera_info"):
+        if is_latched(topic):
             self.latched[topic] = (msg, log_time_ns)
         channel = self.channels.get(topic)
         if channel is None:

@@ -22,10 +22,11 @@ import numpy as np
 
 from trundle.drivers.lifecycle import wall_ns
 from trundle.logs import messages as m
+from trundle.logs.frames import FrameTree
+from trundle.logs.topics import LANDMARK_TOPIC, MAP_TOPIC, SLAM_POSE_TOPIC, TF_STATIC_TOPIC, TF_TOPIC
 
 if TYPE_CHECKING:
     from trundle.fusion.slam.grid_slam import Slam
-    from trundle.perception.landmarks import StaticFrames
     from trundle.perception.markers import MarkerDetector
     from trundle.tools.config.robot import FramesConfig, ProcessingConfig
 
@@ -52,7 +53,7 @@ class Processing:
         self._camera_info: dict[str, m.CameraInfo] = {}
         self.slam: Slam | None = None
         self.detector: MarkerDetector | None = None
-        self.static_frames: StaticFrames | None = None
+        self.static_frames: FrameTree | None = None
         if config.slam:
             from trundle.fusion.slam.grid_slam import Slam, SlamConfig
             if config.markers:
@@ -62,10 +63,9 @@ class Processing:
                 self.slam = Slam(SlamConfig.from_mapping(slam))
         self.scan_topic = self.slam.config.scan_topic if self.slam is not None else ""
         if config.markers:
-            from trundle.perception.landmarks import StaticFrames
             from trundle.perception.markers import MarkerDetector
             self.detector = MarkerDetector(config.aruco_dictionary)
-            self.static_frames = StaticFrames()
+            self.static_frames = FrameTree()
         self.thread = threading.Thread(target=self._run, name="processing", daemon=True)
 
     @property
@@ -76,9 +76,9 @@ class Processing:
     def wants(self, topic: str, msg: m.Message) -> bool:
         """Whether to ``put`` this message; images are rate-limited to ``markers_hz`` here, camera
         info is kept for the marker poses."""
-        if self.static_frames is not None and topic == "/tf_static" and isinstance(msg, m.TFMessage):
-            self.static_frames.add(msg)  # where the camera is on the robot, for the markers' landmark poses
-        if self.slam is not None and (topic == self.scan_topic or isinstance(msg, m.Odometry) or topic == "/tf_static"):
+        if self.static_frames is not None and topic == TF_STATIC_TOPIC:
+            self.static_frames.add(topic, msg)  # where the camera is on the robot, for the markers' landmark poses
+        if self.slam is not None and (topic in (self.scan_topic, TF_STATIC_TOPIC) or isinstance(msg, m.Odometry)):
             return True
         if self.detector is not None:
             if isinstance(msg, m.CameraInfo):
@@ -135,13 +135,13 @@ class Processing:
             return
         now = wall_ns()
         x, y, theta = (float(v) for v in result.pose_map)
-        self.publish("/slam/pose", m.Pose2D(result.stamp_ns, frames.map, x, y, theta))
+        self.publish(SLAM_POSE_TOPIC, m.Pose2D(result.stamp_ns, frames.map, x, y, theta))
         mx, my, mt = (float(v) for v in self.slam.map_to_odom)
-        self.publish("/tf", m.TFMessage((m.TransformStamped.planar(result.stamp_ns, frames.map, frames.odom,
+        self.publish(TF_TOPIC, m.TFMessage((m.TransformStamped.planar(result.stamp_ns, frames.map, frames.odom,
                                                                    mx, my, mt),)))
         if time.monotonic() >= self._next_map_t:
             self._next_map_t = time.monotonic() + self.config.map_period_s
-            self.publish("/map", self.slam.build_map().to_message(now, frames.map))
+            self.publish(MAP_TOPIC, self.slam.build_map().to_message(now, frames.map))
 
     def _detect_markers(self, topic: str, msg: m.CompressedImage | m.Image) -> None:
         from trundle.perception.landmarks import marker_observation  # loaded with the detector
@@ -155,7 +155,7 @@ class Processing:
         assert self.detector is not None and self.static_frames is not None
         info = self._camera_info.get(msg.frame_id)
         base = topic.rsplit("/image_raw", 1)[0]
-        camera_in_base = self.static_frames.pose_in(msg.frame_id, self.frames.base)
+        camera_in_base = self.static_frames.try_transform(self.frames.base, msg.frame_id)
         observations = []
         for marker in self.detector.detect(image):
             self.markers_seen[marker.id] += 1
@@ -172,10 +172,10 @@ class Processing:
                     observations.append(landmark)
         if observations:
             landmarks = m.LandmarkList(msg.stamp_ns, self.frames.base, tuple(observations))
-            self.publish("/landmarks", landmarks)
+            self.publish(LANDMARK_TOPIC, landmarks)
             self.landmarks_published += 1
             if self.slam is not None:
-                self.slam.process("/landmarks", landmarks)
+                self.slam.process(LANDMARK_TOPIC, landmarks)
 
     def diagnostics(self, robot: str) -> m.DiagnosticStatus:
         """The ``robot/processing`` entry of ``/diagnostics``: ERROR once a message failed to process

@@ -39,7 +39,9 @@ from trundle.drivers.lifecycle import Driver, wall_ns
 from trundle.fusion.odometry.diff_drive import OdometrySink, odometry_from_config
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-from trundle.logs.writer import Logger, LoggerError
+from trundle.logs.frames import FrameTree
+from trundle.logs.topics import DIAGNOSTICS_TOPIC, TF_STATIC_TOPIC
+from trundle.logs.writer import Logger, LoggerError, is_latched
 from trundle.tools.config.robot import RobotConfig, check_daemon_config
 from trundle.tools.daemon.disk_guard import DiskGuard
 from trundle.tools.daemon.live_view import LiveView
@@ -52,15 +54,6 @@ DriverFactory = Callable[[str, str, Any, dict[str, Any]], Driver]  # (family, ur
 NO_SPLIT_BYTES = 1 << 62  # split only on request: the logger then numbers its files
 LOGGER_RETRY_S = 5.0  # after a logger failure, try a new log this much later
 SIGNAL_POLL_S = 0.1  # the supervision loop's longest sleep: how soon a signal's request is acted on
-
-
-def static_transform(stamp_ns: int, parent: str, child: str, xyz: tuple[float, float, float],
-                     rpy: tuple[float, float, float]) -> m.TransformStamped:
-    """``child`` in ``parent`` at ``xyz`` (m), roll, pitch, yaw ``rpy`` (rad), stamped ``stamp_ns``."""
-    from scipy.spatial.transform import Rotation  # SciPy only for configured transforms
-
-    quaternion = Rotation.from_euler("xyz", rpy).as_quat()  # x, y, z, w
-    return m.TransformStamped(stamp_ns, parent, child, xyz, quaternion)
 
 
 class Daemon:
@@ -79,7 +72,7 @@ class Daemon:
         self.logger_failures = 0
         self.started_ns = wall_ns()
         self.state = "starting"
-        self._static_tf: dict[str, m.TransformStamped] = {}
+        self.static_frames = FrameTree()  # the config's [[transforms]] and the drivers' mounts, merged
         self._latched: dict[str, m.Message] = {}
         self._lock = threading.RLock()
         self._wake = threading.Event()
@@ -100,11 +93,9 @@ class Daemon:
         log, start everything, tell systemd we are ready."""
         cfg = self.config
         check_daemon_config(cfg)
-        for transform in cfg.transforms:
-            self._static_tf[transform.child] = static_transform(wall_ns(), transform.parent, transform.child,
-                                                                transform.xyz, transform.rpy)
-        if self._static_tf:
-            self._latched["/tf_static"] = m.TFMessage(tuple(self._static_tf.values()))
+        self.static_frames = FrameTree.configured(cfg.transforms, wall_ns())
+        if cfg.transforms:
+            self._latched[TF_STATIC_TOPIC] = self.static_frames.static_message()
         for device in cfg.devices:
             options = dict(device.options)
             rates = TopicRates()
@@ -118,7 +109,8 @@ class Daemon:
                 raise UserError(f"{device.family} device {device.name!r}: {error}") from None
             self.supervised.append(Supervised(device, driver, rates, cfg.supervision.restart_delay_s,
                                               cfg.supervision.max_restart_delay_s,
-                                              on_crash=lambda sup: self.publish("/diagnostics", self._diagnostics())))
+                                              on_crash=lambda sup: self.publish(DIAGNOSTICS_TOPIC,
+                                                                                self._diagnostics())))
             for topic, msg in driver.static_messages():
                 self._remember_latched(topic, msg)
         self._server = StatusServer(cfg.status.socket, self.status)  # refuses a second daemon before it logs
@@ -247,7 +239,7 @@ class Daemon:
     def _route(self, topic: str, msg: m.Message, log_time_ns: int, processed: bool = False) -> None:
         """To the logger, the live view and (unless the daemon ``processed`` it) online processing;
         latched topics are merged first (runs on the drivers' threads)."""
-        if topic == "/tf_static" or topic.endswith("camera_info"):
+        if is_latched(topic):
             self._remember_latched(topic, msg)
             msg = self._latched.get(topic, msg)
         logger = self.logger
@@ -266,12 +258,12 @@ class Daemon:
             processing.put(topic, msg)
 
     def _remember_latched(self, topic: str, msg: m.Message) -> None:
-        """Merge every static transform into one /tf_static message (the logger keeps the last one)."""
+        """Merge every static transform into one /tf_static message (the logger keeps the last one); a
+        driver's mount of a child frame the config's [[transforms]] places is left out (the config wins)."""
         with self._lock:
-            if topic == "/tf_static" and isinstance(msg, m.TFMessage):
-                for transform in msg.transforms:
-                    self._static_tf[transform.child_frame_id] = transform
-                self._latched[topic] = m.TFMessage(tuple(self._static_tf.values()))
+            if topic == TF_STATIC_TOPIC and isinstance(msg, m.TFMessage):
+                self.static_frames.add_static(msg)
+                self._latched[topic] = self.static_frames.static_message()
             else:
                 self._latched[topic] = msg
 
@@ -377,7 +369,7 @@ class Daemon:
         for sup in self.supervised:
             sup.rates.update(now)
         diagnostics = self._diagnostics()
-        self.publish("/diagnostics", diagnostics)
+        self.publish(DIAGNOSTICS_TOPIC, diagnostics)
         if self.state == "running":  # devices going bad or well again, one line each on stderr (the journal)
             self.health.update([s for s in diagnostics.status if not s.name.endswith(("/logger", "/disk"))], now)
         if self.live is not None:

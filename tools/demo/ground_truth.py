@@ -20,7 +20,7 @@ import numpy as np
 from trundle.fusion.evaluation.trajectory_errors import Trajectory
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
-from trundle.tools.demo.topics import IMAGE_TOPIC, SCAN_TOPIC
+from trundle.logs.topics import IMAGE_TOPIC, SCAN_TOPIC
 from trundle.tools.emulators.sim_devices import SimDevices
 from trundle.tools.sim.robot import RobotSim
 

@@ -26,7 +26,7 @@ from trundle.tools.demo.ground_truth import Recording
 from trundle.tools.demo.scoring import (MarkerScore, camera_from_info, camera_pose, map_wall_distances, path_length,
                                         score_trajectory)
 from trundle.tools.demo.slam import SlamRun
-from trundle.tools.demo.topics import IMAGE_TOPIC
+from trundle.logs.topics import DIAGNOSTICS_TOPIC, IMAGE_TOPIC
 from trundle.tools.jobs.slam import map_check_report
 from trundle.tools.sim.camera_render import CameraRenderer
 from trundle.tools.sim.robot import Mount
@@ -49,7 +49,7 @@ def driver_diagnostics(log: Path) -> dict[str, dict[str, Any]]:
     level, message and values (numbers where they are numbers)."""
     last: dict[str, m.DiagnosticStatus] = {}
     with LogReader(log) as reader:
-        for item in reader.messages(topics=["/diagnostics"]):
+        for item in reader.messages(topics=[DIAGNOSTICS_TOPIC]):
             for status in item.msg.status:
                 last[status.name] = status
     levels = {m.OK: "OK", m.WARN: "WARN", m.ERROR: "ERROR", m.STALE: "STALE"}

@@ -19,11 +19,12 @@ from trundle.fusion.geometry import compose, transform_points
 from trundle.fusion.mapping.map_io import OCCUPIED_THRESH
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.frames import BASE_FRAME, FrameTree, planar
 from trundle.logs.reader import LogReader
 from trundle.perception.images import decode_image, to_gray
 from trundle.perception.markers import MarkerDetector, marker_pose
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
-from trundle.tools.demo.topics import CAMERA_INFO_TOPIC, IMAGE_TOPIC
+from trundle.logs.topics import CAMERA_INFO_TOPIC, IMAGE_TOPIC
 from trundle.tools.sim.camera_render import CameraPose, CameraRenderer, PinholeCamera, optical_rotation
 from trundle.tools.sim.robot import Mount
 from trundle.tools.sim.world import World
@@ -145,15 +146,12 @@ class MarkerScore:
         return rows
 
 
-def sensor_mount(log: Path, child_frame: str, parent_frame: str = "base_link") -> Mount:
-    """A sensor's mount on the robot from the log's ``/tf_static`` (``parent_frame -> child_frame``)."""
+def sensor_mount(log: Path, child_frame: str, parent_frame: str = BASE_FRAME) -> Mount:
+    """A sensor's mount on the robot: ``child_frame`` in ``parent_frame`` by the log's ``/tf_static``."""
     with LogReader(log) as reader:
-        for item in reader.messages(topics=["/tf_static"]):
-            for t in item.msg.transforms:
-                if t.child_frame_id == child_frame and t.frame_id == parent_frame:
-                    x, y, z = (float(v) for v in t.translation)
-                    return Mount(x, y, z, t.yaw)
-    raise UserError(f"{log}: no static transform {parent_frame} -> {child_frame} on /tf_static")
+        pose = FrameTree.from_log(reader).transform(parent_frame, child_frame)
+    x, y, yaw = planar(pose)
+    return Mount(float(x), float(y), float(pose[2, 3]), float(yaw))
 
 
 def camera_from_info(info: m.CameraInfo) -> PinholeCamera:

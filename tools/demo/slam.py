@@ -25,7 +25,7 @@ from trundle.logs.metadata import read_metadata
 from trundle.logs.reader import LogInfo, LogReader
 from trundle.logs.replay import replay
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
-from trundle.tools.demo.topics import LANDMARK_TOPIC, SCAN_TOPIC, WHEELS_TOPIC
+from trundle.logs.topics import LANDMARK_TOPIC, SCAN_TOPIC, TF_STATIC_TOPIC, WHEELS_TOPIC
 
 @dataclass(eq=False)
 class SlamRun:
@@ -76,7 +76,8 @@ def run_slam(log: Path, config: SlamConfig | None = None, progress: ProgressFact
             bar.update(slam.stats.scans, f"{slam.stats.scans} scans, {slam.stats.loop_closures} loop closures")
 
     started = time.perf_counter()
-    replay(log, feed, rate=0.0, topics=["/tf_static", WHEELS_TOPIC, SCAN_TOPIC] + ([LANDMARK_TOPIC] if markers else []))
+    replay(log, feed, rate=0.0,
+           topics=[TF_STATIC_TOPIC, WHEELS_TOPIC, SCAN_TOPIC] + ([LANDMARK_TOPIC] if markers else []))
     slam.finish()
     bar.close()
     if slam.stats.scans == 0:

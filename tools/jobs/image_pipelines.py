@@ -27,9 +27,11 @@ from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.paths import input_file
 from trundle.perception.color import ColorSegmentation, HsvTemplate, segment_color, template_histograms
-from trundle.perception.landmarks import StaticFrames, marker_observation
+from trundle.perception.landmarks import marker_observation
 from trundle.perception.markers import MarkerDetector, marker_pose
 from trundle.tools.jobs.image_markers import CYAN, GREEN, MAGENTA, YELLOW, closed_line_list, ellipse_outline, image_marker
+from trundle.logs.frames import BASE_FRAME, FrameTree
+from trundle.logs.topics import LANDMARK_TOPIC, TF_TOPIC
 
 Detections = tuple[int, list[tuple[str, m.Message]]]   # count and the (topic, message) pairs to write
 Triple = tuple[float, float, float]
@@ -120,7 +122,7 @@ class MarkerPipeline(Pipeline):
             raise UserError("--marker-size must be positive (metres)")
         self.detector = MarkerDetector(dictionary, refinement)
         self.size = marker_size
-        self.frames = StaticFrames()
+        self.frames = FrameTree()
         self.ids: collections.Counter[int] = collections.Counter()
         self.poses = 0
         self.landmark_messages = 0
@@ -143,7 +145,7 @@ class MarkerPipeline(Pipeline):
             return len(markers), out
         transforms, observations = [], []
         frame = msg.frame_id or camera.frame_id
-        camera_in_base = self.frames.pose_in(frame)
+        camera_in_base = self.frames.try_transform(BASE_FRAME, frame)
         for marker in markers:
             try:
                 pose = marker_pose(marker, camera, self.size)
@@ -162,15 +164,15 @@ class MarkerPipeline(Pipeline):
         if camera_in_base is None:
             self.poses_without_mount += len(transforms)
         if transforms:
-            out.append(("/tf", m.TFMessage(tuple(transforms))))
+            out.append((TF_TOPIC, m.TFMessage(tuple(transforms))))
         if observations:
-            out.append(("/landmarks", m.LandmarkList(msg.stamp_ns, "base_link", tuple(observations))))
+            out.append((LANDMARK_TOPIC, m.LandmarkList(msg.stamp_ns, BASE_FRAME, tuple(observations))))
             self.landmark_messages += 1
         return len(markers), out
 
     def static_transforms(self, msg: m.TFMessage) -> None:
         """Keep the camera's mount for the markers' landmark observations."""
-        self.frames.add(msg)
+        self.frames.add_static(msg)
 
     def summary(self) -> dict[str, Any]:
         """Markers seen per id, poses found, failed and lacking a CameraInfo, and landmark messages

@@ -27,15 +27,17 @@ from typing import Any
 import numpy as np
 
 from trundle.fusion.geometry import compose, inverse, scan_to_points
-from trundle.fusion.slam.landmark_slam import (LANDMARK_TOPIC, EkfLandmarkSlam, GraphLandmarkSlam, LandmarkMap,
-                                          landmark_configs)
+from trundle.fusion.slam.grid_slam import SlamConfig
+from trundle.fusion.slam.landmark_slam import EkfLandmarkSlam, GraphLandmarkSlam, LandmarkMap, landmark_configs
 from trundle.fusion.mapping.map_io import plot_trajectory, save_map, write_landmarks_csv, write_trajectory_csv
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.frames import BASE_FRAME, FrameTree
 from trundle.logs.importers import write_log
 from trundle.logs.paths import output_folder
 from trundle.logs.reader import LogInfo, LogReader
+from trundle.logs.topics import LANDMARK_MAP_TOPIC, LANDMARK_TOPIC, MAP_TOPIC, ODOM_TOPIC, PATH_TOPIC, TF_TOPIC
 from trundle.perception.scan_features import corner_observations
 from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, odometry_source, robot_config
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
@@ -70,10 +72,13 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
     reader = LogReader(log)
     info = reader.info()
     topic = landmark_topic(info, config)
-    scan_topic = "/scan" if info.topics.get("/scan") and info.topics["/scan"].ros_type == "sensor_msgs/msg/LaserScan" \
+    configured_scans = SlamConfig.from_mapping(config.slam).scan_topic
+    scans_info = info.topics.get(configured_scans)
+    scan_topic = configured_scans if scans_info is not None and scans_info.ros_type == "sensor_msgs/msg/LaserScan" \
         else None
     if topic is None and scan_topic is None:
-        raise UserError(f"{log} has neither landmark sightings (trundle_msgs/msg/LandmarkList) nor laser scans on /scan "
+        raise UserError(f"{log} has neither landmark sightings (trundle_msgs/msg/LandmarkList) nor laser scans on "
+                        f"{configured_scans} "
                         f"(topics: {', '.join(sorted(info.topics)) or 'none'})")
     wheels = make_odometry(info, config)
     if wheels is None and not any(i.ros_type == "nav_msgs/msg/Odometry" for i in info.topics.values()):
@@ -83,7 +88,7 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
     slam = (EkfLandmarkSlam(ekf_config, topic or LANDMARK_TOPIC) if estimator == "ekf"
             else GraphLandmarkSlam(graph_config, topic or LANDMARK_TOPIC))
     mount_config = laser_pose(info, config)
-    mounts: dict[str, np.ndarray] = {}
+    frames = FrameTree()
     scans: list[tuple[int, np.ndarray, np.ndarray]] = []  # stamp, points (robot frame), mount
     odometry: list[tuple[int, np.ndarray]] = []
     sighting_stamps: list[int] = []
@@ -93,26 +98,25 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
     started, cpu_started = time.perf_counter(), time.process_time()
     for item in reader.messages():
         msg = item.msg
-        if isinstance(msg, m.TFMessage) and item.topic == "/tf_static":
-            for t in msg.transforms:
-                mounts[t.child_frame_id] = np.array([t.translation[0], t.translation[1], t.yaw])
+        if frames.add(item.topic, msg):
             continue
         if isinstance(msg, m.JointState) and wheels is not None:
             msg = wheels.update(msg)
             if msg is None:
                 continue
         if isinstance(msg, m.Odometry):
-            if wheels is None or item.topic != "/odom":
-                slam.process("/odom", msg)
+            if wheels is None or item.topic != ODOM_TOPIC:
+                slam.process(ODOM_TOPIC, msg)
                 odometry.append((msg.stamp_ns, np.array([msg.x, msg.y, msg.theta])))
         elif isinstance(msg, m.LandmarkList) and item.topic == topic:
             slam.process(item.topic, msg)
             sighting_stamps.append(msg.stamp_ns)
         elif isinstance(msg, m.LaserScan) and item.topic == scan_topic:
-            mount = np.asarray(mount_config if mount_config is not None else mounts.get(msg.frame_id, np.zeros(3)))
+            mount = (np.asarray(mount_config, dtype=np.float64) if mount_config is not None
+                     else frames.mount(msg.frame_id, unknown_is_base=True))
             scans.append((msg.stamp_ns, scan_to_points(msg, mount), mount))
             if features:
-                landmarks = m.LandmarkList(msg.stamp_ns, "base_link", tuple(corner_observations(msg, mount)))
+                landmarks = m.LandmarkList(msg.stamp_ns, BASE_FRAME, tuple(corner_observations(msg, mount)))
                 slam.process(LANDMARK_TOPIC, landmarks)
                 sighting_stamps.append(msg.stamp_ns)
         if sighting_stamps and sighting_stamps[-1] == item.log_time_ns:
@@ -133,10 +137,10 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
     write_landmarks(output / "landmarks.csv", landmarks)
     plot_trajectory(map_msg, output / "trajectory.png", [poses],
                     landmarks=(landmarks.ids, landmarks.positions, landmarks.covariances))
-    items = [("/tf", tf, t) for tf, t in _map_to_odom(stamps, poses, odometry, sighting_stamps)]
+    items = [(TF_TOPIC, tf, t) for tf, t in _map_to_odom(stamps, poses, odometry, sighting_stamps)]
     kept = _every(stamps, PATH_PERIOD_NS)
-    items += [("/map", map_msg, end_ns), ("/path", m.Path(end_ns, "map", stamps[kept], poses[kept]), end_ns),
-              ("/landmarks/map", landmark_markers(landmarks, end_ns), end_ns)]
+    items += [(MAP_TOPIC, map_msg, end_ns), (PATH_TOPIC, m.Path(end_ns, "map", stamps[kept], poses[kept]), end_ns),
+              (LANDMARK_MAP_TOPIC, landmark_markers(landmarks, end_ns), end_ns)]
     write_log(items, output / "slam.mcap", metadata={"command": "slam", "source": str(log), "estimator": estimator})
     duration = info.duration_s
     report = {

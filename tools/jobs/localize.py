@@ -3,11 +3,12 @@
 The map (``map.yaml`` + ``map.pgm`` as ``trundle slam`` or ROS's map_saver writes them) is only
 read. Odometry comes from the log's ``Odometry`` messages or its wheel ``JointState`` (wheel model
 from the log's ``robot`` metadata or the config's ``[odometry]`` table, as for the slam job);
-without either, the localizer runs on the scans alone. The laser mount comes from ``/tf_static``
-or the config's ``[laser]`` table. When the map folder has ``landmarks.csv`` (``trundle slam`` of a
-log with markers) and the log has landmark sightings (``/landmarks``), sightings of two mapped
-landmarks give absolute fixes (:mod:`trundle.fusion.localization.landmark_localization`): global localisation
-at once, and kidnap recovery when the fixes keep disagreeing with the track.
+without either, the localizer runs on the scans alone. The laser mount comes from the config's
+``[laser]`` table, else the log's ``/tf_static`` chained to base_link (:mod:`trundle.logs.frames`).
+When the map folder has ``landmarks.csv`` (``trundle slam`` of a log with markers) and the log has
+landmark sightings (``/landmarks``), sightings of two mapped landmarks give absolute fixes
+(:mod:`trundle.fusion.localization.landmark_localization`): global localisation at once, and kidnap
+recovery when the fixes keep disagreeing with the track.
 """
 
 from __future__ import annotations
@@ -20,12 +21,13 @@ import numpy as np
 
 from trundle.fusion.geometry import compose, relative, scan_to_points, voxel_filter
 from trundle.fusion.localization.landmark_localization import LandmarkFixer
-from trundle.fusion.slam.landmark_slam import LANDMARK_TOPIC
 from trundle.fusion.localization.grid_localization import TRACKING, Localizer, grid_from_map
 from trundle.fusion.mapping.map_io import load_map, read_landmarks_csv, write_trajectory_csv
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.frames import FrameTree
 from trundle.logs.reader import LogReader
+from trundle.logs.topics import LANDMARK_TOPIC, SCAN_TOPIC
 from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, robot_config
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 
@@ -39,7 +41,7 @@ def _landmark_fixer(map_path: Path, info) -> LandmarkFixer | None:
     return LandmarkFixer(ids, positions, sigmas) if ids else None
 
 
-def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic: str = "/scan",
+def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic: str = SCAN_TOPIC,
                  max_range_m: float = 30.0, use_odometry: bool = True, trajectory_csv: Path | None = None,
                  progress: ProgressFactory = NoProgress) -> dict[str, Any]:
     """Localise the scans of ``log`` on the map at ``map_path`` (a folder with ``map.yaml``, or the YAML).
@@ -60,7 +62,7 @@ def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic
     wheels = make_odometry(info, config) if use_odometry else None
     fixer = _landmark_fixer(map_path, info)
     configured_mount = laser_pose(info, config)
-    mounts: dict[str, np.ndarray] = {}
+    frames = FrameTree()
     localizer = Localizer(grid)
     odometry: np.ndarray | None = None
     previous_odometry: np.ndarray | None = None
@@ -71,10 +73,9 @@ def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic
     started = time.perf_counter()
     for item in reader.messages():
         msg = item.msg
-        if isinstance(msg, m.TFMessage) and item.topic == "/tf_static":
-            for t in msg.transforms:
-                mounts[t.child_frame_id] = np.array([t.translation[0], t.translation[1], t.yaw])
-        elif isinstance(msg, m.JointState) and wheels is not None:
+        if frames.add(item.topic, msg):
+            continue
+        if isinstance(msg, m.JointState) and wheels is not None:
             odom = wheels.update(msg)
             if odom is not None:
                 odometry = np.array([odom.x, odom.y, odom.theta])
@@ -92,8 +93,8 @@ def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic
                 fixes += 1
                 localizer.fix(compose(fix.pose, back), fix.covariance)
         elif isinstance(msg, m.LaserScan) and item.topic == scan_topic:
-            mount = np.asarray(configured_mount if configured_mount is not None
-                               else mounts.get(msg.frame_id, np.zeros(3)), dtype=np.float64)
+            mount = (np.asarray(configured_mount, dtype=np.float64) if configured_mount is not None
+                     else frames.mount(msg.frame_id, unknown_is_base=True))
             points = voxel_filter(scan_to_points(msg, mount, range_max=min(max_range_m, msg.range_max)),
                                   grid.resolution)
             delta = None if odometry is None or previous_odometry is None else relative(previous_odometry, odometry)

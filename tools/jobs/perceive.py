@@ -27,6 +27,7 @@ from trundle.logs.writer import Logger
 from trundle.perception.images import decode_image
 from trundle.tools.jobs.image_pipelines import PIPELINES
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
+from trundle.logs.topics import TF_STATIC_TOPIC
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
@@ -90,9 +91,9 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
                 time.sleep(0.001)
             logger.write_encoded(topic, ros_type, data, log_time_ns)
 
-        static = ["/tf_static"] if "/tf_static" in info.topics else []
+        static = [TF_STATIC_TOPIC] if TF_STATIC_TOPIC in info.topics else []
         for raw in reader.raw_messages(topics + info_topics + static):
-            if images or raw.topic == "/tf_static":
+            if images or raw.topic == TF_STATIC_TOPIC:
                 write(raw.topic, raw.ros_type, raw.data, raw.log_time_ns)
             try:
                 msg = ros2.decode(raw.ros_type, raw.data)

@@ -15,6 +15,7 @@ from trundle.fusion.evaluation import sensor_characteristics as sc
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
+from trundle.logs.topics import ODOM_TOPIC
 
 STILL_SPEED = 1e-3  # m/s or rad/s below which the robot counts as standing still
 
@@ -22,7 +23,7 @@ STILL_SPEED = 1e-3  # m/s or rad/s below which the robot counts as standing stil
 def motion_speeds(reader: LogReader) -> tuple[np.ndarray, np.ndarray] | None:
     """(stamps ns, speeds m/s and rad/s) from /odom twist, else wheel speeds (rad/s) from any JointState topic;
     None without either."""
-    odom = [(x.msg.stamp_ns, abs(x.msg.vx), abs(x.msg.wz)) for x in reader.messages(["/odom"])]
+    odom = [(x.msg.stamp_ns, abs(x.msg.vx), abs(x.msg.wz)) for x in reader.messages([ODOM_TOPIC])]
     if odom:
         a = np.array(odom, np.float64)
         return a[:, 0].astype(np.int64), a[:, 1:]

@@ -32,6 +32,7 @@ from trundle.logs.errors import UserError
 from trundle.logs.importers import write_log
 from trundle.logs.paths import output_folder
 from trundle.logs.reader import LogReader
+from trundle.logs.topics import LANDMARK_MAP_TOPIC, MAP_TOPIC, PATH_TOPIC, TF_TOPIC
 from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, odometry_source, robot_config
 from trundle.tools.jobs.landmark_slam import (ESTIMATORS, landmark_markers, landmark_slam_log, landmark_topic,
                                               write_landmarks)
@@ -100,7 +101,7 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     for item in reader.messages():
         result = slam.process(item.topic, item.msg)
         if result is not None:
-            transforms.append(("/tf", m.TFMessage((m.TransformStamped.planar(
+            transforms.append((TF_TOPIC, m.TFMessage((m.TransformStamped.planar(
                 result.stamp_ns, "map", "odom", *(float(v) for v in slam.map_to_odom)),)), item.log_time_ns))
             bar.update((item.log_time_ns - t0) * 1e-9, f"{slam.stats.scans} scans {slam.stats.loop_closures} loops")
     slam.finish()
@@ -125,8 +126,8 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
                     highlights=[slam.keyframe_scans(a, b) for a, b in check.stretches], landmarks=drawn)
     plot_scans(map_msg, output / "scans.png", slam.keyframe_endpoints(), check.keyframe_consistency < 0.5)
     path_msg = m.Path(end_ns, "map", stamps, poses)
-    extra = [] if landmarks is None else [("/landmarks/map", landmark_markers(landmarks, end_ns), end_ns)]
-    write_log(transforms + [("/map", map_msg, end_ns), ("/path", path_msg, end_ns)] + extra, output / "slam.mcap",
+    extra = [] if landmarks is None else [(LANDMARK_MAP_TOPIC, landmark_markers(landmarks, end_ns), end_ns)]
+    write_log(transforms + [(MAP_TOPIC, map_msg, end_ns), (PATH_TOPIC, path_msg, end_ns)] + extra, output / "slam.mcap",
               metadata={"command": "slam", "source": str(log)})
     if landmarks is not None:
         write_landmarks(output / "landmarks.csv", landmarks)

@@ -138,7 +138,7 @@ def _expected(kind: str, ctx: Mapping[str, Any], message: str) -> str:
     bounds = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
     if kind in bounds:
         limit = next(iter(ctx.values()))
-        return f"a number {bounds[kind]} {limit}"
+        return f"a number {bounds[kind]} {limit:g}" if isinstance(limit, float) else f"a number {bounds[kind]} {limit}"
     if kind == "literal_error":
         return f"one of {ctx.get('expected', '')}".replace("'", "")
     if kind in ("too_short", "too_long"):
@@ -161,7 +161,7 @@ def describe(error: ValidationError, model: type[BaseModel], where: str = "") ->
         return f"{source}: unknown key {key}{tail}" if source else f"unknown key {key}{tail}"
     if kind == "value_error" or kind == "assertion_error":
         reason = str(first.get("ctx", {}).get("error", first["msg"]))
-        if not loc:  # a check of the whole table (keys that go together): its reason says which
+        if not loc or isinstance(first["input"], Mapping):  # a check of a whole table: its reason says which
             return f"{_key_path(where, loc)}: {reason}"
         return f"{_key_path(where, loc)} = {first['input']!r}: {reason}"
     expected = _expected(kind, first.get("ctx", {}), first["msg"])

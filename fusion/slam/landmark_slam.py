@@ -157,7 +157,7 @@ class GraphLandmarkSlamConfig:
     max_iterations: int = 100
 
 
-class LandmarkOptions(Schema):
+class _LandmarkTable(Schema):
     """A robot config's ``[landmarks]`` table: ``topic`` (the LandmarkList topic to use), the
     data ``association`` (jcbb, nn), the graph's node spacing (m, rad, s) and
     ``correlation_rounds``; ``motion_*`` (the :class:`MotionNoise` fields) are added below."""
@@ -170,9 +170,9 @@ class LandmarkOptions(Schema):
     node_time_s: Annotated[float, Field(gt=0)] = GraphLandmarkSlamConfig.node_time_s
 
 
-LandmarkOptions = create_model(  # type: ignore[misc]  # one motion_<name> per MotionNoise field (m, rad, s)
-    "LandmarkOptions", __base__=LandmarkOptions, __doc__=LandmarkOptions.__doc__,
-    **{f"motion_{f.name}": (Annotated[float, Field(ge=0)], f.default) for f in fields(MotionNoise)})
+_MOTION: dict[str, Any] = {f"motion_{f.name}": (Annotated[float, Field(ge=0)], f.default) for f in fields(MotionNoise)}
+LandmarkOptions = create_model("LandmarkOptions", __base__=_LandmarkTable, __doc__=_LandmarkTable.__doc__, **_MOTION)
+"""The ``[landmarks]`` table, with one ``motion_<name>`` per :class:`MotionNoise` field (m, rad, s)."""
 
 
 def landmark_configs(table: Mapping[str, Any]) -> tuple[EkfSlamConfig, GraphLandmarkSlamConfig]:

@@ -14,7 +14,10 @@ Tables (``example.toml`` has them all; ``trundle daemon --print-example-config``
   ``wheel_variance_per_m``); ``[laser]``: the laser mount (``x_m``, ``y_m``, ``yaw_rad``).
 
 Every table and key is known: a misspelt one, a wrong type or an impossible value is a
-``UserError`` of one line naming the key, whichever command reads the file. :func:`parse_config`
+``ConfigError`` of one line naming the key, the value and what was expected, whichever command
+reads the file. Each table is a strict model on :mod:`trundle.logs.schema`, declared by its owner
+(the daemon's tables here, the wheel model in fusion/odometry, the landmark options in
+fusion/slam, each driver's options in drivers/); :class:`RobotDocument` composes them. :func:`parse_config`
 checks the document; :func:`check_daemon_config` checks what the daemon needs besides (every
 device has a URL, the log folder can be written on a real disk, the live view's extra is
 installed). The daemon runs both, and ``trundle daemon --check`` runs exactly the same.

@@ -300,7 +300,7 @@ def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = Non
     unsupported: set[str] = set()
     factory, (width, height) = _source_factory(cfg, unsupported)
     if not cfg.width and width:
-        cfg = dataclasses.replace(cfg, width=width, height=height)
+        cfg = cfg.model_copy(update={"width": width, "height": height})
     info = None
     if cfg.calibration:
         info = load_camera_info(cfg.calibration, cfg.optical_frame_id, wall_ns())

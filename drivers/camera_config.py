@@ -6,27 +6,37 @@
     http://127.0.0.1:8090/stream.mjpg     (MJPEG over HTTP: IP cameras, `trundle emulate camera`)
 
 Every option may be given in the table or as a URL query parameter (the URL wins). A wrong
-option is the user's mistake: ``UserError`` with one line naming it.
+option is the user's mistake: ``ConfigError`` with one line naming it.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import math
 import urllib.parse
-from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Annotated, Any, Literal, Mapping
+
+from pydantic import BeforeValidator, Field, field_validator, model_validator
 
 from trundle.drivers.v4l2_capture import CONTROLS
-from trundle.logs.errors import UserError
+from trundle.logs.errors import ConfigError, UserError
+from trundle.logs.schema import Name, Schema, parse_text
 
 SCHEMES = ("v4l2", "file", "http", "https")
-RAW_OUTPUTS = ("jpeg", "bgr8", "mono8")
-_TRUE, _FALSE = {"1", "true", "yes", "on"}, {"0", "false", "no", "off"}
 
 
-@dataclass(frozen=True)
-class CameraConfig:
+def _numbers(value: Any) -> Any:
+    """A transform as a TOML array, or as text ``x,y,z,roll,pitch,yaw`` (a URL parameter)."""
+    items = value.split(",") if isinstance(value, str) else value
+    if not isinstance(items, (list, tuple)) or len(items) != 6:
+        raise ValueError("expected six numbers [x, y, z, roll, pitch, yaw]")
+    if isinstance(value, str):
+        try:
+            return tuple(float(v) for v in items)
+        except ValueError:
+            raise ValueError("expected six numbers [x, y, z, roll, pitch, yaw]") from None
+    return tuple(items)
+
+
+class CameraConfig(Schema):
     """What a camera driver needs. Units: pixels, Hz, seconds, metres and radians.
 
     ``transform`` is the camera body frame (REP 103: x forward) in ``parent_frame`` as
@@ -35,111 +45,66 @@ class CameraConfig:
     video) become: ``jpeg`` at ``jpeg_quality`` or a ``bgr8``/``mono8`` sensor_msgs/Image.
     ``decode_check_every`` N: libjpeg decodes every N-th JPEG as a health check (0: never).
     ``pace``/``loop`` apply to files; ``fps`` on a file overrides its recorded rate.
+    ``width`` and ``height`` go together (0 and 0: the device's).
     """
 
-    scheme: str
-    target: str
-    name: str = "camera"
-    frame_id: str = "camera"
-    optical_frame_id: str = "camera_optical"
-    parent_frame: str = "base_link"
-    transform: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    width: int = 0
-    height: int = 0
-    fps: float = 0.0
+    scheme: Literal["v4l2", "file", "http", "https"]
+    target: Name
+    name: Name = "camera"
+    frame_id: Name = "camera"
+    optical_frame_id: Name = "camera_optical"
+    parent_frame: Name = "base_link"
+    transform: Annotated[tuple[float, float, float, float, float, float], BeforeValidator(_numbers)] = (
+        0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    width: Annotated[int, Field(ge=0)] = 0
+    height: Annotated[int, Field(ge=0)] = 0
+    fps: Annotated[float, Field(ge=0)] = 0.0
     fourcc: str = "MJPG"
-    buffers: int = 2
-    controls: Mapping[str, float] = field(default_factory=dict)
+    buffers: Annotated[int, Field(ge=1, le=32)] = 2
+    controls: dict[str, float] = {}
     calibration: str = ""
-    raw_output: str = "jpeg"
-    jpeg_quality: int = 90
-    decode_check_every: int = 30
-    stall_timeout_s: float = 2.0
+    raw_output: Literal["jpeg", "bgr8", "mono8"] = "jpeg"
+    jpeg_quality: Annotated[int, Field(ge=1, le=100)] = 90
+    decode_check_every: Annotated[int, Field(ge=0)] = 30
+    stall_timeout_s: Annotated[float, Field(gt=0)] = 2.0
     pace: bool = True
     loop: bool = False
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, name: str) -> str:
+        if not name.strip("/"):
+            raise ValueError("expected a name (the topics' prefix)")
+        return name
+
+    @field_validator("fourcc")
+    @classmethod
+    def _fourcc(cls, fourcc: str) -> str:
+        if fourcc and (len(fourcc) != 4 or not fourcc.isascii()):
+            raise ValueError("expected four characters such as MJPG or YUYV")
+        return fourcc
+
+    @field_validator("controls")
+    @classmethod
+    def _controls(cls, controls: dict[str, float]) -> dict[str, float]:
+        unknown = sorted(set(controls) - set(CONTROLS))
+        if unknown:
+            raise ValueError(f"unknown control {unknown[0]!r} (known: {', '.join(CONTROLS)})")
+        return controls
+
+    @model_validator(mode="after")
+    def _size(self) -> CameraConfig:
+        if (self.width == 0) != (self.height == 0):
+            raise ValueError("width and height must be given together, as positive integers")
+        return self
 
     @property
     def topic_prefix(self) -> str:
         return "/" + self.name.strip("/")
 
 
-_FIELDS = {f.name: f for f in dataclasses.fields(CameraConfig) if f.name not in ("scheme", "target")}
-
-
-def _convert(name: str, value: Any) -> Any:
-    """``value`` (from TOML or a URL string) as the type of option ``name``."""
-    kind = _FIELDS[name].type
-    text = isinstance(value, str)
-    try:
-        if kind == "bool":
-            if isinstance(value, bool):
-                return value
-            if text and value.lower() in _TRUE | _FALSE:
-                return value.lower() in _TRUE
-            raise ValueError
-        if kind == "int":
-            if isinstance(value, bool) or (not text and not isinstance(value, int)):
-                raise ValueError
-            return int(value)
-        if kind == "float":
-            if isinstance(value, bool):
-                raise ValueError
-            number = float(value)
-            if not math.isfinite(number):
-                raise ValueError
-            return number
-        if kind == "str":
-            if not text:
-                raise ValueError
-            return value
-        if name == "transform":
-            items = value.split(",") if text else value
-            numbers = tuple(float(v) for v in items)
-            if len(numbers) != 6 or not all(map(math.isfinite, numbers)):
-                raise ValueError
-            return numbers
-        if name == "controls":
-            if not isinstance(value, Mapping):
-                raise ValueError
-            return _controls(value)
-    except (TypeError, ValueError):
-        pass
-    expected = {"bool": "true or false", "int": "an integer", "float": "a number", "str": "text"}.get(
-        kind, "[x, y, z, roll, pitch, yaw]" if name == "transform" else "a table of control = value")
-    raise UserError(f"camera option {name}={value!r} must be {expected}")
-
-
-def _controls(table: Mapping[str, Any]) -> dict[str, float]:
-    unknown = sorted(set(table) - set(CONTROLS))
-    if unknown:
-        raise UserError(f"unknown camera control {unknown[0]!r} (known: {', '.join(CONTROLS)})")
-    values = {}
-    for key, value in table.items():
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise UserError(f"camera control {key}={value!r} must be a number")
-        values[key] = float(value)
-    return values
-
-
-def _check(config: CameraConfig) -> None:
-    if config.width < 0 or config.height < 0 or (config.width == 0) != (config.height == 0):
-        raise UserError("camera width and height must be given together, as positive integers")
-    if config.fps < 0:
-        raise UserError(f"camera fps must be positive, not {config.fps:g}")
-    if config.fourcc and (len(config.fourcc) != 4 or not config.fourcc.isascii()):
-        raise UserError(f"camera fourcc must be four characters such as MJPG or YUYV, not {config.fourcc!r}")
-    if not 1 <= config.buffers <= 32:
-        raise UserError(f"camera buffers must be 1..32, not {config.buffers}")
-    if config.raw_output not in RAW_OUTPUTS:
-        raise UserError(f"camera raw_output must be one of {', '.join(RAW_OUTPUTS)}, not {config.raw_output!r}")
-    if not 1 <= config.jpeg_quality <= 100:
-        raise UserError(f"camera jpeg_quality must be 1..100, not {config.jpeg_quality}")
-    if config.decode_check_every < 0:
-        raise UserError("camera decode_check_every must be 0 (never) or a positive count")
-    if config.stall_timeout_s <= 0:
-        raise UserError("camera stall_timeout_s must be positive")
-    if not config.name.strip("/"):
-        raise UserError("camera name must not be empty")
+OPTIONS = set(CameraConfig.model_fields) - {"scheme", "target"}
+"""The options of a ``[camera]`` table or a camera URL."""
 
 
 def parse_camera_url(url: str, options: Mapping[str, Any] | None = None) -> CameraConfig:
@@ -147,23 +112,18 @@ def parse_camera_url(url: str, options: Mapping[str, Any] | None = None) -> Came
     parts = urllib.parse.urlsplit(url)
     if parts.scheme not in SCHEMES:
         raise UserError(f"unknown camera URL {url!r}: use v4l2:///dev/videoN, file:///path or http://host:port/path")
-    values: dict[str, Any] = {}
-    table = {k: v for k, v in (options or {}).items() if k != "url"}
+    if "scheme" in (options or {}) or "target" in (options or {}):
+        raise ConfigError("camera: the scheme and the device or file are the URL's (v4l2:///dev/video0)")
+    table = {k: v for k, v in (options or {}).items() if k not in ("url", "enabled")}
     query = urllib.parse.parse_qsl(parts.query, keep_blank_values=True)
     web = parts.scheme in ("http", "https")
-    server_query = [(k, v) for k, v in query if web and k not in _FIELDS]  # the server's own parameters
-    for source in (table, dict(kv for kv in query if kv not in server_query)):
-        for key, value in source.items():
-            if key not in _FIELDS:
-                raise UserError(f"unknown camera option {key!r} (known: {', '.join(sorted(_FIELDS))})")
-            values[key] = _convert(key, value)
+    server_query = [(k, v) for k, v in query if web and k not in OPTIONS]  # the server's own parameters
     if web:
         target = urllib.parse.urlunsplit((parts.scheme, parts.netloc, parts.path,
                                           urllib.parse.urlencode(server_query), ""))
     else:
         target = urllib.parse.unquote(parts.netloc + parts.path)
         if not target:
-            raise UserError(f"camera URL {url!r} names no device or file")
-    config = CameraConfig(parts.scheme, target, **values)
-    _check(config)
-    return config
+            raise ConfigError(f"camera URL {url!r} names no device or file")
+    text = dict(kv for kv in query if kv not in server_query)
+    return parse_text(CameraConfig, {**table, "scheme": parts.scheme, "target": target}, text, "camera")

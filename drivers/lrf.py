@@ -13,51 +13,26 @@ in diagnostics, default ``lrf``). Use a stable path such as
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, Mapping, TypeVar
 from urllib.parse import parse_qsl, urlsplit
 
 from trundle.drivers.lifecycle import Driver, Sink
 from trundle.drivers.rplidar_driver import RplidarConfig, RplidarDriver
 from trundle.drivers.scip2_driver import ScipConfig, ScipDriver
-from trundle.logs.errors import UserError
+from trundle.logs.errors import ConfigError, UserError
+from trundle.logs.schema import Schema, parse_text
 
 SCHEMES = ("scip2", "scip2+tcp", "rplidar")
-Config = TypeVar("Config")
+Config = TypeVar("Config", bound=Schema)
 
 
-def _value(text: str) -> Any:
-    """A query value as bool, int or float when it reads as one."""
-    lowered = text.lower()
-    if lowered in ("true", "false"):
-        return lowered == "true"
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return text
-
-
-def make_config(cls: type[Config], port: str, options: Mapping[str, Any], device: str) -> Config:
-    """A driver config dataclass from a table of options (``url`` ignored); UserError on a bad one."""
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.name != "port"}
-    unknown = sorted(set(options) - set(fields) - {"url", "port", "name"})
-    if unknown:
-        raise UserError(f"lrf: unknown option(s) {', '.join(unknown)} for {device}; known: {', '.join(sorted(fields))}")
-    values = {}
-    for key, value in options.items():
-        if key not in fields:
-            continue
-        default = fields[key].default
-        kind = type(default) if default is not None else float
-        if kind is bool and not isinstance(value, bool):
-            raise UserError(f"lrf: {key} must be true or false, got {value!r}")
-        try:
-            values[key] = kind(value)
-        except (TypeError, ValueError):
-            raise UserError(f"lrf: {key} must be a {kind.__name__}, got {value!r}") from None
-    return cls(port=port, **values)
+def laser_config(model: type[Config], port: str, options: Mapping[str, Any], query: Mapping[str, str]) -> Config:
+    """The driver config ``model`` for ``port`` from a table of options (``url``, ``name`` and
+    ``enabled`` are not the driver's) under the URL's query parameters; a ConfigError names the key."""
+    if "port" in options or "port" in query:
+        raise ConfigError("lrf.port: the port is the URL's path (scip2:///dev/ttyACM0) or host (scip2+tcp://host)")
+    table = {k: v for k, v in options.items() if k not in ("url", "name", "enabled")}
+    return parse_text(model, {**table, "port": port}, {k: v for k, v in query.items() if k != "name"}, "lrf")
 
 
 def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = None) -> Driver:
@@ -67,10 +42,10 @@ def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = Non
     if scheme not in SCHEMES:
         raise UserError(f"unknown laser URL {url!r}: use scip2:///dev/ttyACM0, scip2+tcp://host:10940 "
                         "or rplidar:///dev/ttyUSB0?model=a2")
-    options = {**dict(config or {}), **{k: _value(v) for k, v in parse_qsl(parts.query)}}
-    name = options.get("name", "lrf")
+    options, query = dict(config or {}), dict(parse_qsl(parts.query))
+    name = query.get("name", options.get("name", "lrf"))
     if not isinstance(name, str) or not name:
-        raise UserError(f"lrf: name must be a non-empty string, got {name!r}")
+        raise ConfigError(f"lrf.name = {name!r}: expected a non-empty string")
     if scheme == "scip2+tcp":
         if not parts.hostname:
             raise UserError(f"laser URL {url!r} needs a host: scip2+tcp://192.168.0.10:10940")
@@ -84,5 +59,5 @@ def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = Non
         if not port:
             raise UserError(f"laser URL {url!r} needs a device path, e.g. {scheme}:///dev/ttyUSB0")
     if scheme == "rplidar":
-        return RplidarDriver(make_config(RplidarConfig, port, options, "an RPLIDAR"), sink, name=name)
-    return ScipDriver(make_config(ScipConfig, port, options, "a SCIP 2.0 laser"), sink, name=name)
+        return RplidarDriver(laser_config(RplidarConfig, port, options, query), sink, name=name)
+    return ScipDriver(laser_config(ScipConfig, port, options, query), sink, name=name)

@@ -19,10 +19,11 @@ import struct
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Annotated, Callable
 
 import numpy as np
 import serial
+from pydantic import Field, field_validator
 
 from trundle.drivers import rplidar as rp
 from trundle.drivers import rplidar_capsules as rc
@@ -30,8 +31,8 @@ from trundle.drivers.laser_mount import laser_transform
 from trundle.drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
 from trundle.drivers.serial_link import STREAM_BATCH_S, SerialLink, set_modem_line
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
 from trundle.logs.topics import SCAN_TOPIC, TF_STATIC_TOPIC
+from trundle.logs.schema import Name, Schema
 
 
 @dataclass(frozen=True)
@@ -62,8 +63,7 @@ def model_key(info: rp.DeviceInfo) -> str:
     return exact or SERIES.get(info.model_name[0], "a2")
 
 
-@dataclass(frozen=True)
-class RplidarConfig:
+class RplidarConfig(Schema):
     """Driver options (the ``[lrf]`` table of a robot config). Angles in radians, times in seconds.
 
     ``model`` (a key of ``MODELS``) sets the first baud rate tried and is checked against GET_INFO
@@ -77,35 +77,41 @@ class RplidarConfig:
     start-up reply, ``startup_timeout_s`` the scan's first answer.
     """
 
-    port: str
+    port: Name
     model: str = ""
-    baudrate: int = 0
+    baudrate: Annotated[int, Field(ge=0)] = 0
     mode: str = ""
     beams: int = 0
-    frame_id: str = "laser"
-    parent_frame: str = "base_link"
-    topic: str = SCAN_TOPIC
+    frame_id: Name = "laser"
+    parent_frame: Name = "base_link"
+    topic: Name = SCAN_TOPIC
     x: float = 0.0
     y: float = 0.0
     z: float = 0.0
     yaw: float = 0.0
-    range_min: float = 0.0
-    range_max: float = 0.0
-    motor_pwm: int = 0
-    motor_rpm: int = 0
-    error_limit: int = 4
-    timeout_s: float = 1.0
-    startup_timeout_s: float = 3.0
-    reply_timeout_s: float = 0.5
-    backoff_max_s: float = 0.5
+    range_min: Annotated[float, Field(ge=0)] = 0.0
+    range_max: Annotated[float, Field(ge=0)] = 0.0
+    motor_pwm: Annotated[int, Field(ge=0, le=1023)] = 0
+    motor_rpm: Annotated[int, Field(ge=0, le=0xFFFF)] = 0
+    error_limit: Annotated[int, Field(ge=1)] = 4
+    timeout_s: Annotated[float, Field(gt=0)] = 1.0
+    startup_timeout_s: Annotated[float, Field(gt=0)] = 3.0
+    reply_timeout_s: Annotated[float, Field(gt=0)] = 0.5
+    backoff_max_s: Annotated[float, Field(gt=0)] = 0.5
 
-    def __post_init__(self) -> None:
-        if self.model and self.model not in MODELS:
-            raise UserError(f"lrf: unknown RPLIDAR model {self.model!r} (choose {', '.join(MODELS)})")
-        if self.beams and not 8 <= self.beams <= rp.FULL_CIRCLE_Q6:
-            raise UserError(f"lrf: beams must be 0 (one per sample) or 8-{rp.FULL_CIRCLE_Q6}")
-        if not 0 <= self.motor_pwm <= 1023 or not 0 <= self.motor_rpm <= 0xFFFF:
-            raise UserError("lrf: motor_pwm must be 0-1023 and motor_rpm 0-65535")
+    @field_validator("model")
+    @classmethod
+    def _model(cls, model: str) -> str:
+        if model and model not in MODELS:
+            raise ValueError(f"unknown RPLIDAR model (choose {', '.join(MODELS)})")
+        return model
+
+    @field_validator("beams")
+    @classmethod
+    def _beams(cls, beams: int) -> int:
+        if beams and not 8 <= beams <= rp.FULL_CIRCLE_Q6:
+            raise ValueError(f"expected 0 (one per sample) or 8-{rp.FULL_CIRCLE_Q6}")
+        return beams
 
     @property
     def first_baud(self) -> int:

@@ -13,9 +13,10 @@ from __future__ import annotations
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Annotated, Callable
 
 import numpy as np
+from pydantic import Field, model_validator
 
 from trundle.drivers import scip2
 from trundle.drivers.laser_mount import laser_transform
@@ -24,16 +25,15 @@ from trundle.drivers.scip2 import Measure, Reply, ScipError, ScipFramer, SensorP
 from trundle.drivers.sensor_clock import SensorClock
 from trundle.drivers.serial_link import STREAM_BATCH_S, SerialLink
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
 from trundle.logs.topics import SCAN_TIMING_TOPIC, SCAN_TOPIC, TF_STATIC_TOPIC
+from trundle.logs.schema import Name, Schema
 
 ABNORMAL = {"0L"} | {f"{n:02d}" for n in range(21, 98)}  # stop, reboot with RB (notes 1.6.5)
 RESUMED = "98"
 UNSTABLE = "0M"
 
 
-@dataclass(frozen=True)
-class ScipConfig:
+class ScipConfig(Schema):
     """Driver options (the ``[lrf]`` table of a robot config). Angles in radians, times in seconds.
 
     ``port`` is a device path or a pyserial URL (``socket://host:10940``). ``angle_min``/``angle_max``
@@ -46,34 +46,32 @@ class ScipConfig:
     start-up reply; reconnects back off up to ``backoff_max_s``.
     """
 
-    port: str
-    baudrate: int = 115200
-    frame_id: str = "laser"
-    parent_frame: str = "base_link"
-    topic: str = SCAN_TOPIC
-    timing_topic: str = SCAN_TIMING_TOPIC
+    port: Name
+    baudrate: Annotated[int, Field(gt=0)] = 115200
+    frame_id: Name = "laser"
+    parent_frame: Name = "base_link"
+    topic: Name = SCAN_TOPIC
+    timing_topic: Name = SCAN_TIMING_TOPIC
     x: float = 0.0
     y: float = 0.0
     z: float = 0.0
     yaw: float = 0.0
     angle_min: float | None = None
     angle_max: float | None = None
-    cluster: int = 1
-    skip: int = 0
+    cluster: Annotated[int, Field(ge=1, le=99)] = 1
+    skip: Annotated[int, Field(ge=0, le=9)] = 0
     intensity: bool = False
-    error_limit: int = 4
-    timeout_s: float | None = None
-    tm_samples: int = 10
-    reply_timeout_s: float = 0.5
-    backoff_max_s: float = 0.5
+    error_limit: Annotated[int, Field(ge=1)] = 4
+    timeout_s: Annotated[float, Field(gt=0)] | None = None
+    tm_samples: Annotated[int, Field(ge=0)] = 10
+    reply_timeout_s: Annotated[float, Field(gt=0)] = 0.5
+    backoff_max_s: Annotated[float, Field(gt=0)] = 0.5
 
-    def __post_init__(self) -> None:
-        if not 1 <= self.cluster <= 99 or not 0 <= self.skip <= 9:
-            raise UserError(f"lrf: cluster must be 1-99 and skip 0-9 (got {self.cluster}, {self.skip})")
+    @model_validator(mode="after")
+    def _angles(self) -> ScipConfig:
         if self.angle_min is not None and self.angle_max is not None and self.angle_min >= self.angle_max:
-            raise UserError(f"lrf: angle_min {self.angle_min} must be below angle_max {self.angle_max}")
-        if self.error_limit < 1 or self.tm_samples < 0:
-            raise UserError("lrf: error_limit must be at least 1 and tm_samples non-negative")
+            raise ValueError(f"angle_min {self.angle_min} must be below angle_max {self.angle_max}")
+        return self
 
 
 def error_code_ranges(model: str, dmin: int) -> np.ndarray:

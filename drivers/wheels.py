@@ -26,9 +26,10 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Mapping
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from pydantic import BeforeValidator
 
 from trundle.drivers.can_bus import CanBus, Received, parse_url
 from trundle.drivers.cia406 import Cia406Encoders
@@ -38,24 +39,23 @@ from trundle.drivers.encoder_protocol import EncoderProtocol, WheelReading, per_
 from trundle.drivers.lifecycle import Driver, Sink
 from trundle.drivers.odrive_encoders import OdriveEncoders
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.errors import ConfigError, UserError
+from trundle.logs.schema import Name, Schema, parse
 from trundle.logs.topics import CAN_RX_TOPIC, WHEELS_TOPIC
 
 PROTOCOLS = ("odrive", "cia406", "dbc")
-# the [can] table's keys: the driver's, the protocols' subtables and the wheel model odometry reads
-KEYS = {"url", "name", "encoders", "wheels", "direction", "gear_ratio", "counts_per_rev", "publish_frames",
-        *PROTOCOLS, "wheel_radius_m", "track_m", "odometry_wheels", "wheel_variance_per_m"}
 VELOCITY_WINDOW_S = 0.05  # shortest span for a velocity from two positions
 MAX_SEEN_IDS = 256  # arbitration ids remembered for the "which nodes are there" hint
 MAX_CARRY_S = 0.05  # a reading older than this at the publish instant is not carried forward:
 # that much lag is a receive stall (stamps of a burst), not the phase between two nodes
 
 
-def _per_wheel(config: Mapping[str, Any], key: str, n: int, default: float) -> list[float]:
+def _per_wheel(value: float | list[float], key: str, n: int) -> list[float]:
+    """A per-wheel setting (one number, or one per wheel) as one number per wheel."""
     try:
-        return per_wheel(config.get(key, default), n, key)
+        return per_wheel(value, n, key)
     except ValueError as error:
-        raise UserError(str(error)) from None
+        raise ConfigError(f"can.{error}") from None
 
 
 def _node_ids(protocol: str, text: str) -> tuple[int, ...]:
@@ -302,27 +302,61 @@ class WheelsDriver(Driver):
         return m.DiagnosticStatus(level, status.name, message, status.hardware_id, tuple(values))
 
 
+def _per_wheel_shape(value: Any) -> Any:
+    """A per-wheel setting is one finite number or an array of them (their count is checked
+    against the wheels once the encoders are known)."""
+    numbers = value if isinstance(value, list) else [value]
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in numbers):
+        raise ValueError("expected a number or an array of numbers, one per wheel")
+    return value
+
+
+PerWheel = Annotated[float | list[float], BeforeValidator(_per_wheel_shape)]
+
+
+class CanOptions(Schema):
+    """The ``[can]`` table (see the module docstring): the driver's options, the protocols'
+    subtables (``[can.odrive]`` ...: keyword arguments of the protocol's class) and the wheel
+    model beside them, which the driver does not use: it is read and checked by the odometry
+    (:class:`trundle.fusion.odometry.diff_drive.WheelModel`)."""
+
+    url: str = ""
+    name: Name = "can"
+    encoders: Name | None = None
+    wheels: list[Name] | None = None
+    direction: PerWheel = 1.0
+    gear_ratio: PerWheel = 1.0
+    counts_per_rev: PerWheel | None = None
+    publish_frames: bool = True
+    odrive: dict[str, Any] = {}
+    cia406: dict[str, Any] = {}
+    dbc: dict[str, Any] = {}
+    wheel_radius_m: Any = None
+    track_m: Any = None
+    odometry_wheels: Any = None
+    wheel_variance_per_m: Any = None
+
+
 def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any]) -> WheelsDriver:
     """The wheels driver for CAN ``url`` with ``config`` (the ``[can]`` table, ``encoders`` set)."""
     spec = parse_url(url)
-    unknown = sorted(set(config) - KEYS)
-    if unknown:
-        raise UserError(f"unknown [can] option(s) {', '.join(unknown)} (known: {', '.join(sorted(KEYS))})")
-    encoders = config.get("encoders")
-    if not encoders:
-        raise UserError("no wheel encoders given: use --encoders odrive:0,1 (or encoders in [can])")
-    protocols = build_protocols(str(encoders), config)
+    options = parse(CanOptions, config, "can")
+    if not options.encoders:
+        raise ConfigError("no wheel encoders given: use --encoders odrive:0,1 (or encoders in [can])")
+    protocols = build_protocols(options.encoders, options.model_dump())
     n = sum(len(p.wheels) for p in protocols)
-    names = tuple(config.get("wheels", ("left", "right") if n == 2 else tuple(f"wheel{i}" for i in range(n))))
+    names = tuple(options.wheels or (("left", "right") if n == 2 else tuple(f"wheel{i}" for i in range(n))))
     if len(names) != n:
-        raise UserError(f"{len(names)} wheel names for {n} encoders in {encoders!r}")
-    direction = _per_wheel(config, "direction", n, 1.0)
+        raise ConfigError(f"can.wheels: {len(names)} wheel names for {n} encoders in {options.encoders!r}")
+    direction = _per_wheel(options.direction, "direction", n)
     if any(d not in (1.0, -1.0) for d in direction):
-        raise UserError(f"direction must be 1 or -1 per wheel, got {direction}")
-    gear = _per_wheel(config, "gear_ratio", n, 1.0)
-    counts = _per_wheel(config, "counts_per_rev", n, 0.0) if "counts_per_rev" in config else [0.0] * n
-    if any(g <= 0 for g in gear) or any(c < 0 for c in counts):
-        raise UserError("gear_ratio and counts_per_rev must be positive")
+        raise ConfigError(f"can.direction = {options.direction!r}: expected 1 or -1 per wheel")
+    gear = _per_wheel(options.gear_ratio, "gear_ratio", n)
+    if any(g <= 0 for g in gear):
+        raise ConfigError(f"can.gear_ratio = {options.gear_ratio!r}: expected numbers > 0")
+    counts = _per_wheel(options.counts_per_rev, "counts_per_rev", n) if options.counts_per_rev is not None else [0.0] * n
+    if any(c < 0 for c in counts):
+        raise ConfigError(f"can.counts_per_rev = {options.counts_per_rev!r}: expected numbers >= 0 (0: the device's)")
     return WheelsDriver(CanBus(spec), protocols, sink, names=names, direction=direction, gear_ratio=gear,
-                        counts_per_rev=[c or None for c in counts],
-                        publish_frames=bool(config.get("publish_frames", True)), name=str(config.get("name", "can")))
+                        counts_per_rev=[c or None for c in counts], publish_frames=options.publish_frames,
+                        name=options.name)

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, TypeVar, get_args
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, ValidationError
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator
 
 from trundle.logs.errors import ConfigError
 
@@ -26,6 +26,14 @@ class Schema(BaseModel):
 
     model_config = ConfigDict(strict=True, frozen=True, extra="forbid", allow_inf_nan=False,
                               validate_default=True)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _exact(cls, value: Any) -> Any:
+        """A whole number beyond 2**53 is refused: as a float it would silently become another one."""
+        if type(value) is int and abs(value) > 2**53:
+            raise ValueError("expected a number of at most 2**53 in size (as a float it would change)")
+        return value
 
 
 M = TypeVar("M", bound=Schema)
@@ -49,6 +57,9 @@ Triple = Annotated[tuple[float, float, float], BeforeValidator(_triple)]
 PathValue = Annotated[Path, BeforeValidator(_path)]
 """A path given as a non-empty string."""
 
+Name = Annotated[str, Field(min_length=1)]
+"""A non-empty string: a frame id, a topic, a device or joint name."""
+
 
 def parse(model: type[M], table: Mapping[str, Any] | None, where: str = "") -> M:
     """``model`` built from ``table`` (None: every default), or one ConfigError line.
@@ -64,11 +75,26 @@ def parse(model: type[M], table: Mapping[str, Any] | None, where: str = "") -> M
         raise ConfigError(describe(error, model, where)) from None
 
 
+def parse_text(model: type[M], table: Mapping[str, Any] | None, text: Mapping[str, str], where: str = "") -> M:
+    """``model`` from ``table`` (checked strictly, as :func:`parse`) with ``text`` over it: values
+    given as text (URL query parameters), each read as its field's type (``"5"`` is a whole
+    number for an integer, a string for a name; ``yes``/``no`` for true or false), or one
+    ConfigError line."""
+    base = parse(model, table, where)
+    if not text:
+        return base
+    try:
+        return model.model_validate({**base.model_dump(exclude_unset=True), **text}, strict=False)
+    except ValidationError as error:
+        raise ConfigError(describe(error, model, where)) from None
+
+
 def _key_path(where: str, loc: tuple[int | str, ...]) -> str:
-    """``where`` (``file: table``) and the key's path in it: ``file: table.key[0]``."""
+    """``where`` (``file: table``, or ``file: `` for the whole document) and the key's path in it:
+    ``file: table.key[0]``."""
     keys = "".join(f"[{part}]" if isinstance(part, int) else f".{_key(part)}" for part in loc)
-    if not where:
-        return keys.lstrip(".") or "config"
+    if not where or where.endswith(": "):
+        return where + (keys.lstrip(".") or "config")
     return f"{where}{keys}"
 
 
@@ -77,15 +103,22 @@ def _key(part: str) -> str:
     return part if part.replace("_", "").replace("-", "").isalnum() else repr(part)
 
 
+def _model_in(annotation: Any) -> type[BaseModel] | None:
+    """The model a field holds, itself or inside a list, tuple or optional (None: not a table)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    return next((m for m in map(_model_in, get_args(annotation)) if m is not None), None)
+
+
 def _known(model: type[BaseModel], loc: tuple[int | str, ...]) -> list[str]:
     """The keys known in the table at ``loc`` (the parent of an unknown key)."""
-    current: Any = model
+    current: type[BaseModel] | None = model
     for part in loc:
-        field = current.model_fields.get(part) if isinstance(part, str) and hasattr(current, "model_fields") else None
-        if field is None or not (isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel)):
-            return []
-        current = field.annotation
-    return sorted(current.model_fields)
+        if isinstance(part, int):
+            continue  # an item of a list of tables
+        field = current.model_fields.get(part) if current is not None else None
+        current = _model_in(field.annotation) if field is not None else None
+    return sorted(current.model_fields) if current is not None else []
 
 
 EXPECTED = {
@@ -94,6 +127,8 @@ EXPECTED = {
     "tuple_type": "an array", "list_type": "an array", "dict_type": "a table", "model_type": "a table",
     "model_attributes_type": "a table", "path_type": "a path (a non-empty string)",
     "missing": "a value (required)", "is_instance_of": "a path (a non-empty string)",
+    "int_parsing": "a whole number", "float_parsing": "a number", "bool_parsing": "true or false",
+    "string_too_short": "a non-empty string",
 }
 
 
@@ -103,7 +138,7 @@ def _expected(kind: str, ctx: Mapping[str, Any], message: str) -> str:
     bounds = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
     if kind in bounds:
         limit = next(iter(ctx.values()))
-        return f"a number {bounds[kind]} {limit}"
+        return f"a number {bounds[kind]} {limit:g}" if isinstance(limit, float) else f"a number {bounds[kind]} {limit}"
     if kind == "literal_error":
         return f"one of {ctx.get('expected', '')}".replace("'", "")
     if kind in ("too_short", "too_long"):
@@ -126,6 +161,8 @@ def describe(error: ValidationError, model: type[BaseModel], where: str = "") ->
         return f"{source}: unknown key {key}{tail}" if source else f"unknown key {key}{tail}"
     if kind == "value_error" or kind == "assertion_error":
         reason = str(first.get("ctx", {}).get("error", first["msg"]))
+        if not loc or isinstance(first["input"], Mapping):  # a check of a whole table: its reason says which
+            return f"{_key_path(where, loc)}: {reason}"
         return f"{_key_path(where, loc)} = {first['input']!r}: {reason}"
     expected = _expected(kind, first.get("ctx", {}), first["msg"])
     if kind == "missing":

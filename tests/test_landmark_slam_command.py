@@ -71,7 +71,7 @@ def test_user_errors_are_one_line(room_log, tmp_path, capsys):
     empty = tmp_path / "empty.mcap"
     write_log([("/odom", m.Odometry(1, "odom", "base_link", 0.0, 0.0, 0.0), 1)], empty, metadata={})
     cases = [(["slam", str(folder / "room.mcap"), "-o", str(tmp_path / "a"), "--estimator", "ekf",
-               "--config", str(config)], "association must be one of"),
+               "--config", str(config)], "bad.toml: landmarks.association = 'guess': expected one of jcbb or nn"),
              (["slam", str(empty), "-o", str(tmp_path / "b")], "has no topic /scan (sensor_msgs/msg/LaserScan"),
              (["slam", str(empty), "-o", str(tmp_path / "c"), "--estimator", "ekf"], "neither landmark sightings")]
     for argv, message in cases:

@@ -272,10 +272,10 @@ def test_rplidar_options_are_checked():
     assert RplidarConfig(port="/x").first_baud == 115200 and RplidarConfig(port="/x", model="c1").first_baud == 460800
     with pytest.raises(lrf.UserError, match="unknown RPLIDAR model"):
         lrf.driver_from_url("rplidar:///dev/ttyUSB0?model=z9", sink, {})
-    with pytest.raises(lrf.UserError, match="beams"):
-        RplidarConfig(port="/x", beams=4)
-    with pytest.raises(lrf.UserError, match="motor_pwm"):
-        RplidarConfig(port="/x", motor_pwm=2000)
+    with pytest.raises(lrf.UserError, match=r"^lrf\.beams = 4: expected 0 \(one per sample\) or 8-23040$"):
+        lrf.driver_from_url("rplidar:///dev/ttyUSB0", sink, {"beams": 4})
+    with pytest.raises(lrf.UserError, match=r"^lrf\.motor_pwm = '2000': expected a number <= 1023$"):
+        lrf.driver_from_url("rplidar:///dev/ttyUSB0?motor_pwm=2000", sink, {})
 
 
 def test_a_mode_the_device_lacks_is_named_with_the_ones_it_has(tmp_path):

@@ -284,7 +284,7 @@ def test_driver_from_url_rejects_mistakes():
     for url in ("sick:///dev/ttyUSB0", "scip2://", "scip2+tcp:///x", "scip2+tcp://host:99999"):
         with pytest.raises(UserError):
             lrf.driver_from_url(url, sink, {})
-    with pytest.raises(UserError, match="unknown option"):
+    with pytest.raises(UserError, match=r"unknown key lrf\.colour \(known in \[lrf\]: angle_max, "):
         lrf.driver_from_url("scip2:///dev/ttyACM0", sink, {"colour": "red"})
     with pytest.raises(UserError, match="cluster"):
         lrf.driver_from_url("scip2:///dev/ttyACM0?cluster=0", sink, {})

@@ -13,14 +13,16 @@ driver (:class:`OdometrySink` around the driver's sink) and on a replayed log (i
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from pydantic import Field, model_validator
 
 from trundle.fusion.geometry import wrap_angle
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.topics import DIAGNOSTICS_TOPIC, ODOM_TOPIC, TF_TOPIC, WHEELS_TOPIC
+from trundle.logs.schema import Schema, parse
 
 
 def _sinc(u: np.ndarray) -> np.ndarray:
@@ -279,23 +281,36 @@ def odometry_transform(odom: m.Odometry) -> m.TFMessage:
                                                   odom.x, odom.y, odom.theta),))
 
 
-def odometry_from_config(config: Mapping[str, Any]) -> DiffDriveOdometry | None:
-    """Odometry from a robot config table (the ``[can]`` table): ``wheel_radius_m`` and
-    ``track_m`` (both, or neither: None), optional ``wheels`` / ``odometry_wheels`` (left and
-    right joint names; default the first two wheels, or left/right) and ``wheel_variance_per_m``."""
-    if "wheel_radius_m" not in config and "track_m" not in config:
+class WheelModel(Schema):
+    """The wheel model in a robot config (``[odometry]``, or the ``[can]`` table beside the driver's
+    options) or a log's metadata: ``wheel_radius_m`` and ``track_m`` (m, both or neither),
+    ``wheels`` / ``odometry_wheels`` (joint names; the first two are left and right) and
+    ``wheel_variance_per_m`` (m^2 per metre rolled)."""
+
+    wheel_radius_m: Annotated[float, Field(gt=0)] | None = None
+    track_m: Annotated[float, Field(gt=0)] | None = None
+    wheels: Annotated[list[Annotated[str, Field(min_length=1)]], Field(min_length=2)] | None = None
+    odometry_wheels: Annotated[list[Annotated[str, Field(min_length=1)]], Field(min_length=2)] | None = None
+    wheel_variance_per_m: Annotated[float, Field(ge=0)] = 1e-4
+
+    @model_validator(mode="after")
+    def _both(self) -> WheelModel:
+        if (self.wheel_radius_m is None) != (self.track_m is None):
+            raise ValueError("odometry needs both wheel_radius_m and track_m (missing "
+                             f"{'track_m' if self.track_m is None else 'wheel_radius_m'})")
+        return self
+
+
+def odometry_from_config(config: Mapping[str, Any], where: str = "odometry") -> DiffDriveOdometry | None:
+    """Odometry from a table holding a :class:`WheelModel` (its keys are picked from ``config``,
+    e.g. the ``[can]`` table); None without ``wheel_radius_m`` and ``track_m``. A bad value is a
+    ConfigError naming ``where`` and the key."""
+    model = parse(WheelModel, {k: v for k, v in config.items() if k in WheelModel.model_fields}, where)
+    if model.wheel_radius_m is None or model.track_m is None:
         return None
-    try:
-        radius, track = float(config["wheel_radius_m"]), float(config["track_m"])
-        variance = float(config.get("wheel_variance_per_m", 1e-4))
-    except KeyError as missing:
-        raise UserError(f"odometry needs both wheel_radius_m and track_m (missing {missing})") from None
-    except (TypeError, ValueError):
-        raise UserError("wheel_radius_m, track_m and wheel_variance_per_m must be numbers") from None
-    names = list(config.get("odometry_wheels", config.get("wheels", ("left", "right"))))
-    if len(names) < 2:
-        raise UserError("odometry needs two wheels (left, right)")
-    return DiffDriveOdometry(radius, track, left=str(names[0]), right=str(names[1]), wheel_variance_per_m=variance)
+    names = model.odometry_wheels or model.wheels or ["left", "right"]
+    return DiffDriveOdometry(model.wheel_radius_m, model.track_m, left=names[0], right=names[1],
+                             wheel_variance_per_m=model.wheel_variance_per_m)
 
 
 class OdometrySink:

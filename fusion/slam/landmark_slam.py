@@ -24,19 +24,20 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, fields
+from typing import Annotated, Any, Literal
 
 import numpy as np
+from pydantic import Field, create_model
 
-from trundle.fusion.slam.ekf_slam import ASSOCIATIONS, EkfSlam, EkfSlamConfig
+from trundle.fusion.slam.ekf_slam import EkfSlam, EkfSlamConfig
 from trundle.fusion.optimization.error_correlation import decorrelated_information
 from trundle.fusion.optimization.factor_graph import BETWEEN, RANGE_BEARING, FactorGraph
 from trundle.fusion.geometry import compose, rotation
 from trundle.fusion.odometry.increments import Increment, MotionNoise, OdometryIncrements
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
 from trundle.logs.topics import LANDMARK_TOPIC
+from trundle.logs.schema import Name, Schema, parse
 
 
 @dataclass(frozen=True)
@@ -155,30 +156,33 @@ class GraphLandmarkSlamConfig:
     max_iterations: int = 100
 
 
-MOTION_KEYS = {f"motion_{k}" for k in MotionNoise.__dataclass_fields__}
-LANDMARK_KEYS = {"topic", "association", "correlation_rounds", "node_distance_m", "node_angle_rad",
-                 "node_time_s"} | MOTION_KEYS
-"""The options of a robot config's ``[landmarks]`` table (``topic``: the LandmarkList topic to use)."""
+class _LandmarkTable(Schema):
+    """A robot config's ``[landmarks]`` table: ``topic`` (the LandmarkList topic to use), the
+    data ``association`` (jcbb, nn), the graph's node spacing (m, rad, s) and
+    ``correlation_rounds``; ``motion_*`` (the :class:`MotionNoise` fields) are added below."""
+
+    topic: Name | None = None
+    association: Literal["jcbb", "nn"] = "jcbb"
+    correlation_rounds: Annotated[int, Field(ge=0)] = GraphLandmarkSlamConfig.correlation_rounds
+    node_distance_m: Annotated[float, Field(gt=0)] = GraphLandmarkSlamConfig.node_distance_m
+    node_angle_rad: Annotated[float, Field(gt=0)] = GraphLandmarkSlamConfig.node_angle_rad
+    node_time_s: Annotated[float, Field(gt=0)] = GraphLandmarkSlamConfig.node_time_s
+
+
+_MOTION: dict[str, Any] = {f"motion_{f.name}": (Annotated[float, Field(ge=0)], f.default) for f in fields(MotionNoise)}
+LandmarkOptions = create_model("LandmarkOptions", __base__=_LandmarkTable, __doc__=_LandmarkTable.__doc__, **_MOTION)
+"""The ``[landmarks]`` table, with one ``motion_<name>`` per :class:`MotionNoise` field (m, rad, s)."""
 
 
 def landmark_configs(table: Mapping[str, Any]) -> tuple[EkfSlamConfig, GraphLandmarkSlamConfig]:
-    """The EKF and graph configs of a ``[landmarks]`` table; an unknown key or a bad value is a UserError."""
-    unknown = sorted(set(table) - LANDMARK_KEYS)
-    if unknown:
-        raise UserError(f"unknown [landmarks] option(s) {unknown} (known: {sorted(LANDMARK_KEYS)})")
-    if not isinstance(table.get("topic", ""), str):
-        raise UserError("[landmarks] topic must be a topic name")
-    try:
-        motion = MotionNoise(**{k[len("motion_"):]: float(v) for k, v in table.items() if k in MOTION_KEYS})
-        association = str(table.get("association", "jcbb"))
-        if association not in ASSOCIATIONS:
-            raise ValueError(f"association must be one of {', '.join(ASSOCIATIONS)}")
-        ekf = EkfSlamConfig(motion=motion, association=association)
-        graph = GraphLandmarkSlamConfig(ekf=ekf, correlation_rounds=int(table.get("correlation_rounds", 2)),
-                                        **{k: float(table[k]) for k in ("node_distance_m", "node_angle_rad",
-                                                                        "node_time_s") if k in table})
-    except (TypeError, ValueError) as error:
-        raise UserError(f"[landmarks]: {error}") from None
+    """The EKF and graph configs of a ``[landmarks]`` table; an unknown key or a bad value is a
+    ConfigError naming it."""
+    options = parse(LandmarkOptions, table, "landmarks")
+    motion = MotionNoise(**{f.name: getattr(options, f"motion_{f.name}") for f in fields(MotionNoise)})
+    ekf = EkfSlamConfig(motion=motion, association=options.association)
+    graph = GraphLandmarkSlamConfig(ekf=ekf, correlation_rounds=options.correlation_rounds,
+                                    node_distance_m=options.node_distance_m, node_angle_rad=options.node_angle_rad,
+                                    node_time_s=options.node_time_s)
     return ekf, graph
 
 

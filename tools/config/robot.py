@@ -14,7 +14,10 @@ Tables (``example.toml`` has them all; ``trundle daemon --print-example-config``
   ``wheel_variance_per_m``); ``[laser]``: the laser mount (``x_m``, ``y_m``, ``yaw_rad``).
 
 Every table and key is known: a misspelt one, a wrong type or an impossible value is a
-``UserError`` of one line naming the key, whichever command reads the file. :func:`parse_config`
+``ConfigError`` of one line naming the key, the value and what was expected, whichever command
+reads the file. Each table is a strict model on :mod:`trundle.logs.schema`, declared by its owner
+(the daemon's tables here, the wheel model in fusion/odometry, the landmark options in
+fusion/slam, each driver's options in drivers/); :class:`RobotDocument` composes them. :func:`parse_config`
 checks the document; :func:`check_daemon_config` checks what the daemon needs besides (every
 device has a URL, the log folder can be written on a real disk, the live view's extra is
 installed). The daemon runs both, and ``trundle daemon --check`` runs exactly the same.
@@ -23,22 +26,19 @@ installed). The daemon runs both, and ``trundle daemon --check`` runs exactly th
 from __future__ import annotations
 
 import importlib.util
-import math
 import os
 import tomllib
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
+
+from pydantic import ConfigDict, Field
 
 from trundle.drivers.devices import FAMILIES, make_driver
-from trundle.fusion.odometry.diff_drive import odometry_from_config
-from trundle.logs.errors import UserError
+from trundle.fusion.odometry.diff_drive import WheelModel, odometry_from_config
+from trundle.logs.errors import ConfigError, UserError
 from trundle.logs.paths import read_text
-
-ACTIONS = ("delete_oldest", "stop")
-COMPRESSIONS = ("zstd", "lz4", "none")
-ODOMETRY_KEYS = ("wheel_radius_m", "track_m", "wheels", "wheel_variance_per_m")
-LASER_KEYS = ("x_m", "y_m", "yaw_rad")
+from trundle.logs.schema import Name, PathValue, Schema, Triple, parse
 
 
 def default_socket_path() -> Path:
@@ -64,82 +64,134 @@ class Device:
     options: dict[str, Any]
 
 
-@dataclass(frozen=True)
-class StaticTransform:
+Positive = Annotated[float, Field(gt=0)]
+NonNegative = Annotated[float, Field(ge=0)]
+Count = Annotated[int, Field(gt=0)]
+
+
+class StaticTransform(Schema):
     """``child`` in ``parent``: translation (m) and roll, pitch, yaw (rad)."""
 
-    parent: str
-    child: str
-    xyz: tuple[float, float, float]
-    rpy: tuple[float, float, float]
+    parent: Name
+    child: Name
+    xyz: Triple = (0.0, 0.0, 0.0)
+    rpy: Triple = (0.0, 0.0, 0.0)
 
 
-@dataclass(frozen=True)
-class LoggerConfig:
-    """``[logger]``: where and how the daemon logs (``folder`` None: not given)."""
+class LoggerConfig(Schema):
+    """``[logger]``: where and how the daemon logs (``folder`` None: not given; ``prefix``: the
+    robot's name unless given)."""
 
-    folder: Path | None = None
-    prefix: str = "trundle"
+    folder: PathValue | None = None
+    prefix: Name = "trundle"
     record: bool = True
-    compression: str = "zstd"
-    chunk_size_kb: int = 1024
-    flush_period_s: float = 0.5
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    chunk_size_kb: Count = 1024
+    flush_period_s: Positive = 0.5
     fsync: bool = False
-    split_size_mb: float = 0.0
-    split_duration_s: float = 0.0
-    queue_size: int = 10000
+    split_size_mb: NonNegative = 0.0
+    split_duration_s: NonNegative = 0.0
+    queue_size: Count = 10000
 
 
-@dataclass(frozen=True)
-class DiskConfig:
-    min_free_mb: float = 1024.0
-    action: str = "delete_oldest"
-    check_period_s: float = 2.0
-    resume_margin: float = 0.1
+class DiskConfig(Schema):
+    """``[disk]``: the free space kept (MB) and what is done below it."""
+
+    min_free_mb: NonNegative = 1024.0
+    action: Literal["delete_oldest", "stop"] = "delete_oldest"
+    check_period_s: Positive = 2.0
+    resume_margin: NonNegative = 0.1
 
 
-@dataclass(frozen=True)
-class ProcessingConfig:
+class ProcessingConfig(Schema):
+    """``[processing]``: what the daemon computes on board."""
+
     odometry: bool = True
     slam: bool = False
     markers: bool = False
-    map_period_s: float = 5.0
-    markers_hz: float = 2.0
-    marker_size_m: float = 0.25
-    aruco_dictionary: str = "DICT_6X6_250"
-    queue_size: int = 2000
+    map_period_s: Positive = 5.0
+    markers_hz: Positive = 2.0
+    marker_size_m: Positive = 0.25
+    aruco_dictionary: Name = "DICT_6X6_250"
+    queue_size: Count = 2000
 
 
-@dataclass(frozen=True)
-class StatusConfig:
-    socket: Path = field(default_factory=default_socket_path)
-    diagnostics_period_s: float = 1.0
+class StatusConfig(Schema):
+    """``[status]``: the status socket and how often diagnostics are published (s)."""
+
+    socket: PathValue = Field(default_factory=default_socket_path)
+    diagnostics_period_s: Positive = 1.0
 
 
-@dataclass(frozen=True)
-class SupervisionConfig:
-    restart_delay_s: float = 1.0
-    max_restart_delay_s: float = 30.0
-    stop_timeout_s: float = 5.0
+class SupervisionConfig(Schema):
+    """``[supervision]``: restart delays of a crashed driver thread and the stop timeout (s)."""
+
+    restart_delay_s: Positive = 1.0
+    max_restart_delay_s: Positive = 30.0
+    stop_timeout_s: Positive = 5.0
 
 
-@dataclass(frozen=True)
-class LiveConfig:
+class LiveConfig(Schema):
+    """``[live]``: the Foxglove WebSocket view."""
+
     enabled: bool = False
-    host: str = "127.0.0.1"
-    port: int = 8765
+    host: Name = "127.0.0.1"
+    port: Annotated[int, Field(ge=0, le=65535)] = 8765
 
 
-@dataclass(frozen=True)
-class FramesConfig:
-    map: str = "map"
-    odom: str = "odom"
-    base: str = "base_link"
+class FramesConfig(Schema):
+    """``[frames]``: the names of the map, odometry and robot frames."""
+
+    map: Name = "map"
+    odom: Name = "odom"
+    base: Name = "base_link"
 
 
-# options that must be above zero (a period, a rate, a size); every other number must be >= 0
-POSITIVE = {"chunk_size_kb", "flush_period_s", "queue_size", "check_period_s", "map_period_s", "markers_hz",
-            "marker_size_m", "diagnostics_period_s", "restart_delay_s", "max_restart_delay_s", "stop_timeout_s"}
+class RobotTable(Schema):
+    """``[robot]``: the robot's name (log file names, /diagnostics)."""
+
+    name: Name = "trundle"
+
+
+class LaserMount(Schema):
+    """``[laser]``: the laser on the robot (m, rad), for ``slam`` and ``localize``."""
+
+    x_m: float = 0.0
+    y_m: float = 0.0
+    yaw_rad: float = 0.0
+
+
+class DeviceKeys(Schema):
+    """What every device table has besides its driver's options (checked by building the driver)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    url: str = ""
+    enabled: bool = True
+    name: Name | None = None
+
+
+class RobotDocument(Schema):
+    """The tables of ``robot.toml``, each checked by its owner's model: the daemon's here, the
+    wheel model by the odometry's; ``[slam]``, ``[landmarks]`` and the device tables are checked
+    after, by :class:`SlamConfig`, :func:`landmark_configs` and the drivers."""
+
+    robot: RobotTable = RobotTable()
+    frames: FramesConfig = FramesConfig()
+    transforms: list[StaticTransform] = []
+    logger: LoggerConfig = LoggerConfig()
+    disk: DiskConfig = DiskConfig()
+    processing: ProcessingConfig = ProcessingConfig()
+    status: StatusConfig = Field(default_factory=StatusConfig)
+    supervision: SupervisionConfig = SupervisionConfig()
+    live: LiveConfig = LiveConfig()
+    slam: dict[str, Any] = {}
+    landmarks: dict[str, Any] = {}
+    odometry: WheelModel | None = None
+    laser: LaserMount | None = None
+    lrf: Any = None
+    can: Any = None
+    camera: Any = None
 
 
 @dataclass(frozen=True)
@@ -167,8 +219,8 @@ class RobotConfig:
         none; several are a UserError (which of them a command-line URL means is unclear)."""
         tables = [d for d in self.devices if d.family == family]
         if len(tables) > 1:
-            raise UserError(f"{_where(self.source, family)}: {len(tables)} [[{family}]] tables; "
-                            f"which one goes with the --{family} URL?")
+            raise ConfigError(f"{_where(self.source, family)}: {len(tables)} [[{family}]] tables; "
+                              f"which one goes with the --{family} URL?")
         return {k: v for k, v in tables[0].options.items() if k != "name"} if tables else {}
 
 
@@ -176,81 +228,29 @@ def _where(source: str, key: str) -> str:
     return f"{source}: {key}" if source else key
 
 
-def _key(key: str) -> str:
-    """A TOML key as the message shows it: bare when plain, quoted otherwise (one line always)."""
-    return key if key.replace("_", "").replace("-", "").isalnum() else repr(key)
-
-
-def _typed(value: Any, expected: Any, key: str, source: str, positive: bool = False) -> Any:
-    """``value`` converted to the type of ``expected`` (the default), or a UserError naming ``key``;
-    a number must be finite and >= 0 (> 0 when ``positive``)."""
-    bad = UserError(f"{_where(source, key)} = {value!r}: expected {_type_name(expected, positive)}")
-    if isinstance(expected, bool):
-        if not isinstance(value, bool):
-            raise bad
-        return value
-    if isinstance(expected, (int, float)):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-            raise bad
-        if positive and value <= 0:
-            raise bad
-        if isinstance(expected, int):
-            if value != int(value):
-                raise bad
-            return int(value)
-        return float(value)
-    if isinstance(expected, (str, Path)) or expected is None:
-        if not isinstance(value, str) or not value:
-            raise bad
-        return Path(value).expanduser() if isinstance(expected, Path) or expected is None else value
-    raise AssertionError(expected)
-
-
-def _type_name(expected: Any, positive: bool = False) -> str:
-    if isinstance(expected, bool):
-        return "true or false"
-    if isinstance(expected, int):
-        return f"a whole number {'> 0' if positive else '>= 0'}"
-    if isinstance(expected, float):
-        return f"a number {'> 0' if positive else '>= 0'}"
-    return "a path" if isinstance(expected, Path) or expected is None else "a string"
-
-
-def _table(data: dict[str, Any], name: str, source: str) -> dict[str, Any]:
-    value = data.get(name, {})
-    if not isinstance(value, dict):
-        raise UserError(f"{_where(source, name)}: expected a table [{name}]")
-    return value
-
-
-def _build(cls: type, table: dict[str, Any], name: str, source: str) -> Any:
-    """A config dataclass from a TOML table: unknown keys, wrong types and values name the key."""
-    defaults = cls()
-    known = {f.name for f in fields(cls)}
-    values = {}
-    for key, value in table.items():
-        if key not in known:
-            raise UserError(f"{_where(source, f'unknown key {name}.{_key(key)}')} "
-                            f"(known in [{name}]: {', '.join(sorted(known))})")
-        values[key] = _typed(value, getattr(defaults, key), f"{name}.{key}", source, key in POSITIVE)
-    return cls(**values)
-
-
 def _discard(topic: str, msg: object, log_time_ns: int) -> None:
     """The sink of a driver built only to check its options."""
 
 
-def check_device(family: str, url: str, options: dict[str, Any], where: str) -> None:
-    """Build the driver for ``url`` with ``options`` (no device is opened) and check its wheel
-    model: the driver's own checks, as a UserError naming ``where`` (``robot.toml: lrf``)."""
+def check_device(family: str, url: str, options: dict[str, Any], where: str, key: str = "") -> None:
+    """Build the driver for ``url`` with ``options`` (no device is opened) and check the wheel model
+    of a ``[can]`` table: the driver's own checks, as a ConfigError naming ``where`` (the file) and
+    ``key`` (the table, e.g. ``camera[1]``; default the family)."""
+    key = key or family
     try:
-        make_driver(family, url, _discard, dict(options))
+        if url:
+            make_driver(family, url, _discard, dict(options))
         if family == "can":
-            odometry_from_config(options)
+            odometry_from_config(options, family)
     except UserError as error:
-        raise UserError(f"{where}: {error}") from None
-    except (TypeError, ValueError, KeyError) as error:  # an option of a shape the driver did not expect
-        raise UserError(f"{where}: bad option ({type(error).__name__}: {error})") from None
+        text = str(error)
+        for lead in (f"{family}.", f"{family}:", f"unknown key {family}."):
+            if text.startswith(lead):  # the driver named the key: name its table as the file does
+                text = lead.replace(family, key, 1) + text[len(lead):]
+                break
+        else:
+            text = f"{key}: {text}"
+        raise ConfigError(_where(where, text)) from None
 
 
 def _devices(data: dict[str, Any], source: str) -> tuple[Device, ...]:
@@ -263,139 +263,45 @@ def _devices(data: dict[str, Any], source: str) -> tuple[Device, ...]:
         for i, table in enumerate(tables):
             key = family if not isinstance(value, list) else f"{family}[{i}]"
             if not isinstance(table, dict):
-                raise UserError(f"{_where(source, key)}: expected a table [{family}] or [[{family}]]")
-            url = table.get("url", "")
-            if not isinstance(url, str):
-                raise UserError(f"{_where(source, key + '.url')} = {url!r}: expected the device URL as a string")
-            enabled = table.get("enabled", True)
-            if not isinstance(enabled, bool):
-                raise UserError(f"{_where(source, key + '.enabled')} = {enabled!r}: expected true or false")
-            name = table.get("name", family if not isinstance(value, list) else f"{family}{i}")
-            if not isinstance(name, str) or not name:
-                raise UserError(f"{_where(source, key + '.name')} = {name!r}: expected a string")
+                raise ConfigError(f"{_where(source, key)}: expected a table [{family}] or [[{family}]]")
+            common = parse(DeviceKeys, table, _where(source, key))
+            name = common.name or (family if not isinstance(value, list) else f"{family}{i}")
             if any(d.name == name for d in devices):
-                raise UserError(f"{_where(source, key + '.name')}: two devices are named {name!r}")
-            if enabled:
+                raise ConfigError(f"{_where(source, key + '.name')}: two devices are named {name!r}")
+            if common.enabled:
                 options = {k: v for k, v in table.items() if k not in ("url", "enabled")}
-                if url:
-                    check_device(family, url, options, _where(source, key))
-                devices.append(Device(family, name, url, options))
+                check_device(family, common.url, options, source, key)
+                devices.append(Device(family, name, common.url, options))
     return tuple(devices)
-
-
-def _transforms(data: dict[str, Any], source: str) -> tuple[StaticTransform, ...]:
-    value = data.get("transforms", [])
-    if not isinstance(value, list):
-        raise UserError(f"{_where(source, 'transforms')}: expected [[transforms]] tables")
-    out = []
-    for i, table in enumerate(value):
-        key = f"transforms[{i}]"
-        if not isinstance(table, dict):
-            raise UserError(f"{_where(source, key)}: expected a table")
-        unknown = sorted(set(table) - {"parent", "child", "xyz", "rpy"})
-        if unknown:
-            raise UserError(f"{_where(source, f'unknown key {key}.{_key(unknown[0])}')} (known: child, parent, rpy, xyz)")
-        names = []
-        for part in ("parent", "child"):
-            if not isinstance(table.get(part), str) or not table[part]:
-                raise UserError(f"{_where(source, f'{key}.{part}')}: missing frame name")
-            names.append(table[part])
-        triples = []
-        for part in ("xyz", "rpy"):
-            triple = table.get(part, [0.0, 0.0, 0.0])
-            if not (isinstance(triple, list) and len(triple) == 3 and all(_number(v) for v in triple)):
-                raise UserError(f"{_where(source, f'{key}.{part}')} = {triple!r}: expected three numbers")
-            triples.append(tuple(float(v) for v in triple))
-        out.append(StaticTransform(names[0], names[1], triples[0], triples[1]))
-    return tuple(out)
-
-
-def _number(value: Any) -> bool:
-    """A finite TOML number (not a boolean)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _odometry(data: dict[str, Any], source: str) -> dict[str, Any]:
-    table = _table(data, "odometry", source)
-    unknown = sorted(set(table) - set(ODOMETRY_KEYS))
-    if unknown:
-        raise UserError(f"{_where(source, f'unknown key odometry.{_key(unknown[0])}')} "
-                        f"(known in [odometry]: {', '.join(ODOMETRY_KEYS)})")
-    try:
-        if table:
-            odometry_from_config(table)
-    except (UserError, TypeError) as error:
-        raise UserError(f"{_where(source, 'odometry')}: {error}") from None
-    return dict(table)
-
-
-def _laser(data: dict[str, Any], source: str) -> tuple[float, float, float] | None:
-    table = _table(data, "laser", source)
-    unknown = sorted(set(table) - set(LASER_KEYS))
-    if unknown:
-        raise UserError(f"{_where(source, f'unknown key laser.{_key(unknown[0])}')} "
-                        f"(known in [laser]: {', '.join(LASER_KEYS)})")
-    for key, value in table.items():
-        if not _number(value):
-            raise UserError(f"{_where(source, f'laser.{key}')} = {value!r}: expected a number (m or rad)")
-    return tuple(float(table.get(k, 0.0)) for k in LASER_KEYS) if table else None  # type: ignore[return-value]
-
-
-TOP_LEVEL = {"robot", "frames", "transforms", "logger", "disk", "processing", "status", "supervision", "slam",
-             "odometry", "laser", "landmarks", "live", *FAMILIES}
 
 
 def parse_config(data: dict[str, Any], source: str = "") -> RobotConfig:
     """Check a decoded TOML document and build the configuration (``source`` names it in errors)."""
-    unknown = sorted(set(data) - TOP_LEVEL)
-    if unknown:
-        raise UserError(f"{_where(source, f'unknown key {_key(unknown[0])}')} (known tables: {', '.join(sorted(TOP_LEVEL))})")
-    robot_table = _table(data, "robot", source)
-    unknown = sorted(set(robot_table) - {"name"})
-    if unknown:
-        raise UserError(f"{_where(source, f'unknown key robot.{_key(unknown[0])}')} (known in [robot]: name)")
-    robot = _typed(robot_table.get("name", "trundle"), "", "robot.name", source)
-    logger_table = _table(data, "logger", source)
-    logger = _build(LoggerConfig, logger_table, "logger", source)
-    if "prefix" not in logger_table:
-        logger = LoggerConfig(**{**logger.__dict__, "prefix": robot})
-    if logger.compression not in COMPRESSIONS:
-        raise UserError(f"{_where(source, 'logger.compression')} = {logger.compression!r}: "
-                        f"expected one of {', '.join(COMPRESSIONS)}")
-    disk = _build(DiskConfig, _table(data, "disk", source), "disk", source)
-    if disk.action not in ACTIONS:
-        raise UserError(f"{_where(source, 'disk.action')} = {disk.action!r}: expected one of {', '.join(ACTIONS)}")
-    processing = _build(ProcessingConfig, _table(data, "processing", source), "processing", source)
+    document = parse(RobotDocument, data, f"{source}: " if source else "")
+    robot = document.robot.name
+    logger = document.logger
+    if "prefix" not in logger.model_fields_set:
+        logger = logger.model_copy(update={"prefix": robot})
     from trundle.perception.markers import dictionary_by_name  # OpenCV: only once a config is read
 
     try:
-        dictionary_by_name(processing.aruco_dictionary)
+        dictionary_by_name(document.processing.aruco_dictionary)
     except UserError as error:
-        raise UserError(f"{_where(source, 'processing.aruco_dictionary')}: {error}") from None
-    status = _build(StatusConfig, _table(data, "status", source), "status", source)
-    supervision = _build(SupervisionConfig, _table(data, "supervision", source), "supervision", source)
-    frames = _build(FramesConfig, _table(data, "frames", source), "frames", source)
+        raise ConfigError(f"{_where(source, 'processing.aruco_dictionary')}: {error}") from None
     devices = _devices(data, source)
-    slam = _table(data, "slam", source)
     from trundle.fusion.slam.grid_slam import SlamConfig  # SciPy: only once a config is read
-
-    try:
-        SlamConfig.from_mapping(slam)  # checked even while SLAM is off, so a typo shows at once
-    except UserError as error:
-        raise UserError(f"{_where(source, str(error))}") from None
-    landmarks = _table(data, "landmarks", source)
     from trundle.fusion.slam.landmark_slam import landmark_configs
 
     try:
-        landmark_configs(landmarks)
+        SlamConfig.from_mapping(document.slam)  # checked even while SLAM is off, so a typo shows at once
+        landmark_configs(document.landmarks)
     except UserError as error:
-        raise UserError(f"{_where(source, str(error))}") from None
-    live = _build(LiveConfig, _table(data, "live", source), "live", source)
-    if not 0 <= live.port <= 65535:
-        raise UserError(f"{_where(source, 'live.port')} = {live.port}: expected a TCP port 0-65535")
-    return RobotConfig(robot, devices, frames, _transforms(data, source), logger, disk, processing, status,
-                       supervision, dict(slam), _odometry(data, source), _laser(data, source), live, source,
-                       dict(landmarks))
+        raise ConfigError(_where(source, str(error))) from None
+    laser = document.laser
+    return RobotConfig(robot, devices, document.frames, tuple(document.transforms), logger, document.disk,
+                       document.processing, document.status, document.supervision, dict(document.slam),
+                       dict(data.get("odometry", {})), (laser.x_m, laser.y_m, laser.yaw_rad) if laser else None,
+                       document.live, source, dict(document.landmarks))
 
 
 def _check_folder(folder: Path, where: str) -> None:
@@ -405,16 +311,16 @@ def _check_folder(folder: Path, where: str) -> None:
         existing = existing.parent
     if not existing.is_dir():
         made = "" if existing == folder else f" (so {folder} cannot be made)"
-        raise UserError(f"{where} = {str(folder)!r}: {existing} is not a folder{made}")
+        raise ConfigError(f"{where} = {str(folder)!r}: {existing} is not a folder{made}")
     try:
         disk = os.statvfs(existing)
     except OSError as error:
-        raise UserError(f"{where} = {str(folder)!r}: cannot look at {existing}: {error.strerror}") from None
+        raise ConfigError(f"{where} = {str(folder)!r}: cannot look at {existing}: {error.strerror}") from None
     if disk.f_blocks == 0:
-        raise UserError(f"{where} = {str(folder)!r}: {existing} is on a virtual file system (like /proc), not a disk")
+        raise ConfigError(f"{where} = {str(folder)!r}: {existing} is on a virtual file system (like /proc), not a disk")
     if not os.access(existing, os.W_OK | os.X_OK):
         what = "write in" if existing == folder else "make a folder in"
-        raise UserError(f"{where} = {str(folder)!r}: no permission to {what} {existing}")
+        raise ConfigError(f"{where} = {str(folder)!r}: no permission to {what} {existing}")
 
 
 def check_daemon_config(config: RobotConfig) -> None:
@@ -422,16 +328,16 @@ def check_daemon_config(config: RobotConfig) -> None:
     for every device, at least one device, the live view's extra if it is enabled."""
     source = config.source
     if config.logger.folder is None:
-        raise UserError(f"{_where(source, 'logger.folder')}: missing (where the logs go)")
+        raise ConfigError(f"{_where(source, 'logger.folder')}: missing (where the logs go)")
     _check_folder(config.logger.folder, _where(source, "logger.folder"))
     if not config.devices:
-        raise UserError(f"{_where(source, 'no device')}: add an [lrf], [can] or [camera] table with a url")
+        raise ConfigError(f"{_where(source, 'no device')}: add an [lrf], [can] or [camera] table with a url")
     for device in config.devices:
         if not device.url:
-            raise UserError(f"{_where(source, device.family + '.url')}: missing (the device URL, as for "
+            raise ConfigError(f"{_where(source, device.family + '.url')}: missing (the device URL, as for "
                             f"trundle record --{device.family})")
     if config.live.enabled and importlib.util.find_spec("foxglove") is None:
-        raise UserError(f"{_where(source, 'live.enabled')}: the live view needs the optional extra: "
+        raise ConfigError(f"{_where(source, 'live.enabled')}: the live view needs the optional extra: "
                         "pip install 'trundle[live]' (foxglove-sdk)")
 
 
@@ -439,11 +345,11 @@ def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The TOML document at ``path``; a missing, unreadable or invalid file is one UserError line."""
     path = Path(path)
     if not path.exists():
-        raise UserError(f"config file not found: {path}")
+        raise ConfigError(f"config file not found: {path}")
     try:
         return tomllib.loads(read_text(path, "TOML config file"))
     except tomllib.TOMLDecodeError as error:
-        raise UserError(f"{path}: not valid TOML ({error})") from None
+        raise ConfigError(f"{path}: not valid TOML ({error})") from None
 
 
 def load_config(path: str | os.PathLike[str] | None) -> RobotConfig:

@@ -15,6 +15,7 @@ import hashlib
 import importlib
 import inspect
 import json
+import math
 import types
 import typing
 from collections.abc import Callable, Mapping, Sequence
@@ -23,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from trundle import __version__
-from trundle.logs.errors import UserError
+from trundle.logs.errors import ConfigError, UserError
 from trundle.tools.config.robot import RobotConfig, parse_config, read_toml
 
 
@@ -126,9 +127,12 @@ def _convert(job: str, name: str, kind: str, text: str) -> Any:
     try:
         if kind == "int-or-text":
             return int(text) if text.lstrip("+-").isdigit() else text
-        return {"float": float, "int": int, "text": str}[kind](text)
+        value = {"float": float, "int": int, "text": str}[kind](text)
     except ValueError:
-        raise UserError(f"{where}: needs a{'n integer' if kind == 'int' else ' number'}, got {text!r}") from None
+        raise ConfigError(f"{where} = {text!r}: expected a{' whole' if kind == 'int' else ''} number") from None
+    if kind == "float" and not math.isfinite(value):
+        raise ConfigError(f"{where} = {text!r}: expected a finite number")
+    return value
 
 
 def parse_options(job: str, items: Sequence[str]) -> dict[str, Any]:

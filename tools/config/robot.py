@@ -9,7 +9,7 @@ Tables (``example.toml`` has them all; ``trundle daemon --print-example-config``
   opened), so a bad URL or option is found before anything runs;
 - ``[robot]``, ``[frames]``, ``[[transforms]]``, ``[logger]``, ``[disk]``, ``[processing]``,
   ``[status]``, ``[supervision]``, ``[live]``: the daemon's own;
-- ``[slam]``: :class:`trundle.fusion.slam.grid_slam.SlamConfig` options; ``[odometry]``: the wheel model
+- ``[slam]``: :class:`trundle.fusion.slam.config.SlamConfig` options; ``[odometry]``: the wheel model
   ``slam`` and ``localize`` use instead of the log's (``wheel_radius_m``, ``track_m``, ``wheels``,
   ``wheel_variance_per_m``); ``[laser]``: the laser mount (``x_m``, ``y_m``, ``yaw_rad``).
 
@@ -377,7 +377,7 @@ def parse_config(data: dict[str, Any], source: str = "") -> RobotConfig:
     frames = _build(FramesConfig, _table(data, "frames", source), "frames", source)
     devices = _devices(data, source)
     slam = _table(data, "slam", source)
-    from trundle.fusion.slam.grid_slam import SlamConfig  # SciPy: only once a config is read
+    from trundle.fusion.slam.config import SlamConfig  # pydantic: only once a config is read
 
     try:
         SlamConfig.from_mapping(slam)  # checked even while SLAM is off, so a typo shows at once

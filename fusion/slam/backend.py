@@ -196,6 +196,7 @@ class PoseGraphBackend:
 
     def map_residuals(self, grid: LogOddsGrid) -> np.ndarray:
         """Mean distance (m) of each keyframe's points to ``grid``'s occupied cells at its optimised pose."""
-        residuals = [refine_pose(grid, voxel_filter(points, self.config.scan.voxel_m), pose, max_iterations=0).residual_m
+        voxel = self.config.scan.voxel_m
+        residuals = [refine_pose(grid, voxel_filter(points, voxel), pose, max_iterations=0).residual_m
                      for pose, points in zip(self.graph.poses, self._points)]
         return np.array(residuals)

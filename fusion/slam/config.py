@@ -12,7 +12,7 @@ costs pydantic and NumPy only (no SciPy), so a config is checked before any SLAM
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, Field, model_validator
@@ -23,8 +23,8 @@ from trundle.logs.schema import Pair, Schema, parse
 ANGLE = math.pi
 
 
-def _window(limit: float) -> Any:
-    """A search window (low, high): both in [0, ``limit``], low <= high."""
+def _within(limit: float) -> Callable[[tuple[float, float]], tuple[float, float]]:
+    """A check of a search window (low, high): both in [0, ``limit``], low <= high."""
 
     def check(value: tuple[float, float]) -> tuple[float, float]:
         low, high = value
@@ -32,7 +32,7 @@ def _window(limit: float) -> Any:
             raise ValueError(f"expected [low, high] with 0 <= low <= high <= {limit:g}")
         return value
 
-    return Annotated[Pair, AfterValidator(check)]
+    return check
 
 
 Metres = Annotated[float, Field(ge=0.0, le=100.0)]
@@ -43,8 +43,10 @@ Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
 """A score or share, 0-1."""
 Count = Annotated[int, Field(ge=0, le=1_000_000)]
 """A number of keyframes or candidates, 0-1e6."""
-WindowXY = _window(100.0)
-WindowTheta = _window(ANGLE)
+WindowXY = Annotated[Pair, AfterValidator(_within(100.0))]
+"""A search window's translation bounds (low, high), 0-100 m."""
+WindowTheta = Annotated[Pair, AfterValidator(_within(ANGLE))]
+"""A search window's rotation bounds (low, high), 0-pi rad."""
 
 
 class ScanOptions(Schema):

@@ -179,7 +179,8 @@ class LocalTrajectoryBuilder:
                            relative(self._keyframe_local, pose_local), insertion)
 
     def _is_keyframe(self, pose_local: np.ndarray, stamp_ns: int) -> bool:
-        """The motion filter: the first scan, and one far enough, turned enough or long enough after the last keyframe."""
+        """The motion filter: the first scan, and one far enough, turned enough or long enough after the
+        last keyframe."""
         opts = self.config.keyframes
         if not self._keyframes:
             return True

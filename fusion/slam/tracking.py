@@ -10,7 +10,7 @@ failed match is retried over the widest window, and at any heading.
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -107,8 +107,8 @@ class Tracker:
                 return self._fuse(result), searched
         elif odom_step is None and usual:
             return self._fuse(result), searched
-        elif odom_step is None:  # motion unlike any seen lately (a robot that turned on the spot sets off): the widest window,
-            # around the prediction and around the last pose (a velocity extrapolated too far)
+        elif odom_step is None:  # motion unlike any seen lately (a robot that turned on the spot sets off):
+            # the widest window, around the prediction and around the last pose (a velocity extrapolated too far)
             widest = np.diag([(tracking.search_window_xy_m[1] / 3.0) ** 2] * 2
                              + [(tracking.search_window_theta_rad[1] / 3.0) ** 2])
             centres = [self.ekf.pose] if motion.predictor == "standstill" else [self.ekf.pose, before.pose]

@@ -46,6 +46,13 @@ def _triple(value: Any) -> Any:
     return tuple(value)
 
 
+def _pair(value: Any) -> Any:
+    """A TOML array of two becomes a tuple (strict mode refuses a list for a tuple)."""
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise ValueError("expected two numbers")
+    return tuple(value)
+
+
 def _path(value: Any) -> Any:
     """A non-empty string becomes a Path with ``~`` expanded; anything else stays as it is, refused."""
     return Path(value).expanduser() if isinstance(value, str) and value else value
@@ -53,6 +60,9 @@ def _path(value: Any) -> Any:
 
 Triple = Annotated[tuple[float, float, float], BeforeValidator(_triple)]
 """Three finite numbers (a TOML array), e.g. a translation in metres or roll, pitch, yaw in radians."""
+
+Pair = Annotated[tuple[float, float], BeforeValidator(_pair)]
+"""Two finite numbers (a TOML array), e.g. the lower and upper bound of a search window."""
 
 PathValue = Annotated[Path, BeforeValidator(_path)]
 """A path given as a non-empty string."""

@@ -40,6 +40,12 @@ BAD = {
     "timeout below its range": ({"lrf": {**LASER, "timeout_s": -1}}, "lrf.timeout_s = -1: expected a number > 0"),
     "nan": ({"lrf": {**LASER, "x": math.nan}}, "lrf.x = nan: expected a finite number"),
     "frame id is a string": ({"lrf": {**LASER, "frame_id": 5}}, "lrf.frame_id = 5: expected a string"),
+    "slam integer refuses 25.7": ({"slam": {"submaps": {"scans_per_submap": 25.7}}},
+                                  "slam.submaps.scans_per_submap = 25.7: expected a whole number"),
+    "slam number refuses a string": ({"slam": {"submaps": {"resolution": "0.05"}}},
+                                     "slam.submaps.resolution = '0.05': expected a number"),
+    "slam float inside its range": ({"slam": {"submaps": {"resolution": 1e300}}},
+                                    "slam.submaps.resolution = 1e+300: expected a number <= 1"),
     "unknown key named with the known": ({"live": {"adress": "0.0.0.0"}},
                                          "unknown key live.adress (known in [live]: enabled, host, port)"),
 }

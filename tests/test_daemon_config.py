@@ -39,7 +39,7 @@ def test_example_config_parses_with_every_section():
     assert config.logger.folder == Path("/var/lib/trundle/logs") and config.logger.prefix == "trundle"
     assert config.logger.split_size_mb == 1024.0 and config.disk.action == "delete_oldest"
     assert config.status.socket == Path("/run/trundle/status.sock")
-    assert config.slam == {"resolution": 0.05}
+    assert config.slam == {"submaps": {"resolution": 0.05, "scans_per_submap": 25}, "loop_closure": {"enabled": True}}
     assert not config.live.enabled and config.live.host == "127.0.0.1" and config.live.port == 8765
 
 
@@ -58,7 +58,10 @@ def test_example_config_parses_with_every_section():
     (lambda d: d["transforms"][0].update(yaw=1.0), "unknown key transforms[0].yaw"),
     (lambda d: d["robot"].update(id=3), "unknown key robot.id"),
     (lambda d: d["live"].update(port=70000), "live.port = 70000"),
-    (lambda d: d["slam"].update(resolutoin=0.1), "unknown [slam] option 'resolutoin'"),
+    (lambda d: d["slam"].update(resolutoin=0.1), "unknown key slam.resolutoin (known in [slam]: keyframes, "),
+    (lambda d: d["slam"]["submaps"].update(scans_per_submap=25.7), "slam.submaps.scans_per_submap = 25.7: expected a whole"),
+    (lambda d: d["slam"]["submaps"].update(resolution="0.05"), "slam.submaps.resolution = '0.05': expected a number"),
+    (lambda d: d["slam"]["submaps"].update(resolution=1e300), "slam.submaps.resolution = 1e+300: expected a number <= 1"),
     (lambda d: d["live"].update(adress="0.0.0.0"), "unknown key live.adress"),
     (lambda d: d.update(camera=[{"url": "http://127.0.0.1:1/a", "name": "cam"},
                                 {"url": "http://127.0.0.1:1/b", "name": "cam"}]), "two devices are named 'cam'"),
@@ -74,10 +77,10 @@ def test_example_config_parses_with_every_section():
     (lambda d: d["camera"].update(url="v4l2:///dev/video0?width=abc&height=480"), "camera.width = 'abc': expected a whole number"),
     (lambda d: d["can"].update(encoders="odrive:0,99"), "node id 0..63"),
     (lambda d: d["processing"].update(aruco_dictionary="DICT_7X7_5"), "unknown ArUco dictionary 'DICT_7X7_5'"),
-    (lambda d: d["slam"].update(resolution=0), "[slam] resolution = 0"),
-    (lambda d: d["slam"].update(resolution=-0.05), "[slam] resolution = -0.05"),
-    (lambda d: d["slam"].update(resolution=float("nan")), "[slam] resolution = nan"),
-    (lambda d: d["slam"].update(resolution=float("inf")), "[slam] resolution = inf"),
+    (lambda d: d["slam"]["submaps"].update(resolution=0), "slam.submaps.resolution = 0"),
+    (lambda d: d["slam"]["submaps"].update(resolution=-0.05), "slam.submaps.resolution = -0.05"),
+    (lambda d: d["slam"]["submaps"].update(resolution=float("nan")), "slam.submaps.resolution = nan"),
+    (lambda d: d["slam"]["submaps"].update(resolution=float("inf")), "slam.submaps.resolution = inf"),
     (lambda d: d["logger"].update(flush_period_s=0), "logger.flush_period_s = 0"),
     (lambda d: d["logger"].update(folder="/proc/trundle"), "/proc is on a virtual file system"),
     (lambda d: d["logger"].update(folder="/proc"), "/proc is on a virtual file system"),

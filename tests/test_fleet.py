@@ -43,9 +43,9 @@ def log(tmp_path_factory) -> Path:
 
 def test_job_options_are_converted_by_the_job_functions_type_hints(tmp_path) -> None:
     config = tmp_path / "robot.toml"
-    config.write_text("[slam]\nloop_closure = false\n")
+    config.write_text("[slam.loop_closure]\nenabled = false\n")
     assert parse_options("slam", [f"config={config}", "local_only=yes"]) == \
-        {"config": {"slam": {"loop_closure": False}}, "local_only": True}
+        {"config": {"slam": {"loop_closure": {"enabled": False}}}, "local_only": True}
     assert parse_options("characterize", ["topic=/scan", "beam=3", "stated_min=0.02", "bits=12"]) == \
         {"topic": "/scan", "beam": 3, "stated_min": 0.02, "bits": 12}
     assert parse_options("characterize", ["topic=/scan", "beam=all"])["beam"] == "all"
@@ -70,7 +70,8 @@ def test_job_options_are_converted_by_the_job_functions_type_hints(tmp_path) -> 
     ("slam", ["local_only"], "--job-options needs KEY=VALUE, got 'local_only'"),
     ("localize", ["map_path=/no/such/map"], "localize option map_path: no such file or folder: /no/such/map"),
     ("slam", ["config=/no/such.toml"], "config file not found: /no/such.toml"),
-    ("slam", ['config={"slam": {"resolution": 0}}'], "slam option config: [slam] resolution = 0: expected a number > 0"),
+    ("slam", ['config={"slam": {"submaps": {"resolution": 0}}}'],
+     "slam option config: slam.submaps.resolution = 0: expected a number >= 0.001"),
     ("slam", ["config={1: 2}"], "slam option config: invalid JSON"),
     ("perceive", ["pipeline=color", "options=[1]"], "config file not found: [1]"),
     ("walk", [], "unknown job 'walk'"),

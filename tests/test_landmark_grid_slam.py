@@ -12,9 +12,10 @@ from tests.planar_world import ROOM, scan
 from tests.test_slam import loop_path
 from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error, landmark_error
 from trundle.fusion.geometry import compose, relative
-from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
+from trundle.fusion.slam.estimators import EstimatorInputs, make_estimator
 from trundle.fusion.odometry.drift import drifting_odometry
-from trundle.fusion.slam.grid_slam import Slam, SlamConfig
+from trundle.fusion.slam.config import SlamConfig
+from trundle.fusion.slam.grid_slam import Slam
 from trundle.logs import messages as m
 
 # markers on the walls of the test room, facing into it: (x, y, facing yaw)
@@ -76,11 +77,11 @@ def test_markers_seen_again_hold_the_map_together():
     odometry = drifting_odometry(truth, scale_error=0.05, heading_drift_rad_per_m=math.radians(3.0), seed=4)
     odometry = compose(truth[0], relative(np.broadcast_to(odometry[0], odometry.shape), odometry))
     reference = Trajectory(1_000_000_000 + np.arange(len(truth)) * 500_000_000, truth)
-    config = SlamConfig(loop_closure=False)
+    config = SlamConfig.from_mapping({"loop_closure": {"enabled": False}})
     without = absolute_trajectory_error(_run(Slam(config), truth, odometry, markers=False), reference)
-    slam = LandmarkGridSlam(config)
+    slam = make_estimator("grid-landmarks", EstimatorInputs(config))
     with_markers = absolute_trajectory_error(_run(slam, truth, odometry, markers=True), reference)
-    assert slam.landmark_stats.joint_optimizations >= 2   # a marker seen again on the way, and the end
+    assert slam.landmark_constraints.stats.joint_optimizations >= 2   # a marker seen again on the way, and the end
     assert with_markers.rmse_m < 0.5 * without.rmse_m, (with_markers.rmse_m, without.rmse_m)
     mapped = slam.landmarks()
     error = landmark_error(mapped.ids, mapped.positions, [f"aruco_{k}" for k in range(len(MARKERS))], MARKERS[:, :2],
@@ -93,11 +94,11 @@ def test_markers_seen_again_hold_the_map_together():
 
 
 def test_anonymous_and_early_sightings_are_counted_not_used():
-    slam = LandmarkGridSlam()
+    slam = make_estimator("grid-landmarks")
     slam.process("/landmarks", m.LandmarkList(0, "base_link", (m.LandmarkObservation("7", 1.0, 0.0, np.eye(2) * 0.01),)))
     slam.process("/scan", scan(ROOM, np.zeros(3), beams=271, fov=math.radians(270.0), stamp_ns=1))
     slam.process("/landmarks", m.LandmarkList(2, "base_link", (m.LandmarkObservation("", 1.0, 0.0, np.eye(2) * 0.01),)))
-    assert (slam.landmark_stats.before_first_scan, slam.landmark_stats.anonymous, slam.landmark_stats.sightings) == (1, 1, 0)
+    assert (slam.landmark_constraints.stats.before_first_scan, slam.landmark_constraints.stats.anonymous, slam.landmark_constraints.stats.sightings) == (1, 1, 0)
     slam.finish()
     assert slam.landmarks().ids == []
 
@@ -124,7 +125,7 @@ def test_a_marker_seen_on_one_approach_is_placed_by_its_range_not_by_the_turns_b
     xs = np.arange(-3.0, 3.4, 0.1)
     truth = np.column_stack([xs + 0.0123, np.full_like(xs, -0.2), np.zeros_like(xs)])
     rng = np.random.default_rng(5)
-    slam = LandmarkGridSlam(SlamConfig(loop_closure=False))
+    slam = make_estimator("grid-landmarks", EstimatorInputs(SlamConfig.from_mapping({"loop_closure": {"enabled": False}})))
     for k, pose in enumerate(truth):
         stamp = 1_000_000_000 + k * 100_000_000
         sway = np.array([0.0, 0.0, math.radians(0.4) * math.sin(2 * math.pi * k / 60)])
@@ -137,7 +138,7 @@ def test_a_marker_seen_on_one_approach_is_placed_by_its_range_not_by_the_turns_b
             continue
         slam.process("/landmarks", m.LandmarkList(stamp, "base_link", (_pnp_sighting(rng, "aruco_0", local[:2]),)))
     slam.finish()
-    assert slam.landmark_stats.sightings == 27 and slam.landmark_stats.time_offset_s == 0.0
+    assert slam.landmark_constraints.stats.sightings == 27 and slam.landmark_constraints.stats.time_offset_s == 0.0
     stamps, poses = slam.trajectory()
     ate = absolute_trajectory_error(Trajectory(stamps, poses), Trajectory(stamps, truth))
     mapped = slam.landmarks()
@@ -157,7 +158,7 @@ def test_a_camera_that_stamps_late_is_found_out_while_the_robot_turns(lag_s):
         return np.array([-0.5 + 1.2 * math.sin(heading), 0.3 - 1.2 * math.cos(heading), heading])
 
     rng = np.random.default_rng(3)
-    slam = LandmarkGridSlam(SlamConfig(loop_closure=False))
+    slam = make_estimator("grid-landmarks", EstimatorInputs(SlamConfig.from_mapping({"loop_closure": {"enabled": False}})))
     for k in range(251):
         t = 0.1 * k
         stamp = 1_000_000_000 + k * 100_000_000
@@ -175,11 +176,11 @@ def test_a_camera_that_stamps_late_is_found_out_while_the_robot_turns(lag_s):
                 seen.append(_pnp_sighting(rng, f"aruco_{j}", local[:2]))
         slam.process("/landmarks", m.LandmarkList(stamp + 50_000_000, "base_link", tuple(seen)))
     slam.finish()
-    assert abs(slam.landmark_stats.time_offset_s + lag_s) <= 0.01 if lag_s else slam.landmark_stats.time_offset_s == 0.0
+    assert abs(slam.landmark_constraints.stats.time_offset_s + lag_s) <= 0.01 if lag_s else slam.landmark_constraints.stats.time_offset_s == 0.0
     stamps, poses = slam.trajectory()
     truth = np.array([pose_at(0.1 * k) for k in range(251)])
     ate = absolute_trajectory_error(Trajectory(stamps, poses), Trajectory(stamps, truth))
     mapped = slam.landmarks()
     error = landmark_error(mapped.ids, mapped.positions, [f"aruco_{k}" for k in range(len(MARKERS))], MARKERS[:, :2],
                            ate.alignment_xyt)
-    assert error.count >= 3 and error.max_m < 0.03, (error, slam.landmark_stats)
+    assert error.count >= 3 and error.max_m < 0.03, (error, slam.landmark_constraints.stats)

@@ -44,7 +44,7 @@ def test_default_slam_is_the_landmark_graph_within_15_cm_and_10_cm(robot1, capsy
     run = robot1 / "graph"
     assert main(["slam", str(robot1 / "r1.mcap"), "-o", str(run)]) == 0
     ate, landmarks, report = _score(robot1, run)
-    assert report["estimator"] == "graph" and report["landmarks"] == 15
+    assert report["estimator"] == "landmark-graph" and report["landmarks"] == 15
     assert ate <= 0.15 and landmarks <= 0.10, (ate, landmarks)
     # the sightings' range errors are correlated for seconds (measured against Vicon: 0.9 at 0.5 s)
     assert report["stats"]["correlation_time_s"]["range_bearing"][0] > 1.0

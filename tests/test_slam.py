@@ -6,12 +6,14 @@ import math
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from trundle.fusion.geometry import compose, relative, wrap_angle
 from trundle.fusion.odometry.drift import drifting_odometry
-from trundle.fusion.slam.grid_slam import Slam, SlamConfig
+from trundle.fusion.slam.config import SlamConfig
+from trundle.fusion.slam.grid_slam import Slam
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.errors import ConfigError
 from tests.planar_world import ROOM, scan
 
 WAYPOINTS = np.array([(-4.2, -2.3), (0.0, -2.3), (0.0, 0.3), (4.4, 0.3), (4.4, 3.3), (-4.2, 3.3), (-4.2, -2.3)])
@@ -116,8 +118,42 @@ def test_keyframes_trajectory_and_map_are_consistent() -> None:
 
 
 def test_config_from_mapping_checks_keys_and_types() -> None:
-    config = SlamConfig.from_mapping({"resolution": 0.1, "loop_closure": False, "search_window_xy_m": [0.2, 2]})
-    assert config.resolution == 0.1 and config.loop_closure is False and config.search_window_xy_m == (0.2, 2.0)
-    for bad in ({"resolutoin": 0.1}, {"resolution": "fine"}, {"loop_closure": 1}, {"search_window_xy_m": [1]}):
-        with pytest.raises(UserError):
-            SlamConfig.from_mapping(bad)
+    config = SlamConfig.from_mapping({"submaps": {"resolution": 0.1}, "loop_closure": {"enabled": False},
+                                      "tracking": {"search_window_xy_m": [0.2, 2]}})
+    assert config.submaps.resolution == 0.1 and config.loop_closure.enabled is False
+    assert config.tracking.search_window_xy_m == (0.2, 2.0) and config.submaps.scans_per_submap == 25
+    assert SlamConfig.from_mapping({"submaps": {"resolution": 1}}).submaps.resolution == 1.0  # a TOML integer is a number
+
+
+@pytest.mark.parametrize("table, message", [
+    ({"submaps": {"scans_per_submap": 25.7}}, "slam.submaps.scans_per_submap = 25.7: expected a whole number"),
+    ({"loop_closure": {"every_keyframes": 2.5}}, "slam.loop_closure.every_keyframes = 2.5: expected a whole number"),
+    ({"loop_closure": {"max_candidates": 1.9}}, "slam.loop_closure.max_candidates = 1.9: expected a whole number"),
+    ({"submaps": {"resolution": "0.05"}}, "slam.submaps.resolution = '0.05': expected a number"),
+    ({"submaps": {"resolution": 1e300}}, "slam.submaps.resolution = 1e+300: expected a number <= 1"),
+    ({"submaps": {"resolution": float("nan")}}, "slam.submaps.resolution = nan: expected a finite number"),
+    ({"submaps": {"resolution": 0}}, "slam.submaps.resolution = 0: expected a number >= 0.001"),
+    ({"tracking": {"gate_chi2": float("inf")}}, "slam.tracking.gate_chi2 = inf: expected a finite number"),
+    ({"loop_closure": {"enabled": 1}}, "slam.loop_closure.enabled = 1: expected true or false"),
+    ({"tracking": {"search_window_xy_m": [1]}}, "slam.tracking.search_window_xy_m = [1]: expected two numbers"),
+    ({"tracking": {"search_window_xy_m": [2, 1]}}, "slam.tracking.search_window_xy_m = [2, 1]: expected [low, high]"),
+    ({"scan": {"min_range_m": 5, "max_range_m": 4}}, "max_range_m 4.0 must be above min_range_m 5.0"),
+    ({"optimization": {"robust_kernel": "tukey"}}, "slam.optimization.robust_kernel = 'tukey': expected one of"),
+    ({"resolution": 0.05}, "unknown key slam.resolution (known in [slam]: keyframes, loop_closure, map_check, "
+                           "odometry, optimization, scan, submaps, tracking)"),
+    ({"submaps": {"resolutoin": 0.1}}, "unknown key slam.submaps.resolutoin (known in [slam.submaps]: resolution, "
+                                       "scans_per_submap)"),
+])
+def test_config_refuses_bad_values_in_one_line(table, message) -> None:
+    with pytest.raises(ConfigError) as error:
+        SlamConfig.from_mapping(table)
+    assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def test_config_is_frozen_and_replace_checks() -> None:
+    config = SlamConfig()
+    with pytest.raises(ValidationError):
+        config.submaps.resolution = 0.1  # type: ignore[misc]
+    assert config.replace("loop_closure", enabled=False).loop_closure.enabled is False and config.loop_closure.enabled
+    with pytest.raises(ConfigError, match="scans_per_submap = 0"):
+        config.replace("submaps", scans_per_submap=0)

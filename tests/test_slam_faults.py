@@ -12,7 +12,8 @@ import pytest
 from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.fusion.odometry.faults import OdometryFault, dropped, faulty_wheels
-from trundle.fusion.slam.grid_slam import Slam, SlamConfig
+from trundle.fusion.slam.config import SlamConfig
+from trundle.fusion.slam.grid_slam import Slam
 from trundle.logs import messages as m
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
@@ -68,7 +69,7 @@ def test_sharp_heading_glitches_are_rejected_and_bridged(office) -> None:
 
 
 def test_without_the_odometry_check_a_glitch_breaks_the_map_and_the_check_says_so(office) -> None:
-    slam, ate = run(office, GLITCHES, SlamConfig(odometry_check=False))
+    slam, ate = run(office, GLITCHES, SlamConfig.from_mapping({"odometry": {"check": False}}))
     check = slam.check_map()
     assert ate > 0.3
     assert not check.passed and any(b - a + 1 >= check.min_stretch for a, b in check.stretches)

@@ -30,9 +30,9 @@ def files(tmp_path: Path) -> Path:
     (zero / "map.yaml").write_text((tmp_path / "map" / "map.yaml").read_text().replace("resolution: 0.05",
                                                                                        "resolution: 0"))
     (zero / "map.pgm").write_bytes((tmp_path / "map" / "map.pgm").read_bytes())
-    for name, text in (("res0", "[slam]\nresolution = 0\n"), ("resneg", "[slam]\nresolution = -0.05\n"),
-                       ("resnan", "[slam]\nresolution = nan\n"), ("resinf", "[slam]\nresolution = inf\n"),
-                       ("resfine", "[slam]\nresolution = 0.0005\n"), ("url5", "[lrf]\nurl = 5\n")):
+    for name, text in (("res0", "[slam.submaps]\nresolution = 0\n"), ("resneg", "[slam.submaps]\nresolution = -0.05\n"),
+                       ("resnan", "[slam.submaps]\nresolution = nan\n"), ("resinf", "[slam.submaps]\nresolution = inf\n"),
+                       ("resfine", "[slam.submaps]\nresolution = 0.0005\n"), ("url5", "[lrf]\nurl = 5\n")):
         (tmp_path / f"{name}.toml").write_text(text)
     return tmp_path
 
@@ -42,11 +42,11 @@ CASES = [
     (["slam", "{log}", "-o", "{d}/file.txt"], "is a file, not a folder"),
     (["characterize", "{log}", "--topic", "/scan", "-o", "{d}/file.txt"], "is a file, not a folder"),
     (["demo", "-o", "{d}/file.txt"], "is a file, not a folder"),
-    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/res0.toml"], "[slam] resolution = 0"),
-    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resneg.toml"], "[slam] resolution = -0.05"),
-    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resnan.toml"], "[slam] resolution = nan"),
-    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resinf.toml"], "[slam] resolution = inf"),
-    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resfine.toml"], "use a coarser [slam] resolution"),
+    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/res0.toml"], "slam.submaps.resolution = 0: expected a number >= 0.001"),
+    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resneg.toml"], "slam.submaps.resolution = -0.05"),
+    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resnan.toml"], "slam.submaps.resolution = nan"),
+    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resinf.toml"], "slam.submaps.resolution = inf"),
+    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resfine.toml"], "slam.submaps.resolution = 0.0005: expected a number >= 0.001"),
     (["localize", "{log}", "--map", "{d}/map/map.pgm"], "is a map image: give its YAML"),
     (["localize", "{log}", "--map", "{d}/binary.bin"], "is not a map YAML (binary data)"),
     (["localize", "{log}", "--map", "{d}/zero"], "resolution = 0 must be a number in"),

@@ -238,7 +238,7 @@ class LogOddsGrid:
         if int(new_h) * int(new_w) > MAX_CELLS:
             raise UserError(f"the map would grow to {int(new_w)} x {int(new_h)} cells at {self.resolution:g} m per "
                             f"cell ({int(new_w) * self.resolution:.0f} x {int(new_h) * self.resolution:.0f} m), over "
-                            f"the {MAX_CELLS:,} cell limit: use a coarser [slam] resolution")
+                            f"the {MAX_CELLS:,} cell limit: use a coarser [slam.submaps] resolution")
         grown = np.zeros((int(new_h), int(new_w)), np.float32)
         seen = np.zeros((int(new_h), int(new_w)), bool)
         if height:

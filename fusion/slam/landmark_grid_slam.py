@@ -1,9 +1,10 @@
-"""Grid SLAM with landmarks in its pose graph: marker sightings tighten the map as Cartographer's
+"""Landmarks in the grid SLAM's pose graph: marker sightings tighten the map as Cartographer's
 landmark constraints do.
 
-:class:`LandmarkGridSlam` is the grid SLAM of :mod:`trundle.fusion.slam.grid_slam` plus LandmarkList
-messages. A sighting (an id is needed: the grid SLAM does not associate anonymous features) is
-tied to the keyframe of the latest scan: the robot's pose at the sighting's stamp in that
+:class:`LandmarkConstraints` is a constraint source of the grid SLAM's back end
+(:class:`trundle.fusion.slam.backend.ConstraintSource`); the facade
+(:class:`trundle.fusion.slam.grid_slam.Slam`) routes LandmarkList messages to it. A sighting (an
+id is needed: the grid SLAM does not associate anonymous features) is tied to the keyframe of the latest scan: the robot's pose at the sighting's stamp in that
 keyframe's frame is the scan's offset from its keyframe composed with the odometry since the
 scan, and the landmark goes through it into the keyframe's frame. A marker with its full pose is
 a landmark *pose* with a between factor (x, y, yaw), like Cartographer's translation and rotation
@@ -37,10 +38,11 @@ import numpy as np
 
 from trundle.fusion.optimization.error_correlation import decorrelated_information
 from trundle.fusion.optimization.factor_graph import BETWEEN, POSITION, FactorGraph
-from trundle.fusion.geometry import compose, relative, rotation, wrap_angle
+from trundle.fusion.geometry import compose, rotation, wrap_angle
+from trundle.fusion.optimization.pose_graph import PoseGraph
+from trundle.fusion.slam.backend import PoseGraphBackend
+from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.landmark_slam import LandmarkMap, between_covariance
-from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
-from trundle.fusion.slam.grid_slam import ScanResult, Slam, SlamConfig
 from trundle.logs import messages as m
 from trundle.logs.topics import LANDMARK_TOPIC
 
@@ -100,18 +102,19 @@ class LandmarkGridStats:
     correlation_time_s: dict[str, list[float]] = field(default_factory=dict)
 
 
-class LandmarkGridSlam(Slam):
-    """Grid SLAM whose pose graph also holds the landmarks of ``landmark_topic`` (see the module docstring)."""
+class LandmarkConstraints:
+    """Landmark sightings as constraints of the grid SLAM's back end (a
+    :class:`trundle.fusion.slam.backend.ConstraintSource`; see the module docstring): ``topic`` is the
+    LandmarkList topic the facade routes here."""
 
-    def __init__(self, config: SlamConfig | None = None, odometry: DiffDriveOdometry | None = None,
-                 laser_pose: tuple[float, float, float] | None = None, landmark_topic: str = LANDMARK_TOPIC,
-                 correlation_rounds: int = 1, vce_rounds: int = 3, max_time_offset_s: float = 0.2) -> None:
-        super().__init__(config, odometry, laser_pose)
-        self.landmark_topic = landmark_topic
+    def __init__(self, config: SlamConfig | None = None, topic: str = LANDMARK_TOPIC, correlation_rounds: int = 1,
+                 vce_rounds: int = 3, max_time_offset_s: float = 0.2) -> None:
+        self.config = config or SlamConfig()
+        self.topic = topic
         self.correlation_rounds = correlation_rounds
         self.vce_rounds = vce_rounds
         self.max_time_offset_s = max_time_offset_s
-        self.landmark_stats = LandmarkGridStats()
+        self.stats = LandmarkGridStats()
         self._sightings: list[_Sighting] = []
         self._first_node: dict[str, int] = {}
         self._estimates: dict[str, np.ndarray] = {}
@@ -120,56 +123,47 @@ class LandmarkGridSlam(Slam):
         self._sightings_at_optimization = 0
         self._nodes_at_landmark_optimization = 0
 
-    def process(self, topic: str, msg: m.Message) -> ScanResult | None:
-        if isinstance(msg, m.LandmarkList):
-            if topic == self.landmark_topic:
-                self.add_landmarks(msg)
-            return None
-        return super().process(topic, msg)
-
-    def add_landmarks(self, msg: m.LandmarkList) -> None:
-        """Tie the sightings to the latest scan's keyframe; optimise when a landmark closes a loop."""
-        st = self.landmark_stats
+    def add(self, msg: m.LandmarkList, anchor: tuple[int, np.ndarray, np.ndarray] | None, nodes: int) -> bool:
+        """Tie the sightings to keyframe ``anchor`` = (node, the robot at their stamp in its frame, its
+        velocity: vx, vy, wz); None before the first scan. ``nodes``: keyframes so far. Returns whether
+        the back end should optimise now (a landmark closes a loop, and enough keyframes since)."""
+        st = self.stats
         st.messages += 1
-        if not self._scan_node:
+        if anchor is None:
             st.before_first_scan += len(msg.landmarks)
-            return
-        node, offset = self._scan_node[-1], self._scan_rel[-1]
-        now, at_scan = self.odometry_at(msg.stamp_ns), self._last_scan_odom
-        here = compose(offset, relative(at_scan, now)) if now is not None and at_scan is not None else offset
+            return False
+        node, here, velocity = anchor
         closes_loop = False
         for o in msg.landmarks:
             if not o.id:
                 st.anonymous += 1
                 continue
-            self._sightings.append(_Sighting(node, o.id, msg.stamp_ns * 1e-9, here, self.motion.velocity,
+            self._sightings.append(_Sighting(node, o.id, msg.stamp_ns * 1e-9, here, velocity,
                                              o.translation[:2].copy(), o.position_covariance(), o.yaw,
                                              o.yaw_variance))
             st.sightings += 1
             first = self._first_node.setdefault(o.id, node)
-            closes_loop |= node - first >= self.config.loop_min_node_gap
-        due = len(self.graph) - self._nodes_at_landmark_optimization >= self.config.optimize_every_keyframes
-        if closes_loop and due:
-            self.optimize()
+            closes_loop |= node - first >= self.config.loop_closure.min_node_gap
+        due = nodes - self._nodes_at_landmark_optimization >= self.config.optimization.every_keyframes
+        return closes_loop and due
 
     # --- optimisation ------------------------------------------------------------------------
-    def _optimize_graph(self, max_iterations: int, kernel: str | None) -> None:
+    def optimize(self, pose_graph: PoseGraph, max_iterations: int, kernel: str | None) -> bool:
         """Keyframes and the landmarks seen on more than one visit in one factor graph (the keyframes'
-        optimised poses go back to the pose graph); then the landmarks of a single visit, which close no
+        optimised poses go back to ``pose_graph``); then the landmarks of a single visit, which close no
         loop and would only bend the laser's locally better path, placed on the keyframes held fixed.
         A fixed keyframe's heading uncertainty (its marginal in the joint graph) joins each of its
         sightings: a marker's corners give its bearing to a few hundredths of a degree, so without it
         the small turns between successive sightings triangulate the landmark with more weight than
         the range itself has (5 cm off at 4 m in the demo), where the keyframes' heading is good to
-        a few tenths of a degree only."""
+        a few tenths of a degree only. False (nothing done) without sightings."""
         if not self._sightings:
-            super()._optimize_graph(max_iterations, kernel)
-            return
-        graph = FactorGraph.from_pose_graph(self.graph)
+            return False
+        graph = FactorGraph.from_pose_graph(pose_graph)
         edges = graph.factors(BETWEEN)[0].shape[0]
         kernels = {BETWEEN: (kernel, LANDMARK_KERNEL_WIDTH), POSITION: ("cauchy", LANDMARK_KERNEL_WIDTH)}
         revisited = self._revisited()
-        self.landmark_stats.revisited = sorted(revisited)
+        self.stats.revisited = sorted(revisited)
         variables: dict[str, tuple[bool, int]] = {}
         joint = self._add_sightings(graph, [s for s in self._sightings if s.landmark in revisited], variables)
         graph.optimize(max_iterations, kernels)
@@ -186,13 +180,14 @@ class LandmarkGridSlam(Slam):
             graph.fixed_points = set(range(len(graph.points)))
             self._add_sightings(graph, single, variables, headings)
             graph.optimize(max_iterations, kernels)
-        self.graph.poses = graph.poses[: len(self.graph)]
+        pose_graph.poses = graph.poses[: len(pose_graph)]
         self._graph, self._variables = graph, variables
         for name, (oriented, index) in variables.items():
             self._estimates[name] = graph.pose(index) if oriented else graph.points[index]
         self._sightings_at_optimization = len(self._sightings)
-        self._nodes_at_landmark_optimization = len(self.graph)
-        self.landmark_stats.joint_optimizations += 1
+        self._nodes_at_landmark_optimization = len(pose_graph)
+        self.stats.joint_optimizations += 1
+        return True
 
     def _add_sightings(self, graph: FactorGraph, sightings: list[_Sighting], variables: dict[str, tuple[bool, int]],
                        heading_variances: dict[int, float] | None = None) -> dict[bool, list[tuple[int, _Sighting]]]:
@@ -200,7 +195,7 @@ class LandmarkGridSlam(Slam):
         per sighting, with the heading variance (rad^2) of keyframes held fixed; the factors' rows by
         kind (oriented or not), with their sightings."""
         rows: dict[bool, list[tuple[int, _Sighting]]] = {True: [], False: []}
-        offset = self.landmark_stats.time_offset_s
+        offset = self.stats.time_offset_s
         heading_variances = heading_variances or {}
         for s in sightings:
             z, covariance = s.measurement(offset, float(heading_variances.get(s.node, 0.0)))
@@ -221,7 +216,7 @@ class LandmarkGridSlam(Slam):
         nodes: dict[str, list[int]] = {}
         for s in self._sightings:
             nodes.setdefault(s.landmark, []).append(s.node)
-        return {name for name, seen in nodes.items() if max(seen) - min(seen) >= self.config.loop_min_node_gap}
+        return {name for name, seen in nodes.items() if max(seen) - min(seen) >= self.config.loop_closure.min_node_gap}
 
     def _groups(self, graph: FactorGraph, edges: int, rows: dict[bool, list[tuple[int, _Sighting]]]
                 ) -> dict[str, tuple[str, np.ndarray]]:
@@ -256,7 +251,7 @@ class LandmarkGridSlam(Slam):
                 graph.set_information(kind, info)
                 totals[name] *= scale
             graph.optimize(max_iterations, kernels)
-        self.landmark_stats.noise_scales = {name: float(math.sqrt(v)) for name, v in totals.items()}
+        self.stats.noise_scales = {name: float(math.sqrt(v)) for name, v in totals.items()}
 
     def _decorrelate(self, graph: FactorGraph, rows: dict[bool, list[tuple[int, _Sighting]]]) -> None:
         """Reweight each kind's sightings by the correlation time of their residuals."""
@@ -267,14 +262,14 @@ class LandmarkGridSlam(Slam):
             index = np.array([row for row, _ in chosen])
             mine = [s for _, s in chosen]
             info = graph.factors(kind)[2]
-            nominal = np.array([np.linalg.inv(s.measurement(self.landmark_stats.time_offset_s)[1]) for s in mine])
+            nominal = np.array([np.linalg.inv(s.measurement(self.stats.time_offset_s)[1]) for s in mine])
             groups = np.unique([s.landmark for s in mine], return_inverse=True)[1]
             info[index], tau = decorrelated_information(nominal, graph.factor_errors(kind)[index], groups,
                                                         np.array([s.stamp_s for s in mine]))
-            self.landmark_stats.correlation_time_s["marker" if oriented else "point"] = [float(v) for v in tau]
+            self.stats.correlation_time_s["marker" if oriented else "point"] = [float(v) for v in tau]
             graph.set_information(kind, info)
 
-    def estimate_time_offset(self) -> float:
+    def estimate_time_offset(self, pose_graph: PoseGraph, kernel: str | None) -> float:
         """The sightings' time offset (s) that makes each landmark's sightings, placed by the keyframes
         as the laser alone has them, agree best (least robust information-weighted scatter), searched
         over +-``max_time_offset_s``; 0 with fewer than ``MIN_SIGHTINGS_FOR_OFFSET`` sightings, and 0
@@ -283,9 +278,8 @@ class LandmarkGridSlam(Slam):
         every sighting along the line of sight, and the noise alone would pick one."""
         if len(self._sightings) < MIN_SIGHTINGS_FOR_OFFSET or self.max_time_offset_s <= 0:
             return 0.0
-        laser = copy.deepcopy(self.graph)   # the keyframes by the laser alone: the sightings have not bent them
-        laser.optimize(max_iterations=100, robust_kernel=self.config.robust_kernel
-                       if self.config.robust_kernel in ("huber", "cauchy") else None, kernel_width=3.0)
+        laser = copy.deepcopy(pose_graph)   # the keyframes by the laser alone: the sightings have not bent them
+        laser.optimize(max_iterations=100, robust_kernel=kernel, kernel_width=3.0)
         names = np.unique([s.landmark for s in self._sightings], return_inverse=True)[1]
         nodes = sorted({s.node for s in self._sightings})
         headings = dict(zip(nodes, FactorGraph.from_pose_graph(laser).marginal_covariances(nodes)[0][:, 2, 2]))
@@ -322,15 +316,15 @@ class LandmarkGridSlam(Slam):
             cost += float(np.sum(LANDMARK_KERNEL_WIDTH ** 2 * np.log1p(s2 / LANDMARK_KERNEL_WIDTH ** 2)))
         return cost
 
-    def finish(self) -> None:
-        """The final optimisation, then the sightings' time offset and a last optimisation with it."""
-        super().finish()
+    def finish(self, backend: PoseGraphBackend) -> None:
+        """After the back end's final optimisation: another if sightings came since, then the sightings'
+        time offset and a last optimisation with it."""
         if len(self._sightings) != self._sightings_at_optimization:
-            self.optimize(max_iterations=100)
-        offset = self.estimate_time_offset()
-        if offset != self.landmark_stats.time_offset_s:
-            self.landmark_stats.time_offset_s = offset
-            self.optimize(max_iterations=100)
+            backend.optimize(max_iterations=100)
+        offset = self.estimate_time_offset(backend.graph, backend.kernel)
+        if offset != self.stats.time_offset_s:
+            self.stats.time_offset_s = offset
+            backend.optimize(max_iterations=100)
 
     # --- output ------------------------------------------------------------------------------
     def landmarks(self) -> LandmarkMap:

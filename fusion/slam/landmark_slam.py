@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -128,6 +128,14 @@ class EkfLandmarkSlam:
         """Stamps (ns) and map poses (N, 3), one per odometry reading (up to the last sighting
         until :meth:`finish`)."""
         return np.array(self._stamps, np.int64), np.concatenate(self._poses or [np.zeros((0, 3))]).reshape(-1, 3)
+
+    def build_map(self) -> None:
+        """No occupancy grid: the estimator maps landmarks only."""
+        return None
+
+    def report(self) -> dict[str, Any]:
+        """The run's counts (``stats``) and the EKF's (``ekf``)."""
+        return {"stats": asdict(self.stats), "ekf": asdict(self.ekf.stats)}
 
     def landmarks(self) -> LandmarkMap:
         ids, positions, covariances = self.ekf.landmarks()
@@ -329,6 +337,14 @@ class GraphLandmarkSlam:
         stamps = np.concatenate([s for _, s, _ in self._readings])
         poses = np.concatenate([compose(nodes[k], p) for k, _, p in self._readings]).reshape(-1, 3)
         return stamps.astype(np.int64), poses
+
+    def build_map(self) -> None:
+        """No occupancy grid: the estimator maps landmarks only."""
+        return None
+
+    def report(self) -> dict[str, Any]:
+        """The run's counts (``stats``) and the front end's EKF's (``ekf``)."""
+        return {"stats": asdict(self.stats), "ekf": asdict(self.front.ekf.stats)}
 
     def node_poses(self) -> tuple[np.ndarray, np.ndarray]:
         """Stamps (ns) and poses (K, 3) of the graph's robot nodes."""

@@ -102,8 +102,8 @@ def mrclam_figures(picture: Path | None) -> dict[str, float]:
         read_s = time.perf_counter() - start
         figures: dict[str, float] = {"mrclam_read_s": read_s}
         outputs = {}
-        for estimator in ("graph", "ekf"):
-            result = landmark_slam_log(log, Path(tmp) / estimator, estimator=estimator)
+        for estimator, name in (("graph", "landmark-graph"), ("ekf", "ekf")):
+            result = landmark_slam_log(log, Path(tmp) / estimator, estimator=name)
             figures[f"mrclam_{estimator}_s"] = result["processing_s"]
             figures[f"mrclam_{estimator}_over_read"] = result["processing_s"] / read_s
             figures[f"mrclam_{estimator}_real_time_factor"] = result["real_time_factor"]

@@ -44,7 +44,9 @@ from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.fusion.matching.scan_matching import angular_step, correlative_search, match_scan, refine_pose
-from trundle.fusion.slam.grid_slam import Slam, SlamConfig
+from trundle.fusion.slam.config import SlamConfig
+from trundle.fusion.slam.estimators import EstimatorInputs, make_estimator
+from trundle.fusion.slam.grid_slam import Slam
 from trundle.logs.importers import breezyslam, carmen
 from trundle.logs.reader import LogReader
 from trundle.tools.bench import report
@@ -57,7 +59,8 @@ def map_log(path: Path, wheels: DiffDriveOdometry | None, loop_closure: bool = T
     """Run SLAM over an MCAP log as ``trundle slam`` does; returns it, duration, wall and CPU seconds."""
     reader = LogReader(path)
     duration = reader.info().duration_s
-    slam = Slam(SlamConfig(loop_closure=loop_closure), wheels)
+    slam = make_estimator("grid", EstimatorInputs(SlamConfig().replace("loop_closure", enabled=loop_closure), wheels))
+    assert isinstance(slam, Slam)
     wall, cpu = time.perf_counter(), time.process_time()
     for item in reader.messages():
         slam.process(item.topic, item.msg)

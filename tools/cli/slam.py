@@ -10,6 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from trundle.fusion.slam.estimators import choices
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.robot import load_config
 from trundle.tools.jobs.slam import slam_log
@@ -20,10 +21,11 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder (created)")
     p.add_argument("--config", type=Path, help="robot TOML: [slam], [odometry], [laser], [landmarks] tables")
     p.add_argument("--no-loop-closure", action="store_true", help="local SLAM only (no pose-graph loops)")
-    p.add_argument("--estimator", choices=("ekf", "graph"),
-                   help="graph: pose graph (grid SLAM with landmark constraints, or the landmark graph for logs with "
-                        "sightings but no scans); ekf: EKF-SLAM of the landmarks (the log's sightings, else laser "
-                        "corners). Default: graph")
+    p.add_argument("--estimator", choices=choices(),
+                   help="graph: the pose graph that fits the log (grid SLAM, with landmark constraints when the log "
+                        "has sightings; the landmark graph for logs with sightings but no scans); grid, "
+                        "grid-landmarks, landmark-graph: that one; ekf: EKF-SLAM of the landmarks (the log's "
+                        "sightings, else laser corners). Default: graph")
     p.set_defaults(func=run)
 
 

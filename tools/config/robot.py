@@ -9,7 +9,7 @@ Tables (``example.toml`` has them all; ``trundle daemon --print-example-config``
   opened), so a bad URL or option is found before anything runs;
 - ``[robot]``, ``[frames]``, ``[[transforms]]``, ``[logger]``, ``[disk]``, ``[processing]``,
   ``[status]``, ``[supervision]``, ``[live]``: the daemon's own;
-- ``[slam]``: :class:`trundle.fusion.slam.grid_slam.SlamConfig` options; ``[odometry]``: the wheel model
+- ``[slam]``: :class:`trundle.fusion.slam.config.SlamConfig` options; ``[odometry]``: the wheel model
   ``slam`` and ``localize`` use instead of the log's (``wheel_radius_m``, ``track_m``, ``wheels``,
   ``wheel_variance_per_m``); ``[laser]``: the laser mount (``x_m``, ``y_m``, ``yaw_rad``).
 
@@ -289,7 +289,7 @@ def parse_config(data: dict[str, Any], source: str = "") -> RobotConfig:
     except UserError as error:
         raise ConfigError(f"{_where(source, 'processing.aruco_dictionary')}: {error}") from None
     devices = _devices(data, source)
-    from trundle.fusion.slam.grid_slam import SlamConfig  # SciPy: only once a config is read
+    from trundle.fusion.slam.config import SlamConfig  # pydantic and SciPy: only once a config is read
     from trundle.fusion.slam.landmark_slam import landmark_configs
 
     try:

@@ -55,13 +55,14 @@ class Processing:
         self.detector: MarkerDetector | None = None
         self.static_frames: FrameTree | None = None
         if config.slam:
-            from trundle.fusion.slam.grid_slam import Slam, SlamConfig
-            if config.markers:
-                from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
-                self.slam = LandmarkGridSlam(SlamConfig.from_mapping(slam))
-            else:
-                self.slam = Slam(SlamConfig.from_mapping(slam))
-        self.scan_topic = self.slam.config.scan_topic if self.slam is not None else ""
+            from trundle.fusion.slam.config import SlamConfig
+            from trundle.fusion.slam.estimators import EstimatorInputs, make_estimator
+            from trundle.fusion.slam.grid_slam import Slam
+            estimator = make_estimator("grid-landmarks" if config.markers else "grid",
+                                       EstimatorInputs(SlamConfig.from_mapping(slam)))
+            assert isinstance(estimator, Slam)
+            self.slam = estimator
+        self.scan_topic = self.slam.config.scan.topic if self.slam is not None else ""
         if config.markers:
             from trundle.perception.markers import MarkerDetector
             self.detector = MarkerDetector(config.aruco_dictionary)

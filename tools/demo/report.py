@@ -16,7 +16,6 @@ import cv2
 import numpy as np
 
 from trundle.fusion.evaluation.trajectory_errors import Trajectory, landmark_error, poses_at
-from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
 from trundle.fusion.mapping.map_io import plot_trajectory
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
@@ -79,7 +78,7 @@ def _stats(values: np.ndarray) -> dict[str, float]:
 def marker_map(run: SlamRun, world: World, map_to_world) -> dict[str, Any]:
     """The markers SLAM mapped (landmarks) against the world file: each one's position error (m) with
     the map placed in the world by ``map_to_world`` (the trajectory's ATE alignment)."""
-    mapped = run.slam.landmarks() if isinstance(run.slam, LandmarkGridSlam) else None
+    mapped = run.slam.landmarks()
     known = [d for d in world.markers if mapped is not None and str(d.marker_id) in mapped.ids]
     if mapped is None or not known:
         return {"mapped": 0, "errors_m": {}}
@@ -165,7 +164,7 @@ def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, s
         "load_average": list(os.getloadavg()),
         "seconds": seconds,
         "settings": settings,
-        "slam_config": "defaults (trundle.fusion.slam.grid_slam.SlamConfig)",
+        "slam_config": "defaults (trundle.fusion.slam.config.SlamConfig)",
     }
     return report
 

@@ -1,9 +1,10 @@
-"""SLAM over a demo log: the log replayed (as fast as possible) through ``trundle.fusion.slam.grid_slam.Slam``
+"""SLAM over a demo log: the log replayed (as fast as possible) through the grid SLAM (``grid`` of
+``trundle.fusion.slam.estimators``)
 with wheel odometry from ``/wheels`` (the wheel model of the daemon's config, stored in the log)
 and the laser mount from ``/tf_static``, with the default SLAM configuration (the one every log
 gets: nothing here is tuned to the simulated robot); with ``markers`` the daemon's marker
 sightings on ``/landmarks`` join the pose graph as landmarks
-(``trundle.fusion.slam.landmark_grid_slam.LandmarkGridSlam``).
+(the ``grid-landmarks`` estimator).
 """
 
 from __future__ import annotations
@@ -17,8 +18,9 @@ import numpy as np
 
 from trundle.fusion.evaluation.trajectory_errors import Trajectory
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry, odometry_from_config
-from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
-from trundle.fusion.slam.grid_slam import Slam, SlamConfig
+from trundle.fusion.slam.config import SlamConfig
+from trundle.fusion.slam.estimators import EstimatorInputs, make_estimator
+from trundle.fusion.slam.grid_slam import Slam
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.metadata import read_metadata
@@ -61,8 +63,9 @@ def run_slam(log: Path, config: SlamConfig | None = None, progress: ProgressFact
     if markers and LANDMARK_TOPIC not in info.topics:
         raise UserError(f"{log}: no {LANDMARK_TOPIC} topic (marker sightings of the daemon)")
     odometry = wheel_odometry(info)
-    config = config or SlamConfig()
-    slam = LandmarkGridSlam(config, odometry, landmark_topic=LANDMARK_TOPIC) if markers else Slam(config, odometry)
+    slam = make_estimator("grid-landmarks" if markers else "grid",
+                          EstimatorInputs(config or SlamConfig(), odometry, landmark_topic=LANDMARK_TOPIC))
+    assert isinstance(slam, Slam)
     odom_stamps: list[int] = []
     odom_poses: list[np.ndarray] = []
     bar = progress("slam", info.topics[SCAN_TOPIC].count)

@@ -20,19 +20,19 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from trundle.fusion.geometry import compose, inverse, scan_to_points
-from trundle.fusion.slam.grid_slam import SlamConfig
-from trundle.fusion.slam.landmark_slam import EkfLandmarkSlam, GraphLandmarkSlam, LandmarkMap, landmark_configs
+from trundle.fusion.slam.config import SlamConfig
+from trundle.fusion.slam.estimators import GRID, ESTIMATORS, EstimatorInputs, make_estimator
+from trundle.fusion.slam.landmark_slam import LandmarkMap
 from trundle.fusion.mapping.map_io import plot_trajectory, save_map, write_landmarks_csv, write_trajectory_csv
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.errors import UsageError, UserError
 from trundle.logs.frames import BASE_FRAME, FrameTree
 from trundle.logs.importers import write_log
 from trundle.logs.paths import output_folder
@@ -43,7 +43,6 @@ from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, odom
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 
 LANDMARK_TYPE = "trundle_msgs/msg/LandmarkList"
-ESTIMATORS = ("ekf", "graph")
 MAX_MAP_CELLS = 2000  # per side of the map picture of a run without scans
 PATH_PERIOD_NS = 100_000_000  # /path in slam.mcap: a pose every 0.1 s (trajectory.csv has every reading)
 
@@ -62,17 +61,19 @@ def landmark_topic(info: LogInfo, config: JobConfig) -> str | None:
     return found[0] if len(found) == 1 else None
 
 
-def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimator: str = "graph",
+def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimator: str = "landmark-graph",
                       progress: ProgressFactory = NoProgress) -> dict[str, Any]:
-    """Landmark SLAM over ``log`` by the ``estimator`` (``ekf`` or ``graph``); outputs into ``output``
-    (see the module docstring). Returns the report (also ``report.json``)."""
+    """Landmark SLAM over ``log`` by the ``estimator`` (``ekf`` or ``landmark-graph``, see
+    :mod:`trundle.fusion.slam.estimators`); outputs into ``output`` (see the module docstring).
+    Returns the report (also ``report.json``)."""
     config = robot_config(config)
-    if estimator not in ESTIMATORS:
-        raise UserError(f"unknown estimator {estimator!r} (choose {' or '.join(ESTIMATORS)})")
+    landmark_estimators = [name for name in ESTIMATORS if name not in GRID]
+    if estimator not in landmark_estimators:
+        raise UsageError(f"unknown landmark estimator {estimator!r} (choose {' or '.join(landmark_estimators)})")
     reader = LogReader(log)
     info = reader.info()
     topic = landmark_topic(info, config)
-    configured_scans = SlamConfig.from_mapping(config.slam).scan_topic
+    configured_scans = SlamConfig.from_mapping(config.slam).scan.topic
     scans_info = info.topics.get(configured_scans)
     scan_topic = configured_scans if scans_info is not None and scans_info.ros_type == "sensor_msgs/msg/LaserScan" \
         else None
@@ -83,10 +84,8 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
     wheels = make_odometry(info, config)
     if wheels is None and not any(i.ros_type == "nav_msgs/msg/Odometry" for i in info.topics.values()):
         raise UserError(f"{log} has no odometry (nav_msgs/Odometry or wheel JointState): landmark SLAM predicts with it")
-    ekf_config, graph_config = landmark_configs(config.landmarks)
     features = topic is None  # anonymous laser corners stand in for sightings
-    slam = (EkfLandmarkSlam(ekf_config, topic or LANDMARK_TOPIC) if estimator == "ekf"
-            else GraphLandmarkSlam(graph_config, topic or LANDMARK_TOPIC))
+    slam = make_estimator(estimator, EstimatorInputs(landmark_topic=topic, landmarks=config.landmarks))
     mount_config = laser_pose(info, config)
     frames = FrameTree()
     scans: list[tuple[int, np.ndarray, np.ndarray]] = []  # stamp, points (robot frame), mount
@@ -120,7 +119,7 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
                 slam.process(LANDMARK_TOPIC, landmarks)
                 sighting_stamps.append(msg.stamp_ns)
         if sighting_stamps and sighting_stamps[-1] == item.log_time_ns:
-            bar.update((item.log_time_ns - t0) * 1e-9, f"{slam.stats.landmark_messages} sightings")
+            bar.update((item.log_time_ns - t0) * 1e-9, f"{len(sighting_stamps)} sightings")
     slam.finish()
     processing_s, cpu_s = time.perf_counter() - started, time.process_time() - cpu_started
     bar.close()
@@ -128,6 +127,7 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
     if len(stamps) == 0:
         raise UserError(f"{log}: no odometry reading before the end of the log")
     landmarks = slam.landmarks()
+    assert landmarks is not None
     grid = _map(scans, stamps, poses, landmarks)
     end_ns = int(stamps.max())
     map_msg = grid.to_message(end_ns, "map")
@@ -149,8 +149,7 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
         "duration_s": duration, "processing_s": processing_s, "cpu_s": cpu_s,
         "real_time_factor": duration / processing_s if processing_s > 0 else None,
         "landmarks": len(landmarks.ids), "landmark_sightings_used": int(landmarks.sightings.sum()),
-        "poses": len(stamps), "scans": len(scans), "stats": asdict(slam.stats),
-        "ekf": asdict(slam.front.ekf.stats if isinstance(slam, GraphLandmarkSlam) else slam.ekf.stats),
+        "poses": len(stamps), "scans": len(scans), **slam.report(),
         "path_length_m": float(np.sum(np.hypot(*np.diff(poses[:, :2], axis=0).T))) if len(poses) > 1 else 0.0,
         "map": {"resolution": float(map_msg.resolution), "width": map_msg.width, "height": map_msg.height},
     }

@@ -6,10 +6,10 @@ loop closures over the map, the stretches that fail the map self-check in magent
 occupancy map), ``trajectory.csv`` (``t_ns,x,y,theta`` of every scan in the map frame),
 ``report.json`` (with ``map_check``, see :mod:`trundle.fusion.mapping.map_check`) and ``slam.mcap`` with
 ``/map``, ``/tf`` (map -> odom per scan) and ``/path``. A log with landmark sightings (``/landmarks``) puts them into the pose graph
-(:class:`trundle.fusion.slam.landmark_grid_slam.LandmarkGridSlam`) and adds ``landmarks.csv``
+(the ``grid-landmarks`` estimator of :mod:`trundle.fusion.slam.estimators`) and adds ``landmarks.csv``
 (``id,x,y,sx,sy``), the landmarks on ``trajectory.png`` and ``/landmarks/map`` in ``slam.mcap``. The wheel model comes from the config's ``[odometry]`` table or the log's metadata (see
 :func:`trundle.tools.jobs.config.make_odometry`); ``[slam]`` holds
-:class:`trundle.fusion.slam.grid_slam.SlamConfig`; ``[laser]`` (``x_m``, ``y_m``, ``yaw_rad``) overrides the
+:class:`trundle.fusion.slam.config.SlamConfig`; ``[laser]`` (``x_m``, ``y_m``, ``yaw_rad``) overrides the
 laser mount of the log's ``/tf_static``.
 """
 
@@ -17,36 +17,26 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
 from trundle.fusion.mapping.map_check import MapCheck
 from trundle.fusion.mapping.map_io import plot_scans, plot_trajectory, save_map, write_trajectory_csv
-from trundle.fusion.slam.grid_slam import Slam, SlamConfig
+from trundle.fusion.slam.config import SlamConfig
+from trundle.fusion.slam.estimators import GRID, EstimatorInputs, make_estimator, resolve
+from trundle.fusion.slam.grid_slam import Slam
+from trundle.fusion.slam.stats import summary
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.errors import UsageError, UserError
 from trundle.logs.importers import write_log
 from trundle.logs.paths import output_folder
 from trundle.logs.reader import LogReader
 from trundle.logs.topics import LANDMARK_MAP_TOPIC, MAP_TOPIC, PATH_TOPIC, TF_TOPIC
 from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, odometry_source, robot_config
-from trundle.tools.jobs.landmark_slam import (ESTIMATORS, landmark_markers, landmark_slam_log, landmark_topic,
-                                              write_landmarks)
+from trundle.tools.jobs.landmark_slam import landmark_markers, landmark_slam_log, landmark_topic, write_landmarks
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
-
-
-def _stats(values: list[float]) -> dict[str, float]:
-    """Mean, median, min, 5th percentile and max of the finite ``values`` ({} if there are none)."""
-    if not values:
-        return {}
-    a = np.asarray(values, dtype=np.float64)
-    a = a[np.isfinite(a)]
-    return {"mean": float(a.mean()), "median": float(np.median(a)), "min": float(a.min()),
-            "p05": float(np.percentile(a, 5)), "max": float(a.max())} if a.size else {}
 
 
 def map_check_report(check: MapCheck, stamps_ns: np.ndarray, t0_ns: int) -> dict[str, Any]:
@@ -67,9 +57,10 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
 
     ``config`` is the robot config (``[slam]``, ``[odometry]``, ``[laser]``, ``[landmarks]`` tables;
     none by default); ``local_only`` turns loop closure off whatever the config says. ``progress``
-    shows the log seconds done. ``estimator``: ``graph`` (the grid SLAM's pose graph, with the log's
-    landmark sightings as constraints; a log with sightings but no scans gets the landmark graph)
-    or ``ekf`` (EKF-SLAM of :mod:`trundle.tools.jobs.landmark_slam`); None chooses ``graph``.
+    shows the log seconds done. ``estimator``: a name of :mod:`trundle.fusion.slam.estimators` (``grid``,
+    ``grid-landmarks``, ``ekf``, ``landmark-graph``; the last two by :mod:`trundle.tools.jobs.landmark_slam`),
+    or ``graph`` / None: the pose graph that fits the log (the grid SLAM, with the log's landmark
+    sightings as constraints; a log with sightings but no scans gets the landmark graph).
     Returns the report (also written as ``report.json``): the odometry it used (``odometry_source``:
     wheel encoders, odometry messages or ``none``), counts, timings (s), residuals (m), path length
     (m), map size and the SLAM options used.
@@ -77,21 +68,22 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     config = robot_config(config)
     reader = LogReader(log)
     info = reader.info()
-    if estimator not in (None, *ESTIMATORS):
-        raise UserError(f"unknown estimator {estimator!r} (choose {' or '.join(ESTIMATORS)})")
     slam_config = SlamConfig.from_mapping(config.slam)
-    scan_info = info.topics.get(slam_config.scan_topic)
+    scan_info = info.topics.get(slam_config.scan.topic)
     has_scans = scan_info is not None and scan_info.ros_type == "sensor_msgs/msg/LaserScan"
-    if estimator == "ekf" or (not has_scans and landmark_topic(info, config) is not None):
-        return landmark_slam_log(log, output, config, estimator or "graph", progress)
+    topic = landmark_topic(info, config)
+    name = resolve(estimator, has_scans, topic is not None)
+    if name not in GRID:
+        return landmark_slam_log(log, output, config, name, progress)
+    if name == "grid-landmarks" and topic is None:
+        raise UsageError(f"{log}: the grid-landmarks estimator needs landmark sightings (a LandmarkList topic)")
     if local_only:
-        slam_config.loop_closure = False
-    info.require(slam_config.scan_topic, "sensor_msgs/msg/LaserScan")
+        slam_config = slam_config.replace("loop_closure", enabled=False)
+    info.require(slam_config.scan.topic, "sensor_msgs/msg/LaserScan")
     wheels = make_odometry(info, config)
     odometry = odometry_source(info, config, wheels) or "none"
-    topic = landmark_topic(info, config)
-    slam = (Slam(slam_config, wheels, laser_pose(info, config)) if topic is None else
-            LandmarkGridSlam(slam_config, wheels, laser_pose(info, config), topic))
+    slam = make_estimator(name, EstimatorInputs(slam_config, wheels, laser_pose(info, config), topic))
+    assert isinstance(slam, Slam)
     output_folder(output, create=False)  # checked before the work, made once there is a result
 
     bar = progress("slam", max(info.duration_s, 1e-9))
@@ -109,7 +101,7 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     processing_s, cpu_s = time.perf_counter() - started, time.process_time() - cpu_started
     bar.close()
     if slam.stats.scans == 0:
-        raise UserError(f"{log}: no scans on {slam_config.scan_topic}")
+        raise UserError(f"{log}: no scans on {slam_config.scan.topic}")
 
     stamps, poses = slam.trajectory()
     output_folder(output)
@@ -120,7 +112,7 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     keyframes = slam.keyframe_poses()
     loops = [(keyframes[i], keyframes[j]) for i, j in slam.loop_edges()]
     check = slam.check_map()
-    landmarks = slam.landmarks() if isinstance(slam, LandmarkGridSlam) else None
+    landmarks = slam.landmarks()
     drawn = None if landmarks is None else (landmarks.ids, landmarks.positions, landmarks.covariances)
     plot_trajectory(map_msg, output / "trajectory.png", [poses], loops=loops,
                     highlights=[slam.keyframe_scans(a, b) for a, b in check.stretches], landmarks=drawn)
@@ -132,26 +124,21 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     if landmarks is not None:
         write_landmarks(output / "landmarks.csv", landmarks)
 
-    st = slam.stats
+    counts = slam.report()
+    landmark_counts = counts.pop("landmarks", None)
     duration = info.duration_s
     report = {
-        "log": str(log), "odometry_source": odometry, "scans": st.scans, "keyframes": st.keyframes,
-        "duration_s": duration,
+        "log": str(log), "odometry_source": odometry, "duration_s": duration,
         "processing_s": processing_s, "cpu_s": cpu_s,
         "real_time_factor": duration / processing_s if processing_s > 0 else None,
-        "loop_closures": st.loop_closures, "loop_attempts": st.loop_attempts, "loop_rejected": st.loop_rejected,
-        "loop_unverified": st.loop_unverified,
-        "optimizations": st.optimizations, "matched": st.matched, "searched": st.searched,
-        "gated_out": st.gated_out, "odometry_only": st.odometry_only, "motion_model_only": st.motion_model_only,
-        "odometry_rejected": st.odometry_rejected,
-        "match_score": _stats(st.scores), "scan_to_submap_residual_m": _stats(st.residuals),
-        "scan_to_map_residual_m": _stats(list(slam.map_residuals(grid))),
+        **counts,
+        "scan_to_map_residual_m": summary(list(slam.map_residuals(grid))),
         "path_length_m": float(np.sum(np.hypot(*np.diff(poses[:, :2], axis=0).T))) if len(poses) > 1 else 0.0,
         "map": {"resolution": float(map_msg.resolution), "width": map_msg.width, "height": map_msg.height},
         "map_check": map_check_report(check, slam.keyframe_stamps(), t0),
-        "config": {k: v for k, v in vars(slam_config).items()},
+        "config": slam_config.model_dump(),
     }
-    if isinstance(slam, LandmarkGridSlam):
-        report["landmarks"] = {"topic": topic, "mapped": len(landmarks.ids), **asdict(slam.landmark_stats)}
+    if landmarks is not None:
+        report["landmarks"] = {"topic": topic, "mapped": len(landmarks.ids), **landmark_counts}
     (output / "report.json").write_text(json.dumps(report, indent=2, default=float))
     return report

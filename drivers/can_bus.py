@@ -34,8 +34,8 @@ import can
 import serial
 from can.interfaces.slcan import slcanBus
 
-from trundle.drivers.lifecycle import DeviceError, wall_ns
-from trundle.logs.errors import UserError
+from trundle.drivers.lifecycle import wall_ns
+from trundle.logs.errors import DeviceError, UserError
 
 SCHEMES = ("socketcan", "slcan", "virtual")
 SLCAN_BITRATES = (10000, 20000, 50000, 100000, 125000, 250000, 500000, 750000, 1000000, 83300)

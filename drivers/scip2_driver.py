@@ -19,12 +19,12 @@ import numpy as np
 
 from trundle.drivers import scip2
 from trundle.drivers.laser_mount import laser_transform
-from trundle.drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
+from trundle.drivers.lifecycle import Backoff, Driver, Sink, wall_ns
 from trundle.drivers.scip2 import Measure, Reply, ScipError, ScipFramer, SensorParams
 from trundle.drivers.sensor_clock import SensorClock
 from trundle.drivers.serial_link import STREAM_BATCH_S, SerialLink
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DeviceError, UserError
 
 ABNORMAL = {"0L"} | {f"{n:02d}" for n in range(21, 98)}  # stop, reboot with RB (notes 1.6.5)
 RESUMED = "98"

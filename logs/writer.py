@@ -30,7 +30,7 @@ from trundle import __version__
 from trundle.logs import messages as m
 from trundle.logs import metadata as log_metadata
 from trundle.logs import ros2
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError, UserError
 
 ACTIVE_SUFFIX = ".active"
 _SPLIT = object()  # queued by Logger.split: the writer starts a new file at the next message
@@ -404,7 +404,7 @@ def salvage_folder(folder: Path) -> list[Path]:
             target = target.with_name(f"{target.stem}.recovered.mcap")
         try:
             recover(active, target)
-        except UserError:
+        except (DataError, UserError):  # nothing readable in it, or the target appeared meanwhile
             continue
         active.unlink()
         recovered.append(target)

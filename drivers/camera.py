@@ -43,12 +43,12 @@ from trundle.drivers.camera_info import load_camera_info, uncalibrated_camera_in
 from trundle.drivers.frame_grabber import FrameGrabber
 from trundle.drivers.frame_source import Frame, FrameSource, StallError
 from trundle.drivers.jpeg_check import CorruptJpeg, JpegChecker, jpeg_header
-from trundle.drivers.lifecycle import DeviceError, Driver, Sink, wall_ns
+from trundle.drivers.lifecycle import Driver, Sink, wall_ns
 from trundle.drivers.mjpeg_stream import MjpegStreamSource
 from trundle.drivers.v4l2_capture import V4L2Source, device_path
 from trundle.drivers.video_file import JPEG_SUFFIXES, ImageFolderSource, VideoFileSource, folder_images, probe_video
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.errors import ProtocolError, UserError
 from trundle.logs.frames import rpy_transform
 from trundle.logs.topics import TF_STATIC_TOPIC
 
@@ -154,9 +154,7 @@ class CameraDriver(Driver):
             self.counters["stalls"] += 1
         if error is None:
             raise StallError(f"no frame for {self.config.stall_timeout_s:g} s")
-        if isinstance(error, (DeviceError, OSError, ValueError)):
-            raise error
-        raise DeviceError(f"{type(error).__name__}: {error}")
+        raise error  # a device fault reconnects; anything else is a bug and crashes the driver
 
     def _handle(self, frame: Frame) -> None:
         if self._last_t_ns is None and self._grabber is not None:  # first frame: the clock is known now
@@ -235,19 +233,20 @@ class CameraDriver(Driver):
 
 def encode_raw(image: np.ndarray, stamp_ns: int, frame_id: str, output: str = "jpeg",
                quality: int = 90) -> m.CompressedImage | m.Image:
-    """A raw (BGR or mono) frame as a JPEG at ``quality`` (1-100) or a bgr8/mono8 Image."""
+    """A raw (BGR or mono) frame as a JPEG at ``quality`` (1-100) or a bgr8/mono8 Image; a frame the
+    device sent that cannot be converted (odd shape or type) is a ``ProtocolError``."""
     try:
         if output == "jpeg":
             ok, buffer = cv2.imencode(".jpg", image, (cv2.IMWRITE_JPEG_QUALITY, int(quality)))
             if not ok:
-                raise ValueError("JPEG encoding failed")
+                raise ProtocolError("JPEG encoding failed")
             return m.CompressedImage(stamp_ns, frame_id, "jpeg", buffer.tobytes())
         if output == "mono8" and image.ndim == 3:
             image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         elif output == "bgr8" and image.ndim == 2:
             image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     except cv2.error as error:
-        raise ValueError(f"cannot convert a {image.shape} frame: {error}") from None
+        raise ProtocolError(f"cannot convert a {image.shape} frame: {error}") from None
     return m.Image.from_array(stamp_ns, frame_id, image, output)
 
 

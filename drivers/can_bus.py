@@ -8,9 +8,10 @@ URLs:
 - ``slcan:///dev/ttyACM0@1000000`` (Lawicel/CANable serial adapters; ``@`` gives the CAN bit
   rate, default 500000; ``?tty_baudrate=115200`` the serial rate). The adapter's stamps are
   dropped by python-can, so frames are stamped at receipt. Status flags are polled with ``F``;
-  a bus-off (bus error flag) is left by ``C`` then ``O``, as Lawicel adapters require.
-  python-can's slcan driver is used with a faster line reader (:class:`LineReadingSlcanBus`);
-  ``?reader=python-can`` selects its own byte-at-a-time reader.
+  a bus-off (bus error flag) is left by ``C`` then ``O``, as Lawicel adapters require. The
+  adapter is read by our own :class:`~trundle.drivers.slcan.SlcanBus` (every available byte per
+  read); ``?reader=python-can`` selects python-can's own slcan interface instead (byte-at-a-time,
+  and without status polling or bus-off recovery: it has no public call for ``F``).
 - ``virtual://name`` (in-process python-can virtual bus, for tests and replay;
   ``?timestamps=device`` keeps the sender's stamps, e.g. a replayed log with
   ``preserve_timestamps``).
@@ -31,14 +32,13 @@ from dataclasses import dataclass, field
 from urllib.parse import parse_qsl, urlsplit
 
 import can
-import serial
-from can.interfaces.slcan import slcanBus
 
-from trundle.drivers.lifecycle import DeviceError, wall_ns
-from trundle.logs.errors import UserError
+from trundle.drivers.lifecycle import wall_ns
+from trundle.drivers.slcan import BITRATE_COMMANDS, SlcanBus
+from trundle.logs.errors import DeviceError, ProtocolError, UserError
 
 SCHEMES = ("socketcan", "slcan", "virtual")
-SLCAN_BITRATES = (10000, 20000, 50000, 100000, 125000, 250000, 500000, 750000, 1000000, 83300)
+SLCAN_BITRATES = tuple(BITRATE_COMMANDS)
 
 # SocketCAN error frame classes (linux/can/error.h), in the arbitration id of an error frame.
 CAN_ERR_TX_TIMEOUT, CAN_ERR_LOSTARB, CAN_ERR_CRTL, CAN_ERR_PROT = 0x001, 0x002, 0x004, 0x008
@@ -51,35 +51,6 @@ CAN_ERR_CRTL_PASSIVE = 0x10 | 0x20
 # SLCAN "F" status flags.
 SLCAN_RX_FIFO_FULL, SLCAN_TX_FIFO_FULL, SLCAN_ERROR_WARNING, SLCAN_DATA_OVERRUN = 0x01, 0x02, 0x04, 0x08
 SLCAN_ERROR_PASSIVE, SLCAN_ARBITRATION_LOST, SLCAN_BUS_ERROR = 0x20, 0x40, 0x80
-
-
-class LineReadingSlcanBus(slcanBus):
-    """python-can's slcan interface with a reader that takes every byte available per system call.
-
-    python-can 4.6.1 reads one byte per ``read`` (hardbyte/python-can#2027), which caps reception
-    near 3 k frames/s on an idle machine and far lower on a loaded one; the upstream fix (PR #2028)
-    reads before looking for a line already buffered, so it can wait a serial timeout per frame.
-    This reader returns a buffered line first, then reads ``in_waiting`` bytes at once. Everything
-    else (open, bit rate, parsing, sending) is python-can's.
-    """
-
-    def _read(self, timeout: float | None) -> str | None:
-        deadline = serial.Timeout(timeout)
-        port = self.serialPortOrig
-        while True:
-            ends = [i for i in (self._buffer.find(self._OK), self._buffer.find(self._ERROR)) if i >= 0]
-            if ends:
-                end = min(ends) + 1
-                line = self._buffer[:end].decode(errors="replace")
-                del self._buffer[:end]
-                return line
-            if deadline.expired():
-                return None
-            try:
-                chunk = port.read(port.in_waiting or 1)
-            except (serial.SerialException, OSError) as error:
-                raise can.CanOperationError("Could not read from serial device") from error
-            self._buffer.extend(chunk)
 
 
 @dataclass(frozen=True)
@@ -176,7 +147,7 @@ class CanBus:
             kwargs["bitrate"] = spec.bitrate
         try:
             if spec.interface == "slcan" and spec.options.get("reader", "lines") == "lines":
-                self.bus = LineReadingSlcanBus(channel=spec.channel, **kwargs)
+                self.bus = SlcanBus(spec.channel, **kwargs)  # type: ignore[arg-type]
             else:
                 self.bus = can.Bus(interface=spec.interface, channel=spec.channel, **kwargs)
         except (can.CanError, OSError, ValueError) as error:
@@ -206,8 +177,8 @@ class CanBus:
             msg = bus.recv(timeout_s)
         except (can.CanError, OSError) as error:
             raise DeviceError(f"{self.spec.url}: {error}") from error
-        except (ValueError, IndexError):
-            self.counters["corrupt_frames"] += 1  # a garbled SLCAN line: python-can's parser refused it
+        except (ProtocolError, ValueError, IndexError):  # ValueError, IndexError: python-can's slcan parser
+            self.counters["corrupt_frames"] += 1  # a garbled SLCAN line
             return None
         if msg is None:
             self.maybe_poll_status()
@@ -264,36 +235,23 @@ class CanBus:
             self.state = "passive" if flags & SLCAN_ERROR_PASSIVE else "warning" if flags & SLCAN_ERROR_WARNING else "active"
 
     def slcan_status(self, timeout_s: float = 0.1) -> int | None:
-        """The adapter's ``F`` status flags, or None if it does not answer.
-
-        python-can 4.6.1 has no status call: this writes ``F`` and reads lines the way its own
-        ``get_version`` does, queueing the frames that arrive meanwhile for ``recv``.
-        """
+        """The adapter's ``F`` status flags, or None if it does not answer (or is read by
+        python-can's own slcan interface, which has no status call); frames that arrive
+        meanwhile stay queued for ``recv``."""
         bus = self._require()
-        deadline = time.monotonic() + timeout_s
+        if not isinstance(bus, SlcanBus):
+            return None
         try:
-            with self._tx_lock:
-                bus._write("F")
-            while (left := deadline - time.monotonic()) > 0:
-                line = bus._read(left)
-                if not line:
-                    continue
-                if line[0] == "F" and len(line) >= 3:
-                    try:
-                        return int(line[1:3], 16)
-                    except ValueError:
-                        return None
-                bus._queue.put_nowait(line)
+            return bus.status_flags(timeout_s)
         except (can.CanError, OSError) as error:
             raise DeviceError(f"{self.spec.url}: {error}") from error
-        return None
 
     def _slcan_restart(self) -> None:
         bus = self._require()
+        assert isinstance(bus, SlcanBus)  # only our bus reports the flags that lead here
         try:
             with self._tx_lock:
-                bus.close()
-                bus.open()
+                bus.restart()
         except (can.CanError, OSError) as error:
             raise DeviceError(f"{self.spec.url}: restart after bus-off failed: {error}") from error
         self.counters["restarts"] += 1

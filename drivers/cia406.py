@@ -25,7 +25,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from trundle.drivers.can_bus import CanBus
 from trundle.drivers.encoder_protocol import EncoderProtocol, HeartbeatWatchdog, WheelReading
-from trundle.drivers.lifecycle import DeviceError
+from trundle.logs.errors import DeviceError, ProtocolError
 
 DEFAULT_EDS = Path(__file__).with_name("data") / "cia406_encoder.eds"
 
@@ -255,7 +255,7 @@ class Cia406Encoders(EncoderProtocol):
         counts = int(remote.sdo[UNITS_PER_REV].raw)
         total = int(remote.sdo[TOTAL_RANGE].raw)
         if counts <= 0:
-            raise ValueError(f"node {node.id} reports {counts} units per revolution")
+            raise ProtocolError(f"node {node.id} reports {counts} units per revolution")
         pdo = remote.tpdo[1]
         pdo.read()
         pdo.clear()

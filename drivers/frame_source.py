@@ -14,7 +14,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from trundle.drivers.lifecycle import DeviceError
+from trundle.logs.errors import DeviceError
 
 
 @dataclass(frozen=True, slots=True)

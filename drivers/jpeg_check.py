@@ -15,6 +15,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from trundle.logs.errors import ProtocolError
+
 SOI = b"\xff\xd8"
 EOI = b"\xff\xd9"
 SOS = 0xDA
@@ -25,8 +27,9 @@ _ALLOWED_AFTER_FF = np.zeros(256, dtype=bool)
 _ALLOWED_AFTER_FF[[0x00, 0xFF, *range(0xD0, 0xD8), 0xC4, 0xCC, 0xDA, 0xDB, 0xDD, 0xFE]] = True
 
 
-class CorruptJpeg(ValueError):
-    """The bytes are not one whole JPEG image; the message says what is wrong."""
+class CorruptJpeg(ProtocolError):
+    """The bytes are not one whole JPEG image; the message says what is wrong (the camera driver
+    counts and drops such a frame)."""
 
 
 def jpeg_end(data: bytes) -> int:

@@ -5,6 +5,12 @@ A concrete driver implements ``open`` (transport + handshake), ``read_once`` (re
 what is available, raising ``DeviceError``/``OSError`` on a fault that needs a reconnect) and
 ``close``. ``run`` drives them until ``stop()``; ``start()`` does it on a thread.
 
+Only device faults reconnect: ``DeviceError`` (``trundle.logs.errors``; a codec's ``ProtocolError``
+or a ``TransportError``) and ``OSError`` (pyserial's ``SerialException`` is one; ``CanBus`` turns
+python-can's ``CanError`` into ``DeviceError``). Any other exception is a bug: ``run`` marks the
+driver ``crashed`` (ERROR in its diagnostics) and lets the exception out with its traceback, so
+the daemon's supervisor logs and restarts it instead of the driver reconnecting forever.
+
 No device is silent: ``diagnostics`` is ERROR while the device cannot be opened (naming the
 error and its likely cause) and WARN while it is connected but its ``usable`` counter (scans,
 wheel readings, frames) has not moved for ``silence_s``, with the driver's own guess why
@@ -21,16 +27,13 @@ from collections import Counter
 from typing import Callable, Protocol
 
 from trundle.logs import messages as m
+from trundle.logs.errors import DeviceError
 
 
 class Sink(Protocol):
     """Where a driver sends messages: ``sink(topic, msg, log_time_ns)`` (log time = receive time)."""
 
     def __call__(self, topic: str, msg: m.Message, log_time_ns: int) -> object: ...
-
-
-class DeviceError(Exception):
-    """A device fault that calls for closing and reopening the transport."""
 
 
 SILENCE_S = 3.0  # connected, but no usable data for this long: a WARN naming the likely cause
@@ -115,7 +118,8 @@ class Driver(ABC):
     """Supervised device loop with counters and a diagnostics status.
 
     ``counters`` always has ``reconnects`` and ``errors``; drivers add their own (``scans``,
-    ``checksum_errors``, ``frames``, ...). ``state`` is one of connecting, streaming, waiting, stopped.
+    ``checksum_errors``, ``frames``, ...). ``state`` is one of connecting, streaming, waiting, stopped
+and crashed (a bug escaped ``run``; ``last_error`` names it).
     ``usable`` names the counter of good output (what a silent device does not increase);
     ``open_error`` holds why the last open failed ("" once the device opened).
     """
@@ -161,7 +165,9 @@ class Driver(ABC):
         self.sink(topic, msg, self.clock() if log_time_ns is None else log_time_ns)
 
     def run(self) -> None:
-        """Open, stream and reconnect until ``stop()``; never raises for device faults."""
+        """Open, stream and reconnect until ``stop()``; never raises for device faults
+        (``DeviceError``, ``OSError``). Anything else is a bug: the driver is ``crashed`` and the
+        exception propagates."""
         while not self._stop.is_set():
             self.state = "connecting"
             opened = False
@@ -180,12 +186,16 @@ class Driver(ABC):
                 self.state = "streaming"
                 while not self._stop.is_set():
                     self.read_once()
-            except (DeviceError, OSError, ValueError) as error:
+            except (DeviceError, OSError) as error:
                 self.counters["errors"] += 1
                 self.last_error = f"{type(error).__name__}: {error}"
                 if not opened:
                     hint = open_hint(error)
                     self.open_error = f"{error}" + (f" ({hint})" if hint else "")
+            except Exception as error:
+                self.state = "crashed"
+                self.last_error = f"{type(error).__name__}: {error}"
+                raise
             finally:
                 self._connected_at = None
                 self.close()
@@ -228,6 +238,8 @@ class Driver(ABC):
         now = time.monotonic() if now is None else now
         if self.state == "stopped":
             return m.STALE, "stopped"
+        if self.state == "crashed":
+            return m.ERROR, f"driver crashed: {self.last_error}"
         connected_at = self._connected_at
         if self.state != "streaming" or connected_at is None:
             if self.open_error:

@@ -14,7 +14,7 @@ from typing import Callable
 import cv2
 
 from trundle.drivers.frame_source import CaptureSource, Frame
-from trundle.drivers.lifecycle import DeviceError
+from trundle.logs.errors import DeviceError
 from trundle.drivers.video_file import fourcc_text, open_ffmpeg, read_ffmpeg
 
 

@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from trundle.logs.errors import ProtocolError
+
 SYNC, SYNC2 = 0xA5, 0x5A
 STOP, RESET, SCAN, FORCE_SCAN, EXPRESS_SCAN = 0x25, 0x40, 0x20, 0x21, 0x82
 GET_INFO, GET_HEALTH, GET_SAMPLERATE, GET_LIDAR_CONF = 0x50, 0x52, 0x59, 0x84
@@ -44,8 +46,8 @@ MODE_ENTRIES = (CONF_SCAN_MODE_US_PER_SAMPLE, CONF_SCAN_MODE_MAX_DISTANCE, CONF_
                 CONF_SCAN_MODE_NAME)
 
 
-class RplidarError(ValueError):
-    """A response that does not fit the protocol."""
+class RplidarError(ProtocolError):
+    """A response that does not fit the protocol (a device fault: the driver reconnects)."""
 
 
 def xor(data: bytes) -> int:

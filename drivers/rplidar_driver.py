@@ -28,9 +28,10 @@ from pydantic import Field, field_validator
 from trundle.drivers import rplidar as rp
 from trundle.drivers import rplidar_capsules as rc
 from trundle.drivers.laser_mount import laser_transform
-from trundle.drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
+from trundle.drivers.lifecycle import Backoff, Driver, Sink, wall_ns
 from trundle.drivers.serial_link import STREAM_BATCH_S, SerialLink, set_modem_line
 from trundle.logs import messages as m
+from trundle.logs.errors import DeviceError
 from trundle.logs.topics import SCAN_TOPIC, TF_STATIC_TOPIC
 from trundle.logs.schema import Name, Schema
 
@@ -411,10 +412,7 @@ class RplidarDriver(Driver):
     def _conf(self, entry: int, mode: int | None = None) -> bytes:
         """One GET_LIDAR_CONF entry's value."""
         self._send(rp.GET_LIDAR_CONF, rp.conf_request(entry, mode))
-        try:
-            return rp.parse_conf(entry, self._answer(rp.ANS_CONF))
-        except rp.RplidarError as error:
-            raise DeviceError(str(error)) from None
+        return rp.parse_conf(entry, self._answer(rp.ANS_CONF))
 
     def _scan_modes(self, spec: ModelSpec) -> tuple[list[rp.ScanMode], int]:
         """The device's scan modes and the id of its typical one; firmware without GET_LIDAR_CONF
@@ -427,7 +425,7 @@ class RplidarDriver(Driver):
                 modes = [rp.ScanMode.from_conf(i, {e: self._conf(e, i) for e in rp.MODE_ENTRIES}) for i in range(count)]
                 self._modes_from_conf = True
                 return [self._timed(mode) for mode in modes], min(typical, max(count - 1, 0))
-            except (DeviceError, rp.RplidarError, struct.error):
+            except (DeviceError, struct.error):
                 self.counters["conf_unanswered"] += 1
         self._modes_from_conf = False
         standard, express = self._sample_rates()

@@ -14,6 +14,8 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
+from trundle.logs.errors import ProtocolError
+
 LF = 0x0A
 CHAR_BASE = 0x30  # '0': every encoded character carries 6 bits above this
 CHAR_TOP = 0x6F  # 'o' = 0x30 + 63
@@ -23,8 +25,9 @@ STRING_CHARS = re.compile(rb"[A-Za-z0-9 ._+@]{0,16}")
 MEASURE_COMMANDS = ("GD", "GS", "GE", "MD", "MS", "ME")
 
 
-class ScipError(ValueError):
-    """A reply that cannot be used; ``kind`` is checksum, truncated, format or status."""
+class ScipError(ProtocolError):
+    """A reply that cannot be used; ``kind`` is checksum, truncated, format or status (the driver
+    counts bad scans and drops them; a bad reply during the handshake reconnects)."""
 
     def __init__(self, kind: str, message: str) -> None:
         super().__init__(message)

@@ -20,11 +20,12 @@ from pydantic import Field, model_validator
 
 from trundle.drivers import scip2
 from trundle.drivers.laser_mount import laser_transform
-from trundle.drivers.lifecycle import Backoff, DeviceError, Driver, Sink, wall_ns
+from trundle.drivers.lifecycle import Backoff, Driver, Sink, wall_ns
 from trundle.drivers.scip2 import Measure, Reply, ScipError, ScipFramer, SensorParams
 from trundle.drivers.sensor_clock import SensorClock
 from trundle.drivers.serial_link import STREAM_BATCH_S, SerialLink
 from trundle.logs import messages as m
+from trundle.logs.errors import DeviceError
 from trundle.logs.topics import SCAN_TIMING_TOPIC, SCAN_TOPIC, TF_STATIC_TOPIC
 from trundle.logs.schema import Name, Schema
 

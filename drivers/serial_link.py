@@ -21,7 +21,7 @@ from typing import Callable
 
 import serial
 
-from trundle.drivers.lifecycle import DeviceError
+from trundle.logs.errors import DeviceError
 
 STREAM_BATCH_S = 0.05  # the ``batch_s`` of a streaming laser: 20 reads a second, scans up to 50 ms late
 TTY_BUFFER = 4095  # the most the Linux tty layer hands over at once (N_TTY_BUF_SIZE - 1): more may be behind

@@ -28,8 +28,9 @@ import cv2
 import numpy as np
 
 from trundle.drivers.frame_source import CaptureSource, Frame, StallError, quiet_opencv
-from trundle.drivers.lifecycle import DeviceError, wall_ns
+from trundle.drivers.lifecycle import wall_ns
 from trundle.drivers.video_file import JPEG_FOURCCS, fourcc_text
+from trundle.logs.errors import DeviceError
 
 os.environ.setdefault("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", "2")
 

@@ -24,8 +24,7 @@ import cv2
 import numpy as np
 
 from trundle.drivers.frame_source import CaptureSource, EndOfStream, Frame, quiet_opencv
-from trundle.drivers.lifecycle import DeviceError
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DeviceError, UserError
 
 JPEG_FOURCCS = frozenset({"MJPG", "mjpg", "MJPA", "mjpa", "jpeg", "JPEG", "AVRn", "dmb1"})
 JPEG_SUFFIXES = frozenset({".jpg", ".jpeg"})

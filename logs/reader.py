@@ -18,7 +18,7 @@ from mcap.records import Attachment, Channel, Chunk, Header, Message, Metadata, 
 from mcap.reader import SeekingReader
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError
 from trundle.logs.paths import input_file
 
 if TYPE_CHECKING:
@@ -93,13 +93,13 @@ class LogInfo:
         return (self.end_ns - self.start_ns) * 1e-9
 
     def require(self, topic: str, ros_type: str) -> TopicInfo:
-        """The topic a job needs, of ``ros_type``; a UserError saying whether it is missing or of another type."""
+        """The topic a job needs, of ``ros_type``; a DataError saying whether it is missing or of another type."""
         found = self.topics.get(topic)
         if found is None:
-            raise UserError(f"{self.path} has no topic {topic} ({ros_type}; topics: "
+            raise DataError(f"{self.path} has no topic {topic} ({ros_type}; topics: "
                             f"{', '.join(sorted(self.topics)) or 'none'})")
         if found.ros_type != ros_type:
-            raise UserError(f"{self.path}: {topic} carries {found.ros_type or 'messages without a schema'}, "
+            raise DataError(f"{self.path}: {topic} carries {found.ros_type or 'messages without a schema'}, "
                             f"not {ros_type}")
         return found
 
@@ -126,10 +126,10 @@ class LogReader:
         self.path = input_file(path, "MCAP log")
         self.size_bytes = self.path.stat().st_size
         if self.size_bytes == 0:
-            raise UserError(f"{self.path} is empty (0 bytes): no log was written into it")
+            raise DataError(f"{self.path} is empty (0 bytes): no log was written into it")
         with open(self.path, "rb") as f:
             if f.read(len(MAGIC)) != MAGIC:
-                raise UserError(f"{self.path} is not an MCAP file (bad magic bytes)")
+                raise DataError(f"{self.path} is not an MCAP file (bad magic bytes)")
         self._last_scan: _Scan | None = None
 
     def __enter__(self) -> LogReader:

@@ -15,7 +15,7 @@ from typing import Callable
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError, UsageError
 from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader
 
@@ -35,8 +35,9 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recover
     """Copy every readable record of ``src`` into a complete MCAP at ``dst``.
 
     A folder ``dst`` gets the file under the input's name (without ``.active``). Raises
-    ``UserError`` when ``src`` is not MCAP, nothing at all could be read, or ``dst`` exists (a
-    file is never overwritten); nothing is left behind then.
+    ``DataError`` when ``src`` is not MCAP or nothing at all could be read, ``UsageError`` when
+    ``dst`` is ``src`` and the logger's ``UserError`` when ``dst`` exists (a file is never
+    overwritten); nothing is left behind then.
     """
     dst = Path(dst)
     if dst.is_dir():
@@ -53,7 +54,7 @@ def copy_log(src: str | os.PathLike[str], dst: str | os.PathLike[str], replace: 
     reader = LogReader(src)
     dst = Path(dst)
     if dst.resolve() == reader.path.resolve():
-        raise UserError("the output must be a different file from the input")
+        raise UsageError("the output must be a different file from the input")
     new_file(dst, "output log")
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
     try:
@@ -63,7 +64,7 @@ def copy_log(src: str | os.PathLike[str], dst: str | os.PathLike[str], replace: 
         raise
     if count == 0 and not channel_ids:
         tmp.unlink()
-        raise UserError(f"nothing could be recovered from {src}: {reader.last_scan_error or 'no messages'}")
+        raise DataError(f"nothing could be recovered from {src}: {reader.last_scan_error or 'no messages'}")
     os.replace(tmp, dst)
     return RecoverResult(dst, count, reader.last_scan_corrupt_chunks, reader.last_scan_error)
 

@@ -30,7 +30,7 @@ from trundle import __version__
 from trundle.logs import messages as m
 from trundle.logs import metadata as log_metadata
 from trundle.logs import ros2
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError, UserError
 from trundle.logs.topics import TF_STATIC_TOPIC
 
 ACTIVE_SUFFIX = ".active"
@@ -405,7 +405,7 @@ def salvage_folder(folder: Path) -> list[Path]:
             target = target.with_name(f"{target.stem}.recovered.mcap")
         try:
             recover(active, target)
-        except UserError:
+        except (DataError, UserError):  # nothing readable in it, or the target appeared meanwhile
             continue
         active.unlink()
         recovered.append(target)

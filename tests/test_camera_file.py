@@ -17,9 +17,8 @@ from hypothesis import strategies as st
 from camera_clips import avi_video_chunks, scene, wait_for, write_clip
 from trundle.drivers.camera import CameraDriver, driver_from_url
 from trundle.drivers.jpeg_check import jpeg_problem
-from trundle.drivers.lifecycle import DeviceError
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DeviceError, UserError
 from trundle.logs.reader import LogMessage, LogReader
 from trundle.logs.writer import Logger
 from trundle.tools.cli.main import main

@@ -18,7 +18,7 @@ from trundle.drivers.camera import CameraDriver, count_dropped, driver_from_url
 from trundle.drivers.camera_config import parse_camera_url
 from trundle.drivers.frame_grabber import FrameGrabber
 from trundle.drivers.frame_source import Frame, StallError
-from trundle.drivers.lifecycle import DeviceError
+from trundle.logs.errors import DeviceError
 from trundle.drivers.v4l2_capture import V4L2Source, apply_controls, device_path, frame_time_ns
 from trundle.drivers.video_file import VideoFileSource
 from trundle.logs import messages as m

@@ -12,8 +12,7 @@ import can
 import pytest
 
 from trundle.drivers.can_bus import (CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_PROT, CAN_ERR_RESTARTED, CanBus, parse_url)
-from trundle.drivers.lifecycle import DeviceError
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DeviceError, UserError
 from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
 
@@ -157,11 +156,10 @@ def test_slcan_unplug_raises_device_error_and_reopens(tmp_path):
         bus.close()
 
 
-@pytest.mark.parametrize("reader", ["lines", "python-can"])
-def test_slcan_status_flags_and_bus_off_recovery(tmp_path, reader):
+def test_slcan_status_flags_and_bus_off_recovery(tmp_path):
     link = tmp_path / "ttyACM0"
     with SlcanEmulator(str(link)) as adapter:
-        bus = CanBus(f"slcan://{link}?reader={reader}", status_poll_s=0.0)
+        bus = CanBus(f"slcan://{link}", status_poll_s=0.0)
         bus.open()
         assert bus.slcan_status(2.0) == 0
         adapter.raise_flags(0x04 | 0x08)
@@ -177,6 +175,20 @@ def test_slcan_status_flags_and_bus_off_recovery(tmp_path, reader):
         assert wait_for(lambda: adapter.passing)
         adapter.bus.send_many([can.Message(arbitration_id=i, data=bytes([i]), is_extended_id=False) for i in range(50)])
         assert [bus.recv(1.0).msg.arbitration_id for _ in range(50)] == list(range(50))
+        bus.close()
+
+
+def test_python_cans_own_slcan_reader_receives_and_counts_garbled_lines(tmp_path):
+    link = tmp_path / "ttyACM0"
+    with SlcanEmulator(str(link)) as adapter:
+        bus = CanBus(f"slcan://{link}?reader=python-can", status_poll_s=0.0)
+        bus.open()
+        assert wait_for(lambda: adapter.is_open) and bus.slcan_status(0.2) is None  # it has no F call
+        adapter.inject_noise()
+        adapter.bus.send(can.Message(arbitration_id=0x123, data=b"\xAA", is_extended_id=False))
+        got = [bus.recv(1.0) for _ in range(4)]
+        assert got[:3] == [None] * 3 and bus.counters["corrupt_frames"] == 3
+        assert (got[3].msg.arbitration_id, got[3].msg.data) == (0x123, b"\xAA")
         bus.close()
 
 

@@ -12,7 +12,8 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.tools.emulators.slcan_emulator import SlcanEmulator, format_frame, parse_frame
+from trundle.drivers.slcan import format_frame, parse_frame
+from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
 
 @pytest.fixture

@@ -10,9 +10,9 @@ import struct
 import can
 import numpy as np
 import pytest
-from can.interfaces.slcan import slcanBus
 
 from trundle.drivers.can_bus import Received
+from trundle.drivers.slcan import SlcanBus
 from trundle.drivers.wheels import driver_from_url
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
@@ -49,7 +49,7 @@ def test_protocol_end_to_end(tmp_path, protocol, transport):
     with can_rig(tmp_path, protocol, transport, STRAIGHT) as rig:
         rig.wait_until_script_done()
         if transport == "slcan":
-            assert isinstance(rig.driver.bus.bus, slcanBus)
+            assert isinstance(rig.driver.bus.bus, SlcanBus)
         counters = dict(rig.driver.counters)
         status = rig.driver.diagnostics()
     assert_straight(rig)

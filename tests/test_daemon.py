@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from trundle.drivers.lifecycle import Backoff, DeviceError, Driver
+from trundle.drivers.lifecycle import Backoff, Driver
+from trundle.logs.errors import DeviceError
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
 from trundle.tools.config.robot import parse_config
@@ -38,7 +39,7 @@ class ScriptedDriver(Driver):
     def read_once(self):
         if self.crash_next.is_set():
             self.crash_next.clear()
-            raise RuntimeError("scripted bug")
+            raise ValueError("scripted bug")  # a bug, not a device fault: no reconnect
         if self.fault_next.is_set():
             self.fault_next.clear()
             raise DeviceError("scripted unplug")
@@ -130,14 +131,19 @@ def test_status_socket_reports_devices_logger_and_disk(tmp_path):
     assert not list((tmp_path / "logs").glob("*.active"))
 
 
-def test_crashed_driver_thread_is_restarted_and_reported(tmp_path):
+def test_crashed_driver_thread_is_restarted_and_reported(tmp_path, capfd):
     with Running(config(tmp_path)) as run:
         driver = run.drivers["lrf"]
         wait_for(lambda: driver.counters["scans"] > 5)
         driver.crash_next.set()
         wait_for(lambda: run.daemon.supervised[0].crashes == 1)
         crashed = query_status(tmp_path / "status.sock")["devices"][0]
-        assert "RuntimeError: scripted bug" in crashed["last_crash"]
+        assert crashed["last_crash"].startswith("ValueError: scripted bug at test_daemon.py:")
+        assert crashed["reconnects"] == 0 and crashed["errors"] == 0  # crashed, not reconnected
+        err = capfd.readouterr().err  # the daemon's log: one line, then the traceback
+        assert "trundle daemon: driver lrf crashed (ValueError: scripted bug at test_daemon.py:" in err
+        assert "Traceback (most recent call last):" in err and "in read_once" in err
+        assert 'raise ValueError("scripted bug")' in err and "\nValueError: scripted bug\n" in err
         before = driver.counters["scans"]
         wait_for(lambda: driver.counters["scans"] > before + 5)  # running again
         assert driver.opened == 2

@@ -16,7 +16,7 @@ from trundle.fusion.evaluation.trajectory_errors import (Relations, Trajectory, 
                                        seconds_to_ns, trajectory_relations)
 from trundle.fusion.geometry import compose
 from trundle.fusion.mapping.map_io import write_trajectory_csv
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError, UserError
 
 INTEL = Path(__file__).parents[2] / "shared" / "data" / "intel" / "intel.gfs.log"
 SECOND = 1_000_000_000
@@ -68,7 +68,7 @@ def test_missing_poses_are_counted_and_tolerance_applies():
     relations = Relations([0, 0], [SECOND, 5 * SECOND], [[1, 0, 0], [2, 0, 0]])
     error = relation_error(estimate, relations)
     assert (error.count, error.missing) == (1, 1)
-    with pytest.raises(UserError, match="timestamps"):
+    with pytest.raises(DataError, match="timestamps"):
         relation_error(estimate, relations, tolerance_ns=100_000)
 
 
@@ -130,10 +130,10 @@ def test_relations_file_exact_times(tmp_path):
 
 
 @pytest.mark.parametrize("line", ["1 2 3", "1 2 a 0 0 0 0 0", "1 2 nan 0 0 0 0 0"])
-def test_bad_relations_line_is_a_user_error(tmp_path, line):
+def test_bad_relations_line_is_a_data_error(tmp_path, line):
     path = tmp_path / "x.relations"
     path.write_text("1 2 0 0 0 0 0 0\n" + line + "\n")
-    with pytest.raises(UserError, match=r"x\.relations:2"):
+    with pytest.raises(DataError, match=r"x\.relations:2"):
         read_relations(path)
 
 
@@ -145,7 +145,7 @@ def test_trajectory_csv_and_carmen_references(tmp_path):
     assert again.stamps_ns.tolist() == [1232658478161285000, 1232658478261285000]
     np.testing.assert_array_equal(again.poses, [[1.5, -2.25, 0.125], [1.75, -2.0, -3.0]])
     path.write_text("t_ns,x,y,theta\n1,2,x,4\n")
-    with pytest.raises(UserError, match="trajectory"):
+    with pytest.raises(DataError, match="trajectory"):
         read_reference(path)
     with pytest.raises(UserError, match="no such reference or trajectory file"):
         read_reference(tmp_path / "absent.csv")

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from tests.conftest import shared_file
 from trundle.fusion.mapping.map_io import read_landmarks_csv, read_trajectory_csv
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError, UserError
 from trundle.logs.importers.mrclam import (BEARING_SIGMA_RAD, import_mrclam, integrate, read_mrclam, seconds_ns,
                                            sighting_covariance)
 from trundle.logs.reader import LogReader
@@ -88,14 +88,14 @@ def test_malformed_rows_are_counted_and_dropped(tmp_path):
         assert '"Robot2_Odometry.dat": 3' in reader.info().metadata["trundle"]["malformed_rows"]
 
 
-def test_missing_or_empty_files_are_one_user_error(tmp_path):
+def test_missing_or_empty_files_are_one_line_errors(tmp_path):
     folder = _folder(tmp_path, "100.0 0.1 0.0\n", "100.5 18 2.0 0.1\n")
     with pytest.raises(UserError, match="robots 1 to 5"):
         read_mrclam(folder, 6)
     with pytest.raises(UserError, match="no such file .*Robot3_Odometry.dat"):
         read_mrclam(folder, 3)
     (folder / "Robot2_Measurement.dat").write_text("# only a comment\n")
-    with pytest.raises(UserError, match="no valid rows"):
+    with pytest.raises(DataError, match="no valid rows"):
         read_mrclam(folder, 2)
     with pytest.raises(UserError, match="not a folder"):
         read_mrclam(folder / "Barcodes.dat", 2)
@@ -108,11 +108,11 @@ rows = st.lists(st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True
 
 @settings(max_examples=100, deadline=None)
 @given(rows, rows)
-def test_any_text_reads_or_is_a_user_error(tmp_path_factory, odometry, measurements):
+def test_any_text_reads_or_is_a_data_error(tmp_path_factory, odometry, measurements):
     folder = _folder(tmp_path_factory.mktemp("fuzz"), odometry, measurements)
     try:
         run = read_mrclam(folder, 2)
-    except UserError:
+    except DataError:
         return
     assert np.all(np.isfinite(run.odometry)) and all(r >= 0 for _, r, _ in run.sightings)
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError
 from trundle.logs.reader import LogReader
 from trundle.logs.recover import recover
 
@@ -37,7 +37,7 @@ def check_recovered(active: Path, ready_ns: int, killed_at_ns: int, tmp: Path) -
     assert active.exists(), "a killed recorder must leave its .active file"
     try:
         out = recover(active, tmp / (active.name + ".recovered.mcap"))
-    except UserError:  # killed before the first flush: everything since the start is lost
+    except DataError:  # killed before the first flush: everything since the start is lost
         assert LogReader(active).info().message_count == 0
         return (killed_at_ns - ready_ns) * 1e-9
     seqs: dict[str, list[int]] = {}

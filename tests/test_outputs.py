@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError, UserError
 from trundle.logs.reader import LogReader
 from trundle.logs.recover import recover
 from trundle.tools.cli.main import main
@@ -86,7 +86,7 @@ def test_recover_into_a_folder_leaves_no_temporary_file(tmp_path, capsys):
     assert sorted(p.name for p in folder.iterdir()) == ["run.mcap"] and LogReader(folder / "run.mcap").info().complete
     header_only = tmp_path / "header.mcap"
     header_only.write_bytes(data[:8])
-    with pytest.raises(UserError, match="nothing could be recovered"):
+    with pytest.raises(DataError, match="nothing could be recovered"):
         recover(header_only, folder / "nothing.mcap")
     assert sorted(p.name for p in folder.iterdir()) == ["run.mcap"]
     assert not list(tmp_path.glob("**/*.tmp"))

@@ -23,7 +23,7 @@ import numpy as np
 
 from trundle.fusion.geometry import compose, relative, wrap_angle
 from trundle.fusion.mapping.map_io import read_trajectory_csv
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError
 from trundle.logs.paths import input_file
 
 DEFAULT_TOLERANCE_NS = 1_000_000  # 1 ms: scans are tens of milliseconds apart
@@ -136,10 +136,10 @@ def read_relations(path: str | Path) -> Relations:
                 t1.append(seconds_to_ns(tokens[0]))
                 t2.append(seconds_to_ns(tokens[1]))
             except (ValueError, InvalidOperation):
-                raise UserError(f"{path}:{number}: expected 't1 t2 x y z roll pitch yaw', got {line.strip()!r}") from None
+                raise DataError(f"{path}:{number}: expected 't1 t2 x y z roll pitch yaw', got {line.strip()!r}") from None
             deltas.append([values[0], values[1], values[5]])
     if not deltas:
-        raise UserError(f"{path}: no relations")
+        raise DataError(f"{path}: no relations")
     return Relations(np.array(t1), np.array(t2), np.array(deltas))
 
 
@@ -149,7 +149,7 @@ def read_carmen_trajectory(path: str | Path) -> Trajectory:
 
     stamps, poses = scan_poses(read_carmen(path))
     if not len(stamps):
-        raise UserError(f"{path}: no FLASER or ROBOTLASER1 line with a pose")
+        raise DataError(f"{path}: no FLASER or ROBOTLASER1 line with a pose")
     return Trajectory(stamps, poses)
 
 
@@ -231,7 +231,7 @@ def relation_error(estimate: Trajectory, relations: Relations, tolerance_ns: int
     """Kuemmerle et al.'s relation-based error of ``estimate`` against ``relations``."""
     translation, rotation, missing = relation_errors(estimate, relations, tolerance_ns)
     if len(translation) == 0:
-        raise UserError(f"no relation has estimated poses at both times ({missing} relations, "
+        raise DataError(f"no relation has estimated poses at both times ({missing} relations, "
                         f"time tolerance {tolerance_ns / 1e6:g} ms): do the timestamps match?")
     degrees = np.degrees(rotation)
 
@@ -247,7 +247,7 @@ def relative_pose_error(estimate: Trajectory, reference: Trajectory, step: int =
     """RPE over reference poses ``step`` apart (RMSE and mean, translation m and rotation deg)."""
     translation, rotation, _ = relation_errors(estimate, trajectory_relations(reference, step), tolerance_ns)
     if len(translation) == 0:
-        raise UserError("no reference pose pair has estimated poses at both times: do the timestamps match?")
+        raise DataError("no reference pose pair has estimated poses at both times: do the timestamps match?")
     degrees = np.degrees(rotation)
     return RelativeError(step, len(translation), float(np.sqrt(np.mean(translation ** 2))), float(translation.mean()),
                          float(np.sqrt(np.mean(degrees ** 2))), float(degrees.mean()))
@@ -272,7 +272,7 @@ def absolute_trajectory_error(estimate: Trajectory, reference: Trajectory, toler
     """ATE: position errors of the estimate at the reference's stamps after SE(2) alignment."""
     poses, found = poses_at(estimate, reference.stamps_ns, tolerance_ns)
     if not found.any():
-        raise UserError("no reference pose has an estimated pose at its time: do the timestamps match?")
+        raise DataError("no reference pose has an estimated pose at its time: do the timestamps match?")
     estimated, truth = poses[found], reference.poses[found]
     alignment = align_se2(estimated[:, :2], truth[:, :2]) if align else np.zeros(3)
     aligned = compose(alignment, estimated)
@@ -306,7 +306,7 @@ def landmark_error(ids: list[str], positions: np.ndarray, reference_ids: list[st
     mapped = {name: np.asarray(p, np.float64) for name, p in zip(ids, positions)}
     common = [name for name in mapped if name in reference]
     if not common:
-        raise UserError("no mapped landmark has an id of the reference landmarks")
+        raise DataError("no mapped landmark has an id of the reference landmarks")
     aligned = compose(np.asarray(alignment_xyt, np.float64),
                       np.column_stack([np.array([mapped[n] for n in common]), np.zeros(len(common))]))[:, :2]
     errors = np.hypot(*(aligned - np.array([reference[n] for n in common])).T)

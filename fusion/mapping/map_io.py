@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from ruamel.yaml import YAML, YAMLError
 
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError, UserError
 from trundle.logs.messages import OccupancyGrid
 from trundle.logs.paths import input_file, read_text
 
@@ -48,12 +48,12 @@ def save_map(grid: OccupancyGrid, base: str | os.PathLike[str]) -> tuple[Path, P
 
 
 def _map_number(data: dict, key: str, where: Path, low: float, high: float, default: float | None = None) -> float:
-    """The map YAML's number ``key``, finite and within [low, high]; otherwise a UserError naming it."""
+    """The map YAML's number ``key``, finite and within [low, high]; otherwise a DataError naming it."""
     value = data.get(key, default)
     if value is None:
-        raise UserError(f"{where}: map YAML has no {key!r}")
+        raise DataError(f"{where}: map YAML has no {key!r}")
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not (low <= value <= high):
-        raise UserError(f"{where}: {key} = {value!r} must be a number in [{low:g}, {high:g}]")
+        raise DataError(f"{where}: {key} = {value!r} must be a number in [{low:g}, {high:g}]")
     return float(value)
 
 
@@ -63,7 +63,7 @@ def load_map(yaml_path: str | os.PathLike[str], stamp_ns: int = 0, frame_id: str
     Follows map_server: ``p = (255 - v) / 255`` (or ``v / 255`` with ``negate: 1``), occupied
     above ``occupied_thresh``, free below ``free_thresh``, unknown between. A missing, binary or
     inconsistent file (resolution <= 0, thresholds outside [0, 1], an unreadable image) is a
-    UserError naming what is wrong.
+    DataError naming what is wrong (a missing one a UserError).
     """
     yaml_path = Path(yaml_path)
     if yaml_path.suffix.lower() in (".pgm", ".png", ".bmp", ".jpg", ".tif", ".tiff"):
@@ -71,25 +71,25 @@ def load_map(yaml_path: str | os.PathLike[str], stamp_ns: int = 0, frame_id: str
     try:
         data = YAML(typ="safe", pure=True).load(read_text(yaml_path, "map YAML"))
     except YAMLError as error:
-        raise UserError(f"{yaml_path} is not valid YAML: {str(error).splitlines()[0]}") from None
+        raise DataError(f"{yaml_path} is not valid YAML: {str(error).splitlines()[0]}") from None
     if not isinstance(data, dict) or not isinstance(data.get("image"), str):
-        raise UserError(f"{yaml_path} is not a map_server map YAML (no image: line)")
+        raise DataError(f"{yaml_path} is not a map_server map YAML (no image: line)")
     resolution = _map_number(data, "resolution", yaml_path, 1e-6, 1e3)  # metres per cell
     origin = data.get("origin")
     if not (isinstance(origin, list) and len(origin) in (2, 3)
             and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in origin)):
-        raise UserError(f"{yaml_path}: origin = {origin!r} must be [x, y, yaw] (metres, radians)")
+        raise DataError(f"{yaml_path}: origin = {origin!r} must be [x, y, yaw] (metres, radians)")
     negate = data.get("negate", 0)
     if negate not in (0, 1):
-        raise UserError(f"{yaml_path}: negate = {negate!r} must be 0 or 1")
+        raise DataError(f"{yaml_path}: negate = {negate!r} must be 0 or 1")
     occupied = _map_number(data, "occupied_thresh", yaml_path, 0.0, 1.0, OCCUPIED_THRESH)
     free = _map_number(data, "free_thresh", yaml_path, 0.0, 1.0, FREE_THRESH)
     if free > occupied:
-        raise UserError(f"{yaml_path}: free_thresh {free} is above occupied_thresh {occupied}")
+        raise DataError(f"{yaml_path}: free_thresh {free} is above occupied_thresh {occupied}")
     image_path = input_file(yaml_path.parent / data["image"], "map image")
     image = cv2.imread(str(image_path), cv2.IMREAD_GRAYSCALE)
     if image is None:
-        raise UserError(f"cannot read map image {image_path}")
+        raise DataError(f"cannot read map image {image_path}")
     p = image.astype(np.float64) / 255.0 if negate else (255.0 - image) / 255.0
     values = np.full(image.shape, -1, np.int8)
     values[p > occupied] = 100
@@ -117,7 +117,7 @@ def read_trajectory_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.nd
         stamps = np.array([int(v) for v in table[:, 0]], np.int64)
         poses = table[:, 1:4].astype(np.float64)
     except (ValueError, IndexError):
-        raise UserError(f"{path}: not a t_ns,x,y,theta trajectory") from None
+        raise DataError(f"{path}: not a t_ns,x,y,theta trajectory") from None
     return stamps, poses
 
 
@@ -230,11 +230,11 @@ def read_landmarks_csv(path: str | os.PathLike[str]) -> tuple[list[str], np.ndar
     with open(path, newline="") as f:
         rows = list(csv.reader(f))
     if not rows or [c.strip() for c in rows[0]] != LANDMARKS_HEADER:
-        raise UserError(f"{path}: not an {','.join(LANDMARKS_HEADER)} landmark file")
+        raise DataError(f"{path}: not an {','.join(LANDMARKS_HEADER)} landmark file")
     try:
         values = np.array([[float(v) for v in row[1:5]] for row in rows[1:] if row], np.float64).reshape(-1, 4)
     except (ValueError, IndexError):
-        raise UserError(f"{path}: a row is not id,x,y,sx,sy") from None
+        raise DataError(f"{path}: a row is not id,x,y,sx,sy") from None
     if not np.all(np.isfinite(values[:, :2])):
-        raise UserError(f"{path}: non-finite landmark position")
+        raise DataError(f"{path}: non-finite landmark position")
     return [row[0] for row in rows[1:] if row], values[:, :2], values[:, 2:]

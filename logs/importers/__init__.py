@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Iterable
 
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError, UsageError, UserError
 from trundle.logs.paths import input_file
 from trundle.logs.topics import TF_STATIC_TOPIC
 from trundle.logs.writer import Logger
@@ -31,7 +31,7 @@ def write_log(items: Iterable[Item], out: str | os.PathLike[str], *, metadata: d
     """
     out = Path(out)
     if out.suffix != ".mcap":
-        raise UserError(f"output must be an .mcap file, got {out}")
+        raise UsageError(f"output must be an .mcap file, got {out}")
     counts: dict[str, int] = {}
     logger = Logger(out, compression=compression, metadata=metadata, latched_topics=(TF_STATIC_TOPIC,), salvage=False)
     try:
@@ -49,8 +49,9 @@ def write_log(items: Iterable[Item], out: str | os.PathLike[str], *, metadata: d
 
 
 def open_text(path: str | os.PathLike[str]) -> list[str]:
-    """Lines of a text dataset file (``.gz`` transparently); a missing, binary or non-regular file
-    (a device such as /dev/zero would be read forever) is a UserError, said before it is read whole."""
+    """Lines of a text dataset file (``.gz`` transparently); a missing or non-regular file (a device
+    such as /dev/zero would be read forever) is a UserError and a binary one a DataError, said before
+    it is read whole."""
     path = input_file(path, "log file")
     with open(path, "rb") as f:
         gzipped = f.read(2) == b"\x1f\x8b"
@@ -58,7 +59,7 @@ def open_text(path: str | os.PathLike[str]) -> list[str]:
         with (gzip.open(path, "rb") if gzipped else open(path, "rb")) as f:
             head = f.read(65536)
             if b"\x00" in head:
-                raise UserError(f"{path} is not a text log (binary data)")
+                raise DataError(f"{path} is not a text log (binary data)")
             raw = head + f.read()
     except (OSError, EOFError, zlib.error) as error:
         raise UserError(f"cannot read {path}: {error}") from None

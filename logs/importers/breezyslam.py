@@ -28,7 +28,7 @@ from typing import Iterator
 import numpy as np
 
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError
 from trundle.logs.importers import Item, open_text, write_log
 from trundle.logs.topics import JOINT_STATES_TOPIC, SCAN_TOPIC, TF_STATIC_TOPIC
 
@@ -83,7 +83,7 @@ def read_dat(path: str | os.PathLike[str]) -> tuple[list[DatLine], int]:
         if parsed is not None:
             lines.append(parsed)
     if not lines:
-        raise UserError(f"{path}: no scan line (is it a BreezySLAM .dat log?)")
+        raise DataError(f"{path}: no scan line (is it a BreezySLAM .dat log?)")
     return lines, malformed
 
 

@@ -27,7 +27,7 @@ from typing import Iterator
 import numpy as np
 
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError, UsageError
 from trundle.logs.importers import Item, open_text, write_log
 from trundle.logs.topics import ODOM_TOPIC, REAR_SCAN_TOPIC, SCAN_TOPIC, TF_STATIC_TOPIC
 
@@ -144,7 +144,7 @@ def _robotlaser(tokens: list[str]) -> CarmenLaser:
 
 
 def read_carmen(path: str | os.PathLike[str]) -> CarmenLog:
-    """Parse a CARMEN log file (``.gz`` too); raises UserError when it holds no laser or odometry line."""
+    """Parse a CARMEN log file (``.gz`` too); raises DataError when it holds no laser or odometry line."""
     log = CarmenLog()
     for line in open_text(path):
         try:
@@ -163,7 +163,7 @@ def read_carmen(path: str | os.PathLike[str]) -> CarmenLog:
             log.order.append(("laser", len(log.lasers)))
             log.lasers.append(record)
     if not log.order:
-        raise UserError(f"{path}: no ODOM, FLASER, RLASER or ROBOTLASER1 line (is it a CARMEN log?)")
+        raise DataError(f"{path}: no ODOM, FLASER, RLASER or ROBOTLASER1 line (is it a CARMEN log?)")
     return log
 
 
@@ -199,7 +199,7 @@ def choose_odometry(log: CarmenLog, requested: str = "auto") -> tuple[str, str]:
     ROBOTLASER1's robot pose), else none; laser fields that never change count as none.
     """
     if requested not in ODOMETRY_SOURCES:
-        raise UserError(f"unknown odometry source {requested!r} (choose {', '.join(ODOMETRY_SOURCES)})")
+        raise UsageError(f"unknown odometry source {requested!r} (choose {', '.join(ODOMETRY_SOURCES)})")
     front = [laser for laser in log.lasers if laser.kind != "RLASER"]
     moving = len({laser.odom_pose for laser in front}) > 1
     kinds = "/".join(sorted({laser.kind for laser in front})) or "laser"
@@ -223,13 +223,13 @@ def messages(log: CarmenLog, *, odometry: str = "odom", laser_odometry: np.ndarr
     odometry made from reference poses); ``"none"`` publishes no odometry.
     """
     if odometry not in ("odom", "laser", "none"):
-        raise UserError(f"unknown odometry source {odometry!r} (choose odom, laser or none)")
+        raise UsageError(f"unknown odometry source {odometry!r} (choose odom, laser or none)")
     no_return = max_range_m if max_range_m is not None else infer_no_return(log)
     front = [i for i, laser in enumerate(log.lasers) if laser.kind != "RLASER"]
     if laser_odometry is not None:
         laser_odometry = np.asarray(laser_odometry, dtype=np.float64).reshape(-1, 3)
         if len(laser_odometry) != len(front):
-            raise UserError(f"{len(laser_odometry)} odometry poses for {len(front)} front-laser scans")
+            raise DataError(f"{len(laser_odometry)} odometry poses for {len(front)} front-laser scans")
     front_index = {i: k for k, i in enumerate(front)}
     last_log_ns = -(1 << 62)
     mounted: set[str] = set()

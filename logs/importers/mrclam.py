@@ -33,7 +33,7 @@ from typing import Iterator
 import numpy as np
 
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DataError, UsageError, UserError
 from trundle.logs.importers import Item, open_text, write_log
 from trundle.logs.topics import LANDMARK_TOPIC, ODOM_TOPIC
 
@@ -77,7 +77,7 @@ def _rows(path: Path, columns: int, what: str, malformed: dict[str, int], intege
     """The data rows of a dataset file (``#`` comments skipped): column 0 as times (ns; as an integer
     when 0 is in ``integer``) and the other columns as floats. A row with the wrong number of
     columns, a non-number, a non-integer in an ``integer`` column or a non-finite value is counted
-    in ``malformed[file name]`` and dropped; a missing file or one without a valid row is a UserError."""
+    in ``malformed[file name]`` and dropped; a missing file is a UserError, one without a valid row a DataError."""
     if not path.is_file():
         raise UserError(f"no such file {path} ({what})")
     stamps, values = [], []
@@ -100,7 +100,7 @@ def _rows(path: Path, columns: int, what: str, malformed: dict[str, int], intege
     if bad:
         malformed[path.name] = malformed.get(path.name, 0) + bad
     if not values:
-        raise UserError(f"{path}: no valid rows ({what})")
+        raise DataError(f"{path}: no valid rows ({what})")
     return np.array(stamps, np.int64), np.array(values, np.float64).reshape(len(values), columns - 1)
 
 
@@ -111,7 +111,7 @@ def read_mrclam(folder: str | os.PathLike[str], robot: int) -> MrclamRun:
     if not folder.is_dir():
         raise UserError(f"{folder} is not a folder (expected a MRCLAM dataset folder)")
     if not 1 <= robot <= 5:
-        raise UserError(f"MRCLAM has robots 1 to 5, not {robot}")
+        raise UsageError(f"MRCLAM has robots 1 to 5, not {robot}")
     malformed: dict[str, int] = {}
     odometry_ns, odometry = _rows(folder / f"Robot{robot}_Odometry.dat", 3, "odometry: time v w", malformed)
     measurement_file = f"Robot{robot}_Measurement.dat"

@@ -2,8 +2,8 @@
 
 1. Throughput: an SLCAN adapter emulator in its own process offers frames at a fixed rate
    (1 ms bursts, sequence number + send time in each payload); the host reads them through
-   our ``CanBus`` on python-can's slcan driver, with our line reader (the default) and with
-   python-can 4.6.1's own byte-at-a-time reader. Reported per offered rate: received, lost, out
+   our ``CanBus`` on our own SLCAN bus (``drivers/slcan.py``, the default) and on python-can
+   4.6.1's own byte-at-a-time slcan interface (``?reader=python-can``). Reported per offered rate: received, lost, out
    of order, latency median/p99, host CPU. Baseline in the same run: the same stream read by a
    bare line reader on the tty (read all available bytes, split on CR).
 2. The wheels driver end to end on the same path: 4 ODrive axes, encoder estimates at 200 Hz
@@ -131,7 +131,7 @@ def _measure(rate: float, duration_s: float, open_reader) -> dict:
 
 
 def canbus_reader(reader: str):
-    """Our CanBus on python-can's slcan driver, with its own reader or our line reader."""
+    """Our CanBus on our SLCAN bus (``lines``) or on python-can's slcan interface (``python-can``)."""
     def open_reader(link: str):
         bus = CanBus(f"slcan://{link}@1000000?reader={reader}")
         bus.open()

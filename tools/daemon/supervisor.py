@@ -1,8 +1,10 @@
 """Driver supervision: each driver on its own thread, restarted with a back-off when it crashes.
 
-A crash is an exception escaping ``Driver.run`` (a bug); device faults are the drivers' own
-business (they reconnect themselves). Each supervised driver counts its messages per topic, so
-its status and ``/diagnostics`` entry show rates next to the driver's own counters.
+A crash is an exception escaping ``Driver.run`` (a bug: anything but ``DeviceError``/``OSError``);
+device faults are the drivers' own business (they reconnect themselves). A crash is logged on
+stderr (the journal) with its traceback and shown in the status and ``/diagnostics``. Each
+supervised driver counts its messages per topic, so its status and ``/diagnostics`` entry show
+rates next to the driver's own counters.
 """
 
 from __future__ import annotations
@@ -82,8 +84,9 @@ class Supervised:
                 self.delay_s = self.initial_delay_s
             self.restart_at = now + self.delay_s
             self.delay_s = min(self.delay_s * 2.0, self.max_delay_s)
+            trace = "".join(traceback.format_exception(type(error), error, error.__traceback__))
             print(f"trundle daemon: driver {self.device.name} crashed ({self.last_crash}); "
-                  f"restarting in {self.restart_at - now:.1f} s", file=sys.stderr, flush=True)
+                  f"restarting in {self.restart_at - now:.1f} s\n{trace}", end="", file=sys.stderr, flush=True)
             self.on_crash(self)
 
     @property

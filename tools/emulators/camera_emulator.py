@@ -24,9 +24,8 @@ import cv2
 import numpy as np
 
 from trundle.drivers.frame_source import FrameSource
-from trundle.drivers.lifecycle import DeviceError
 from trundle.drivers.video_file import ImageFolderSource, VideoFileSource, probe_video
-from trundle.logs.errors import UserError
+from trundle.logs.errors import DeviceError, UserError
 from trundle.logs.paths import input_file
 
 BOUNDARY = "trundleframe"

@@ -303,7 +303,7 @@ class ScipDevice:
     def _measure(self, line: bytes, now: int) -> bytes:
         try:
             measure = Measure.from_echo(line)
-        except (ScipError, ValueError):
+        except ScipError:
             return scip2.encode_reply(line, "0C")
         p = self.params
         status = ("01" if not p.amin <= measure.start <= p.amax else "02" if not measure.start <= measure.end <= p.amax

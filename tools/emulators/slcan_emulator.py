@@ -1,4 +1,5 @@
 """An SLCAN (Lawicel) USB-CAN adapter on a pty, as python-can's ``slcan`` interface sees a CANable.
+The frame line codec is ``trundle.drivers.slcan``'s (the host's side of the same protocol).
 
 The host opens the pty's stable symlink with ``can.Bus(interface="slcan", channel=LINK)``; the
 emulated devices behind the adapter use :attr:`SlcanEmulator.bus`, a python-can bus of their
@@ -27,48 +28,13 @@ from typing import Any, Iterable
 
 import can
 
+from trundle.drivers.slcan import ERROR, HEX_DIGITS, OK, format_frame, parse_frame
 from trundle.tools.emulators.pty_link import PtyLink
 
-OK, ERROR = b"\r", b"\x07"
+# Lawicel's own table (S0..S8, S7 = 800 kbit/s); hosts (python-can, drivers.slcan) send S7 for 750 kbit/s
 BITRATES = {b"0": 10000, b"1": 20000, b"2": 50000, b"3": 100000, b"4": 125000, b"5": 250000, b"6": 500000,
             b"7": 800000, b"8": 1000000}
 FLAG_ERROR_WARNING, FLAG_DATA_OVERRUN, FLAG_ERROR_PASSIVE, FLAG_BUS_ERROR = 0x04, 0x08, 0x20, 0x80
-_HEX = frozenset(b"0123456789ABCDEFabcdef")
-
-
-def format_frame(msg: can.Message, stamp_ms: int | None = None) -> bytes:
-    """The SLCAN line (with CR) an adapter sends for a received frame."""
-    if msg.is_remote_frame:
-        line = (f"R{msg.arbitration_id:08X}{msg.dlc:d}" if msg.is_extended_id else f"r{msg.arbitration_id:03X}{msg.dlc:d}")
-    else:
-        head = f"T{msg.arbitration_id:08X}" if msg.is_extended_id else f"t{msg.arbitration_id:03X}"
-        line = f"{head}{len(msg.data):d}{bytes(msg.data).hex().upper()}"
-    if stamp_ms is not None:
-        line += f"{stamp_ms % 60000:04X}"
-    return line.encode() + OK
-
-
-def parse_frame(line: bytes) -> can.Message | None:
-    """A host transmit line (``t``/``T``/``r``/``R``, no CR) as a message; None if malformed."""
-    kind = line[:1]
-    extended = kind in (b"T", b"R")
-    id_len = 8 if extended else 3
-    if kind not in (b"t", b"T", b"r", b"R") or len(line) < 2 + id_len:
-        return None
-    ident, dlc_char = line[1:1 + id_len], line[1 + id_len:2 + id_len]
-    if not (set(ident) <= _HEX and dlc_char.isdigit()):
-        return None
-    can_id, dlc = int(ident, 16), int(dlc_char)
-    if dlc > 8 or can_id > (0x1FFFFFFF if extended else 0x7FF):
-        return None
-    payload = line[2 + id_len:]
-    if kind in (b"r", b"R"):
-        if payload:
-            return None
-        return can.Message(arbitration_id=can_id, is_extended_id=extended, is_remote_frame=True, dlc=dlc)
-    if len(payload) != 2 * dlc or not set(payload) <= _HEX:
-        return None
-    return can.Message(arbitration_id=can_id, is_extended_id=extended, data=bytes.fromhex(payload.decode()))
 
 
 class AdapterBus(can.BusABC):
@@ -214,7 +180,7 @@ class SlcanEmulator:
                 reply = b"Z\r" if msg.is_extended_id else b"z\r"
         elif head == b"S" and rest in BITRATES and not self.is_open:
             self.bitrate, reply = BITRATES[rest], OK
-        elif head == b"s" and len(rest) == 4 and set(rest) <= _HEX and not self.is_open:
+        elif head == b"s" and len(rest) == 4 and set(rest) <= HEX_DIGITS and not self.is_open:
             reply = OK
         elif head in (b"O", b"L") and not rest and not self.is_open:
             self.is_open, self.listen_only, reply = True, head == b"L", OK

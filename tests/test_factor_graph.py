@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from trundle.fusion.optimization.factor_graph import BETWEEN, POINT_PRIOR, POSITION, RANGE_BEARING, FactorGraph, retract
-from trundle.fusion.geometry import compose, relative
+from trundle.fusion.optimization.factor_graph import BETWEEN, POINT_PRIOR, POSITION, RANGE_BEARING, FactorGraph
+from trundle.fusion.geometry import relative
 from trundle.fusion.optimization.pose_graph import PoseGraph
 
 
@@ -140,17 +140,6 @@ def test_robust_kernel_bounds_an_outlier():
         return g.points[p]
     assert solved({})[0] == pytest.approx(2.0 + 5.0 / 11.0, abs=1e-6)
     assert abs(solved({POSITION: ("cauchy", 3.0)})[0] - 2.0) < 0.01
-
-
-def test_retract_follows_the_exponential_map():
-    """A pure turn-and-drive step moves a pose along an arc: (r sin w, r (1 - cos w)) for unit speed."""
-    pose = np.array([[1.0, 2.0, 0.5]])
-    w = 0.8
-    step = np.array([[math.cos(0.5) * 1.0 - math.sin(0.5) * 0.0, math.sin(0.5) * 1.0, w]])  # body (1, 0, w) in map frame
-    moved = retract(pose, step)[0]
-    arc = np.array([math.sin(w) / w, (1 - math.cos(w)) / w, w])
-    np.testing.assert_allclose(moved, compose(pose[0], arc), atol=1e-12)
-    np.testing.assert_allclose(retract(pose, np.zeros((1, 3))), pose)
 
 
 def test_bad_input_is_refused():

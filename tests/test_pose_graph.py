@@ -1,4 +1,4 @@
-"""Pose-graph back end: hand-computed optima, Jacobians, g2o I/O, robust kernels, Intel vs GTSAM."""
+"""Pose-graph back end: hand-computed optima, the between error's Jacobians, g2o I/O, robust kernels, Intel vs GTSAM."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trundle.fusion.geometry import wrap_angle
-from trundle.fusion.optimization.pose_graph import PoseGraph, _errors, read_g2o, robust_weights
+from trundle.fusion.observation_models import between_error
+from trundle.fusion.optimization.pose_graph import PoseGraph, read_g2o
 from trundle.logs.errors import UserError
 
 INTEL_G2O = Path(__file__).parents[2] / "shared" / "data" / "intel-posegraph" / "input_INTEL.g2o"
@@ -71,17 +72,6 @@ def test_huber_kernel_hand_computed_optimum():
     assert result.chi2 == pytest.approx(1.0 + 1.0 + (2 * 6.0 - 1.0), abs=1e-6)  # 1 + 1 + huber(36)
 
 
-def test_robust_weights_hand_computed():
-    rho, weight = robust_weights(np.array([0.25, 4.0]), "huber", 1.0)
-    np.testing.assert_allclose(rho, [0.25, 3.0])
-    np.testing.assert_allclose(weight, [1.0, 0.5])
-    rho, weight = robust_weights(np.array([4.0]), "cauchy", 1.0)
-    np.testing.assert_allclose(rho, [np.log(5.0)])
-    np.testing.assert_allclose(weight, [0.2])
-    with pytest.raises(ValueError):
-        robust_weights(np.array([1.0]), "tukey", 1.0)
-
-
 def test_square_loop_recovers_exact_square_across_the_angle_wrap():
     truth = np.array([[0, 0, 0], [1, 0, np.pi / 2], [1, 1, -np.pi], [0, 1, -np.pi / 2]], dtype=float)
     graph = PoseGraph()
@@ -128,13 +118,13 @@ def test_analytic_jacobians_match_finite_differences(values):
     x = np.stack([v[0:3], v[3:6]])
     z = v[6:9][None, :]
     ij = np.array([[0, 1]])
-    e, jac_i, jac_j = _errors(x, ij, z)
+    e, jac_i, jac_j = between_error(x[ij[:, 0]], x[ij[:, 1]], z)
     for node, jac in ((0, jac_i[0]), (1, jac_j[0])):
         numeric = np.zeros((3, 3))
         for k in range(3):
             step = np.zeros((2, 3))
             step[node, k] = 1e-6
-            plus, minus = _errors(x + step, ij, z)[0][0], _errors(x - step, ij, z)[0][0]
+            plus, minus = between_error(*(x + step), z)[0][0], between_error(*(x - step), z)[0][0]
             diff = plus - minus
             diff[2] = wrap_angle(diff[2])
             numeric[:, k] = diff / 2e-6

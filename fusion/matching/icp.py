@@ -3,7 +3,8 @@
 Each point of the moving set is paired with its nearest reference point (a k-d tree, SciPy) and
 its error is the distance to the reference's local line, whose normal comes from the principal
 axes of the reference's neighbours (Censi's PLICP error, Chen and Medioni's point-to-plane in
-2-D). A robust Huber Levenberg-Marquardt step follows each pairing until the pose settles. It
+2-D). A robust Huber Levenberg-Marquardt refinement (the scan matcher's :func:`solve_pose`, on the
+one core) follows each pairing until the pose settles. It
 is a second matcher, independent of the grid: used to verify loop closures and as a baseline.
 """
 
@@ -16,7 +17,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from trundle.fusion.geometry import rotation
-from trundle.fusion.matching.scan_matching import huber_loss, levenberg_marquardt, match_covariance
+from trundle.fusion.matching.scan_matching import match_covariance, solve_pose
+from trundle.fusion.optimization.robust_kernels import robust_loss
 
 
 @dataclass(frozen=True)
@@ -92,11 +94,11 @@ def icp(reference: LineReference | np.ndarray, points_xy: np.ndarray, initial_po
             jac = np.column_stack([direction, np.einsum("ij,ij->i", direction, dq_dtheta)])
             residual = np.where(paired, dist, 0.0)
             jac[~paired] = 0.0
-            cost, weight = huber_loss(residual, huber_m)
-            return cost, residual, jac, weight, paired
+            loss, weight = robust_loss(residual * residual, "huber", huber_m)
+            return float(loss.sum()), residual, jac, weight, paired
 
         previous = pose
-        pose, _, state = levenberg_marquardt(evaluate, pose, 10)
+        pose, _, state = solve_pose(evaluate, pose, 10)
         step = np.abs(pose - previous)
         if step[0] < tolerance_m and step[1] < tolerance_m and step[2] < tolerance_m:
             converged = True

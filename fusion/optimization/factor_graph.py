@@ -13,21 +13,26 @@ each with an information matrix (the inverse of its measurement covariance):
 - ``point_prior`` and ``pose_prior``: a variable's absolute value (a surveyed landmark).
 
 ``chi2 = sum e^T I e`` over all factors. ``optimize`` linearises with analytic Jacobians, whitens
-each factor by the Cholesky factor of its information, applies per-kind robust kernels by
-iteratively reweighted least squares and solves the damped normal equations with SciPy's sparse
-LU, as :meth:`trundle.fusion.optimization.pose_graph.PoseGraph.optimize` does, but moves poses along SE(2)'s
-exponential map (:func:`retract`); fixed variables stay put.
+each factor by the Cholesky factor of its information, applies per-kind robust kernels
+(:mod:`~trundle.fusion.optimization.robust_kernels`) by iteratively reweighted least squares and
+hands the sparse normal equations to the one Levenberg-Marquardt core
+(:func:`~trundle.fusion.optimization.levenberg_marquardt.levenberg_marquardt`), as
+:meth:`trundle.fusion.optimization.pose_graph.PoseGraph.optimize` does; fixed variables stay put.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+
 import numpy as np
 import scipy.sparse as sp
 
-from trundle.fusion.geometry import compose, wrap_angle
-from trundle.fusion.observation_models import range_bearing, relative_position
-from trundle.fusion.optimization.pose_graph import ROBUST_KERNELS, OptimizeResult, PoseGraph, _errors, _factor_spd, _solve_spd, robust_weights
+from trundle.fusion.geometry import wrap_angle
+from trundle.fusion.observation_models import between_error, range_bearing, relative_position
+from trundle.fusion.optimization.levenberg_marquardt import (OptimizeResult, Settings, block_triplets, factor_spd,
+                                                            levenberg_marquardt, solve_spd, sparse_jacobian)
+from trundle.fusion.optimization.pose_graph import PoseGraph
+from trundle.fusion.optimization.robust_kernels import ROBUST_KERNELS, Kernel, robust_loss
 
 POSE, POINT = "pose", "point"
 BETWEEN, RANGE_BEARING, POSITION, POINT_PRIOR, POSE_PRIOR = (
@@ -36,12 +41,6 @@ BETWEEN, RANGE_BEARING, POSITION, POINT_PRIOR, POSE_PRIOR = (
 KINDS: dict[str, tuple[tuple[str, ...], int]] = {
     BETWEEN: ((POSE, POSE), 3), RANGE_BEARING: ((POSE, POINT), 2), POSITION: ((POSE, POINT), 2),
     POINT_PRIOR: ((POINT,), 2), POSE_PRIOR: ((POSE,), 3)}
-Kernel = tuple[str | None, float]
-# Levenberg-Marquardt schedule as GTSAM's defaults: lambda / 10 after an accepted step, x 10 after a
-# rejected one; a step is accepted when it achieves this share of the decrease its linearisation predicts.
-# (Measured on Victoria Park: Nielsen's gentler schedule of the pose graph takes over 300 iterations.)
-LAMBDA_FACTOR = 10.0
-MIN_MODEL_FIDELITY = 1e-3  # robust kernel name (None, "huber", "cauchy") and width (whitened units)
 MARGINAL_SOLVE_VALUES = 1 << 22   # right-hand side values per solve of marginal_covariances (32 MB)
 
 
@@ -57,24 +56,6 @@ class _FactorList:
         return (np.array(self.variables, np.int64).reshape(-1, arity),
                 np.array(self.measurements, np.float64).reshape(-1, dim),
                 np.array(self.information, np.float64).reshape(-1, dim, dim))
-
-
-def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
-    """Poses moved by a Gauss-Newton ``step`` (map-frame first-order increments, (N, 3)) along SE(2)'s
-    exponential map: ``x (+) Exp(d)`` with ``d`` the step in the pose's own frame.
-
-    To first order this is ``x + step``, so the Jacobians stay those of the additive update; along
-    the exponential map a turning step moves a pose on an arc, not a chord. Measured on the
-    Victoria Park graph: from GTSAM's initial values, the additive update stops in a local minimum
-    with chi2 342,000, this one (GTSAM's ``Pose2`` retraction) at GTSAM's 210,000.
-    """
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    dx, dy, w = c * step[:, 0] + s * step[:, 1], -s * step[:, 0] + c * step[:, 1], step[:, 2]
-    small = np.abs(w) < 1e-9
-    safe = np.where(small, 1.0, w)
-    a = np.where(small, 1.0 - w * w / 6.0, np.sin(safe) / safe)
-    b = np.where(small, w / 2.0, (1.0 - np.cos(safe)) / safe)
-    return compose(poses, np.stack([a * dx - b * dy, b * dx + a * dy, w], axis=1))
 
 
 class FactorGraph:
@@ -197,7 +178,7 @@ class FactorGraph:
         """Errors (F, d) of one kind and its Jacobians by each of its variables."""
         index, z, _ = self.factors(kind)
         if kind == BETWEEN:
-            e, ji, jj = _errors(poses, index, z)
+            e, ji, jj = between_error(poses[index[:, 0]], poses[index[:, 1]], z)
             return e, [ji, jj]
         if kind in (RANGE_BEARING, POSITION):
             model = range_bearing if kind == RANGE_BEARING else relative_position
@@ -253,7 +234,7 @@ class FactorGraph:
                 ) -> tuple[sp.csr_matrix, np.ndarray]:
         """Whitened, robustly weighted Jacobian (sparse) and residual vector at ``poses``, ``points``."""
         pose_col, point_col, n = columns
-        data, rows, cols, residuals = [], [], [], []
+        triplets, residuals = [], []
         row = 0
         for kind, (types, dim) in KINDS.items():
             index, _, info = self.factors(kind)
@@ -262,32 +243,21 @@ class FactorGraph:
             e, jac = self._linearize(poses, points, kind)
             s = np.einsum("fi,fij,fj->f", e, info, e)
             kernel, width = kernels.get(kind, (None, 1.0))
-            weight = np.sqrt(robust_weights(s, kernel, width)[1])[:, None, None]
+            weight = np.sqrt(robust_loss(s, kernel, width)[1])[:, None, None]
             a = weight * np.linalg.cholesky(info).transpose(0, 2, 1)
             residuals.append((a @ e[:, :, None])[:, :, 0].reshape(-1))
             factor_rows = row + dim * np.arange(len(index))
             for k, kind_of in enumerate(types):
-                block = a @ jac[k]
-                width_of = block.shape[2]
-                start = (pose_col if kind_of == POSE else point_col)[index[:, k]]
-                keep = start >= 0
-                r = factor_rows[keep][:, None, None] + np.arange(dim)[None, :, None]
-                c = start[keep][:, None, None] + np.arange(width_of)[None, None, :]
-                data.append(block[keep].reshape(-1))
-                rows.append(np.broadcast_to(r, (int(keep.sum()), dim, width_of)).reshape(-1))
-                cols.append(np.broadcast_to(c, (int(keep.sum()), dim, width_of)).reshape(-1))
+                triplets.append(block_triplets(a @ jac[k], factor_rows, (pose_col if kind_of == POSE else point_col)[index[:, k]]))
             row += dim * len(index)
-        if not data:
-            return sp.csr_matrix((row, n)), np.zeros(row)
-        jac = sp.csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(row, n))
-        return jac, np.concatenate(residuals)
+        return sparse_jacobian(triplets, (row, n)), np.concatenate(residuals) if residuals else np.zeros(row)
 
     def _cost(self, poses: np.ndarray, points: np.ndarray, kernels: dict[str, Kernel]) -> float:
         total = 0.0
         for kind in KINDS:
             s = self.factor_chi2(kind, poses, points)
             kernel, width = kernels.get(kind, (None, 1.0))
-            total += float(robust_weights(s, kernel, width)[0].sum())
+            total += float(robust_loss(s, kernel, width)[0].sum())
         return total
 
     def optimize(self, max_iterations: int = 100, kernels: dict[str, Kernel] | None = None,
@@ -303,7 +273,7 @@ class FactorGraph:
         relative_tolerance, absolute_tolerance : stop when an accepted step lowers the cost by
             less than ``relative_tolerance * cost`` or below ``absolute_tolerance``.
         initial_lambda : Levenberg damping ``lambda I`` added to the normal matrix at the start
-            (then divided by ``LAMBDA_FACTOR`` after each accepted step, multiplied after a rejected one).
+            (GTSAM's default; then the core's schedule, see :class:`Settings`).
         """
         kernels = dict(kernels or {})
         for kind, (kernel, _) in kernels.items():
@@ -312,43 +282,29 @@ class FactorGraph:
         columns = self._columns()
         pose_col, point_col, n = columns
         x, p = self.poses, self.points
-        cost = initial = self._cost(x, p, kernels)
         if n == 0 or self.num_factors == 0:
-            return OptimizeResult(cost, initial, 0, True)
+            cost = self._cost(x, p, kernels)
+            return OptimizeResult(cost, cost, 0, True)
         free_pose, free_point = pose_col >= 0, point_col >= 0
-        lam, iterations, converged = initial_lambda, 0, False
-        while iterations < max_iterations:
-            jac, r = self._system(x, p, kernels, columns)
-            hessian = (jac.T @ jac).tocsc()
-            gradient = jac.T @ r
-            accepted = False
-            while iterations < max_iterations and not accepted:
-                iterations += 1
-                dx = _solve_spd(hessian + sp.identity(n, format="csc") * lam, -gradient)
-                if not np.all(np.isfinite(dx)):
-                    lam *= LAMBDA_FACTOR
-                    continue
-                x_new, p_new = x.copy(), p.copy()
-                x_new[free_pose] = retract(x[free_pose], dx[: 3 * int(free_pose.sum())].reshape(-1, 3))
-                p_new[free_point] += dx[3 * int(free_pose.sum()):].reshape(-1, 2)
-                new_cost = self._cost(x_new, p_new, kernels)
-                predicted = -2.0 * float(dx @ gradient) - float(dx @ (hessian @ dx))
-                rho = (cost - new_cost) / predicted if predicted > 0 else -1.0
-                if rho > MIN_MODEL_FIDELITY:
-                    accepted = True
-                    decrease = cost - new_cost
-                    x, p, cost = x_new, p_new, new_cost
-                    lam /= LAMBDA_FACTOR
-                    converged = decrease < relative_tolerance * cost or decrease < absolute_tolerance
-                else:
-                    lam *= LAMBDA_FACTOR
-                    if lam > 1e16:
-                        converged = True
-                        break
-            if converged or not accepted:
-                break
-        self.poses, self.points = x, p
-        return OptimizeResult(cost, initial, iterations, converged)
+        head = 3 * int(free_pose.sum())
+
+        def placed(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            poses, points = x.copy(), p.copy()
+            poses[free_pose] = state[:head].reshape(-1, 3)
+            points[free_point] = state[head:].reshape(-1, 2)
+            return poses, points
+
+        def linearize(state: np.ndarray) -> tuple[sp.csc_matrix, np.ndarray]:
+            jac, r = self._system(*placed(state), kernels, columns)
+            return (jac.T @ jac).tocsc(), jac.T @ r
+
+        settings = Settings(initial_lambda=initial_lambda, relative_tolerance=relative_tolerance,
+                            absolute_tolerance=absolute_tolerance)
+        state, result = levenberg_marquardt(lambda state: self._cost(*placed(state), kernels), linearize,
+                                            np.concatenate([x[free_pose].reshape(-1), p[free_point].reshape(-1)]),
+                                            head // 3, max_iterations, settings)
+        self.poses, self.points = placed(state)
+        return result
 
     def redundancy(self, kind: str, select: np.ndarray | None = None, kernels: dict[str, Kernel] | None = None,
                    samples: int = 32, seed: int = 0) -> float:
@@ -367,7 +323,7 @@ class FactorGraph:
         jac, _ = self._system(self.poses, self.points, dict(kernels or {}), columns)
         probes = np.zeros((jac.shape[0], samples))
         probes[rows] = np.random.default_rng(seed).choice([-1.0, 1.0], size=(len(rows), samples))
-        solution = _solve_spd((jac.T @ jac).tocsc(), np.asarray(jac.T @ probes))
+        solution = solve_spd((jac.T @ jac).tocsc(), np.asarray(jac.T @ probes))
         if solution.ndim != 2:
             return float(len(rows))
         fitted = jac @ solution
@@ -386,7 +342,7 @@ class FactorGraph:
         free = np.flatnonzero(starts >= 0)
         if n and len(free):
             jac, _ = self._system(self.poses, self.points, dict(kernels or {}), columns)
-            factor = _factor_spd((jac.T @ jac).tocsc())
+            factor = factor_spd((jac.T @ jac).tocsc())
             per_solve = max(1, MARGINAL_SOLVE_VALUES // (3 * n))   # variables per solve: its right-hand side stays small
             for chunk in np.array_split(free, -(-len(free) // per_solve)):
                 picks = np.concatenate([starts[k] + np.arange(widths[k]) for k in chunk])

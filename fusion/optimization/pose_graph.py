@@ -1,17 +1,17 @@
-"""2-D pose graph (SE(2) nodes, relative-pose edges) and its Levenberg-Marquardt optimiser.
+"""2-D pose graph (SE(2) nodes, relative-pose edges), optimised by the one Levenberg-Marquardt core.
 
 The error of an edge i -> j with measurement z (pose j in the frame of pose i) is the g2o
 ``EDGE_SE2`` error ``e = t2v(z^-1 (x_i^-1 x_j))`` (metres, metres, radians wrapped to
-[-pi, pi)), weighted by the edge's 3x3 information matrix; ``chi2 = sum e^T I e``. The
-optimiser linearises with analytic Jacobians, whitens each edge by the Cholesky factor of its
-information, and solves the damped normal equations with SciPy's sparse LU
-(SuperLU); vertex 0 (or any set of vertices) stays fixed. Robust kernels (Huber, Cauchy) act
-through iteratively reweighted least squares.
+[-pi, pi); :func:`trundle.fusion.observation_models.between_error`), weighted by the edge's 3x3
+information matrix; ``chi2 = sum e^T I e``. ``optimize`` whitens each edge by the Cholesky
+factor of its information, applies a robust kernel (:mod:`~trundle.fusion.optimization.robust_kernels`)
+by iteratively reweighted least squares and hands the sparse normal equations to
+:func:`~trundle.fusion.optimization.levenberg_marquardt.levenberg_marquardt`; vertex 0 (or any set
+of vertices) stays fixed.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,44 +20,11 @@ import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import breadth_first_order
 
 from trundle.fusion.geometry import wrap_angle
+from trundle.fusion.observation_models import between_error
+from trundle.fusion.optimization.levenberg_marquardt import (OptimizeResult, Settings, block_triplets,
+                                                            levenberg_marquardt, solve_spd, sparse_jacobian)
+from trundle.fusion.optimization.robust_kernels import check_kernel, robust_loss
 from trundle.logs.errors import UserError
-
-ROBUST_KERNELS = (None, "huber", "cauchy")
-
-
-@dataclass(frozen=True)
-class OptimizeResult:
-    """Outcome of :meth:`PoseGraph.optimize`.
-
-    ``chi2`` and ``initial_chi2`` are the (robustified, when a kernel is used) sums of
-    weighted squared edge errors; ``iterations`` counts accepted and rejected LM steps;
-    ``converged`` is False when ``max_iterations`` ran out first.
-    """
-
-    chi2: float
-    initial_chi2: float
-    iterations: int
-    converged: bool
-
-
-def robust_weights(chi2: np.ndarray, kernel: str | None, width: float) -> tuple[np.ndarray, np.ndarray]:
-    """Robust cost ``rho(s)`` and IRLS weight ``rho'(s)`` of squared errors ``s``.
-
-    Huber: ``rho = s`` for ``s <= k^2`` else ``2 k sqrt(s) - k^2``; Cauchy:
-    ``rho = k^2 log(1 + s / k^2)``; ``k`` is ``width`` in units of the whitened error.
-    """
-    s = np.asarray(chi2, dtype=np.float64)
-    if kernel is None:
-        return s, np.ones_like(s)
-    k2 = width * width
-    if kernel == "huber":
-        root = np.sqrt(np.maximum(s, 1e-300))
-        inlier = s <= k2
-        return np.where(inlier, s, 2.0 * width * root - k2), np.where(inlier, 1.0, width / root)
-    if kernel == "cauchy":
-        return k2 * np.log1p(s / k2), 1.0 / (1.0 + s / k2)
-    raise ValueError(f"unknown robust kernel {kernel!r}; expected one of {ROBUST_KERNELS}")
-
 
 class PoseGraph:
     """Nodes are planar poses (x, y, theta); edges are relative-pose measurements with information."""
@@ -143,7 +110,7 @@ class PoseGraph:
         """(E, 3) errors ``t2v(z^-1 (x_i^-1 x_j))`` of every edge at ``poses`` (default: current)."""
         x = self.poses if poses is None else poses
         ij, z, _ = self.edges
-        return _errors(x, ij, z)[0]
+        return between_error(x[ij[:, 0]], x[ij[:, 1]], z)[0]
 
     def edge_chi2(self, poses: np.ndarray | None = None) -> np.ndarray:
         """(E,) weighted squared error ``e^T I e`` of every edge."""
@@ -230,10 +197,10 @@ class PoseGraph:
         kernel_width : kernel parameter k on the whitened error (chi2 units: ``k^2``).
         relative_tolerance, absolute_tolerance : stop when an accepted step lowers the cost by
             less than ``relative_tolerance * cost`` or below ``absolute_tolerance``.
-        initial_lambda : Levenberg damping ``lambda I`` added to the normal matrix (as GTSAM's default).
+        initial_lambda : Levenberg damping ``lambda I`` added to the normal matrix at the start
+            (GTSAM's default; then the core's schedule, see :class:`Settings`).
         """
-        if robust_kernel not in ROBUST_KERNELS:
-            raise ValueError(f"unknown robust kernel {robust_kernel!r}; expected one of {ROBUST_KERNELS}")
+        check_kernel(robust_kernel)
         x = self.poses
         ij, z, info = self.edges
         if len(ij) == 0:
@@ -242,64 +209,36 @@ class PoseGraph:
         free = np.ones(len(x), dtype=bool)
         free[[k for k in self.fixed if k < len(x)]] = False
         column = np.full(len(x), -1, dtype=np.int64)
-        column[free] = np.arange(int(free.sum()))
-        n_free = int(free.sum())
-        if n_free == 0:
-            cost = float(robust_weights(self.edge_chi2(x), robust_kernel, kernel_width)[0].sum())
-            return OptimizeResult(cost, cost, 0, True)
+        column[free] = 3 * np.arange(int(free.sum()))
+        rows = 3 * np.arange(len(ij))
 
-        def cost_of(poses: np.ndarray) -> float:
-            e = _errors(poses, ij, z)[0]
-            s = np.einsum("ei,eij,ej->e", e, info, e)
-            return float(robust_weights(s, robust_kernel, kernel_width)[0].sum())
+        def placed(state: np.ndarray) -> np.ndarray:
+            poses = x.copy()
+            poses[free] = state.reshape(-1, 3)
+            return poses
 
-        cost = initial = cost_of(x)
-        lam = initial_lambda
-        nu = 2.0
-        iterations = 0
-        converged = False
-        while iterations < max_iterations:
-            e, jac_i, jac_j = _errors(x, ij, z)
+        def cost(state: np.ndarray) -> float:
+            poses = placed(state)
+            e = between_error(poses[ij[:, 0]], poses[ij[:, 1]], z)[0]
             s = np.einsum("ei,eij,ej->e", e, info, e)
-            w = np.sqrt(robust_weights(s, robust_kernel, kernel_width)[1])[:, None, None]
-            a = w * sqrt_info
+            return float(robust_loss(s, robust_kernel, kernel_width)[0].sum())
+
+        def linearize(state: np.ndarray) -> tuple[sp.csc_matrix, np.ndarray]:
+            poses = placed(state)
+            e, jac_i, jac_j = between_error(poses[ij[:, 0]], poses[ij[:, 1]], z)
+            s = np.einsum("ei,eij,ej->e", e, info, e)
+            a = np.sqrt(robust_loss(s, robust_kernel, kernel_width)[1])[:, None, None] * sqrt_info
             r = (a @ e[:, :, None])[:, :, 0].reshape(-1)
-            jac = _sparse_jacobian(a @ jac_i, a @ jac_j, ij, column, n_free)
-            hessian = (jac.T @ jac).tocsc()
-            gradient = jac.T @ r
-            step_accepted = False
-            while iterations < max_iterations and not step_accepted:
-                iterations += 1
-                damped = hessian + sp.identity(hessian.shape[0], format="csc") * lam
-                dx = _solve_spd(damped, -gradient)
-                if not np.all(np.isfinite(dx)):
-                    lam *= nu
-                    nu *= 2.0
-                    continue
-                candidate = x.copy()
-                candidate[free] += dx.reshape(-1, 3)
-                candidate[:, 2] = wrap_angle(candidate[:, 2])
-                new_cost = cost_of(candidate)
-                predicted = -2.0 * float(dx @ gradient) - float(dx @ (hessian @ dx))
-                rho = (cost - new_cost) / predicted if predicted > 0 else -1.0
-                if rho > 0:
-                    step_accepted = True
-                    decrease = cost - new_cost
-                    x, cost = candidate, new_cost
-                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                    nu = 2.0
-                    if decrease < relative_tolerance * cost or decrease < absolute_tolerance:
-                        converged = True
-                else:
-                    lam *= nu
-                    nu *= 2.0
-                    if lam > 1e16:
-                        converged = True
-                        break
-            if converged or not step_accepted:
-                break
-        self._poses = [row.copy() for row in x]
-        return OptimizeResult(cost, initial, iterations, converged)
+            jac = sparse_jacobian([block_triplets(a @ jac_i, rows, column[ij[:, 0]]),
+                                   block_triplets(a @ jac_j, rows, column[ij[:, 1]])], (len(r), 3 * int(free.sum())))
+            return (jac.T @ jac).tocsc(), jac.T @ r
+
+        settings = Settings(initial_lambda=initial_lambda, relative_tolerance=relative_tolerance,
+                            absolute_tolerance=absolute_tolerance)
+        state, result = levenberg_marquardt(cost, linearize, x[free].reshape(-1), int(free.sum()), max_iterations,
+                                            settings)
+        self._poses = [row.copy() for row in placed(state)]
+        return result
 
     # ----------------------------------------------------------------- g2o I/O
     @classmethod
@@ -361,21 +300,6 @@ class PoseGraph:
 read_g2o = PoseGraph.read_g2o
 
 
-def _factor_spd(matrix: sp.csc_matrix) -> spla.SuperLU | None:
-    """SuperLU factors (COLAMD order, diagonal pivots) of a sparse symmetric positive-definite matrix;
-    None when it is exactly singular."""
-    try:
-        return spla.splu(matrix, permc_spec="COLAMD", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    except RuntimeError:
-        return None
-
-
-def _solve_spd(matrix: sp.csc_matrix, rhs: np.ndarray) -> np.ndarray:
-    """Solve a sparse symmetric positive-definite system (NaN when it is exactly singular)."""
-    factor = _factor_spd(matrix)
-    return np.full(matrix.shape[0], np.nan) if factor is None else factor.solve(rhs)
-
-
 def _solve_linear_chain(values: np.ndarray, ij: np.ndarray, measured: np.ndarray, whitening: np.ndarray,
                         anchored: np.ndarray) -> np.ndarray:
     """Weighted linear least squares ``v_j - v_i = m`` over the non-anchored nodes.
@@ -385,60 +309,18 @@ def _solve_linear_chain(values: np.ndarray, ij: np.ndarray, measured: np.ndarray
     """
     n, d = values.shape
     column = np.full(n, -1, dtype=np.int64)
-    column[~anchored] = np.arange(int((~anchored).sum()))
+    column[~anchored] = d * np.arange(int((~anchored).sum()))
     if (~anchored).sum() == 0:
         return values.copy()
     eye = np.broadcast_to(np.eye(d), (len(ij), d, d))
-    jac = _sparse_jacobian(-whitening @ eye, whitening @ eye, ij, column, int((~anchored).sum()), d)
+    rows = d * np.arange(len(ij))
+    jac = sparse_jacobian([block_triplets(-whitening @ eye, rows, column[ij[:, 0]]),
+                           block_triplets(whitening @ eye, rows, column[ij[:, 1]])],
+                          (d * len(ij), d * int((~anchored).sum())))
     constant = values[ij[:, 1]] * anchored[ij[:, 1], None] - values[ij[:, 0]] * anchored[ij[:, 0], None]
     residual = (whitening @ (measured - constant)[:, :, None])[:, :, 0].reshape(-1)
     normal = (jac.T @ jac).tocsc()
-    solution = _solve_spd(normal, jac.T @ residual)
+    solution = solve_spd(normal, jac.T @ residual)
     out = values.copy()
     out[~anchored] = np.asarray(solution).reshape(-1, d)
     return out
-
-
-def _errors(x: np.ndarray, ij: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Edge errors (E, 3) and their Jacobians (E, 3, 3) with respect to x_i and x_j."""
-    xi, xj = x[ij[:, 0]], x[ij[:, 1]]
-    ci, si = np.cos(xi[:, 2]), np.sin(xi[:, 2])
-    cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
-    dx, dy = xj[:, 0] - xi[:, 0], xj[:, 1] - xi[:, 1]
-    # relative pose x_i^-1 x_j
-    rx, ry = ci * dx + si * dy, -si * dx + ci * dy
-    # z^-1 (x_i^-1 x_j): rotate (r - t_z) by -theta_z
-    ux, uy = rx - z[:, 0], ry - z[:, 1]
-    e = np.stack([cz * ux + sz * uy, -sz * ux + cz * uy,
-                  wrap_angle(xj[:, 2] - xi[:, 2] - z[:, 2])], axis=1)
-    # R_z^T R_i^T, shape (E, 2, 2)
-    c, s = np.cos(xi[:, 2] + z[:, 2]), np.sin(xi[:, 2] + z[:, 2])
-    rot = np.stack([np.stack([c, s], 1), np.stack([-s, c], 1)], 1)
-    # derivative of R_z^T R_i^T (t_j - t_i) with respect to theta_i
-    d_theta = np.stack([-s * dx + c * dy, -c * dx - s * dy], 1)
-    n = len(ij)
-    jac_i = np.zeros((n, 3, 3))
-    jac_j = np.zeros((n, 3, 3))
-    jac_i[:, :2, :2] = -rot
-    jac_i[:, :2, 2] = d_theta
-    jac_i[:, 2, 2] = -1.0
-    jac_j[:, :2, :2] = rot
-    jac_j[:, 2, 2] = 1.0
-    return e, jac_i, jac_j
-
-
-def _sparse_jacobian(jac_i: np.ndarray, jac_j: np.ndarray, ij: np.ndarray, column: np.ndarray,
-                     n_free: int, d: int = 3) -> sp.csr_matrix:
-    """Stack per-edge d x d blocks into a (d E, d n_free) sparse matrix, leaving out fixed nodes."""
-    n = len(ij)
-    rows = np.repeat(np.arange(d * n).reshape(n, d, 1), d, axis=2)
-    data, row_list, col_list = [], [], []
-    for block, node in ((jac_i, ij[:, 0]), (jac_j, ij[:, 1])):
-        keep = column[node] >= 0
-        cols = d * column[node][:, None, None] + np.arange(d)[None, None, :]
-        cols = np.broadcast_to(cols, (n, d, d))
-        data.append(block[keep].reshape(-1))
-        row_list.append(rows[keep].reshape(-1))
-        col_list.append(cols[keep].reshape(-1))
-    return sp.csr_matrix((np.concatenate(data), (np.concatenate(row_list), np.concatenate(col_list))),
-                         shape=(d * n, d * n_free))

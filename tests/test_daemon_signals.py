@@ -217,7 +217,7 @@ def test_bad_config_is_one_line_naming_the_key(tmp_path, clip, capsys):
     assert code == 2 and err.count("\n") == 1 and "processing.slam = 1" in err
     config.write_text(config.read_text().replace("[processing]\nslam = 1\n", "").replace("pace = true", "pase = true"))
     code, _, err = trundle(capsys, "daemon", "--config", str(config))
-    assert code == 2 and err.count("\n") == 1 and "'pase'" in err  # the driver names its own bad option
+    assert code == 2 and err.count("\n") == 1 and "camera.pase" in err  # the driver's model names the bad option
     config.write_text("[logger\n")
     code, _, err = trundle(capsys, "daemon", "--config", str(config))
     assert code == 2 and err.count("\n") == 1 and "not valid TOML" in err

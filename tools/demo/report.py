@@ -85,11 +85,12 @@ def marker_map(run: SlamRun, world: World, map_to_world) -> dict[str, Any]:
     error = landmark_error(mapped.ids, mapped.positions, [str(d.marker_id) for d in known],
                            np.array([[d.x, d.y] for d in known]), map_to_world)
     sightings = dict(zip(mapped.ids, mapped.sightings.tolist()))
+    landmark_stats = run.slam.landmark_constraints.stats
     return {"mapped": len(mapped.ids), "errors_m": error.per_landmark_m, "mean_error_m": error.mean_m,
             "max_error_m": error.max_m, "not_in_world": error.extra,
             "sightings": {k: int(v) for k, v in sorted(sightings.items())},
-            "sighting_time_offset_s": run.slam.landmark_stats.time_offset_s,
-            "revisited": run.slam.landmark_stats.revisited}
+            "sighting_time_offset_s": landmark_stats.time_offset_s,
+            "revisited": landmark_stats.revisited}
 
 
 def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, score: MarkerScore, world: World,

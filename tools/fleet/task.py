@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from trundle import __version__
-from trundle.logs.errors import UserError
+from trundle.logs.errors import TrundleError, UserError
 from trundle.logs.reader import LogReader
 from trundle.tools.fleet.inputs import identity, local_copy
 from trundle.tools.fleet.jobs import REPORT, run_job
@@ -126,7 +126,7 @@ def process_log(task: Task) -> dict[str, Any]:
         return row
     except Exception as error:  # a bad log or a job's failure fails this row alone, never the fleet
         row.update(seconds=time.perf_counter() - started, cpu_seconds=time.process_time() - cpu_started,
-                   error=one_line(str(error) if isinstance(error, UserError) else f"{type(error).__name__}: {error}"))
+                   error=one_line(str(error) if isinstance(error, TrundleError) else f"{type(error).__name__}: {error}"))
         task.error_file.parent.mkdir(parents=True, exist_ok=True)
         task.error_file.write_text(f"{task.source}\n{traceback.format_exc()}")
         return row

@@ -73,6 +73,8 @@ def test_job_options_are_converted_by_the_job_functions_type_hints(tmp_path) -> 
     ("slam", ['config={"slam": {"submaps": {"resolution": 0}}}'],
      "slam option config: slam.submaps.resolution = 0: expected a number >= 0.001"),
     ("slam", ["config={1: 2}"], "slam option config: invalid JSON"),
+    ("slam", ["estimator=nope"],
+     "slam option estimator = 'nope': expected one of graph, grid, grid-landmarks, ekf, landmark-graph"),
     ("perceive", ["pipeline=color", "options=[1]"], "config file not found: [1]"),
     ("walk", [], "unknown job 'walk'"),
 ])

@@ -30,16 +30,20 @@ from trundle.tools.config.robot import RobotConfig, parse_config, read_toml
 
 @dataclass(frozen=True)
 class Job:
-    """A one-log job: its function (``module:name``) and where each output parameter points,
-    relative to the log's output folder (``"."`` is the folder itself)."""
+    """A one-log job: its function (``module:name``), where each output parameter points,
+    relative to the log's output folder (``"."`` is the folder itself), and the options whose
+    values come from a list (option -> ``module:name`` of the function giving the choices), so a
+    bad choice is refused before any task starts."""
 
     function: str
     outputs: Mapping[str, str] = field(default_factory=dict)
+    choices: Mapping[str, str] = field(default_factory=dict)
 
 
 JOBS: dict[str, Job] = {
     "info": Job("trundle.tools.jobs.info:info_log"),
-    "slam": Job("trundle.tools.jobs.slam:slam_log", {"output": "."}),
+    "slam": Job("trundle.tools.jobs.slam:slam_log", {"output": "."},
+                {"estimator": "trundle.fusion.slam.estimators:choices"}),
     "localize": Job("trundle.tools.jobs.localize:localize_log", {"trajectory_csv": "trajectory.csv"}),
     "perceive": Job("trundle.tools.jobs.perceive:perceive_log", {"output": "perceive.mcap"}),
     "characterize": Job("trundle.tools.jobs.characterize:characterize_log", {"output": "."}),
@@ -48,12 +52,23 @@ FLEET_SET = {"log", "progress"}   # parameters the fleet always sets (besides ea
 REPORT = "report.json"            # the job's report in every log's folder
 
 
+def _load(reference: str) -> Any:
+    """The object a ``module:name`` reference names (its module imported now)."""
+    module, name = reference.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
 def job_function(job: str) -> Callable[..., dict[str, Any]]:
     """The one-log function of ``job`` (imported now, so only the jobs that run are loaded)."""
     if job not in JOBS:
         raise UserError(f"unknown job {job!r} (choose from {', '.join(JOBS)})")
-    module, name = JOBS[job].function.split(":")
-    return getattr(importlib.import_module(module), name)
+    return _load(JOBS[job].function)
+
+
+def option_choices(job: str, name: str) -> tuple[str, ...] | None:
+    """The values option ``name`` of ``job`` may take (None: any of its kind)."""
+    reference = JOBS[job].choices.get(name)
+    return None if reference is None else tuple(_load(reference)())
 
 
 def _kind(hint: Any) -> str | None:
@@ -150,6 +165,9 @@ def parse_options(job: str, items: Sequence[str]) -> dict[str, Any]:
         if name in options:
             raise UserError(f"{job} option {name} given twice")
         options[name] = _convert(job, name, known[name][0], text)
+        allowed = option_choices(job, name)
+        if allowed is not None and options[name] not in allowed:
+            raise ConfigError(f"{job} option {name} = {text!r}: expected one of {', '.join(allowed)}")
     missing = [n for n, (_, d) in known.items() if d is inspect.Parameter.empty and n not in options]
     if missing:
         raise UserError(f"{job} needs {', '.join(f'{n}=...' for n in missing)} in --job-options (options: {listing})")

@@ -17,7 +17,8 @@ ROS ``camera_info_manager`` does, so viewers still learn the image size.
 from __future__ import annotations
 
 import os
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 from ruamel.yaml import YAML, YAMLError

@@ -9,7 +9,7 @@ and read time-outs bound every call, so a silent server cannot hang the reader.
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import cv2
 

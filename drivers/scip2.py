@@ -9,8 +9,8 @@ stripped of their sums before the payload is decoded (Hokuyo SCIP 2.0 specificat
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 

@@ -10,8 +10,8 @@ the slope of receive latency against device time (urg_stamped models 50 ppm).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 

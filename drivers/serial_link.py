@@ -17,7 +17,7 @@ import os
 import select
 import termios
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import serial
 

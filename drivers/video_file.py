@@ -16,9 +16,9 @@ while streaming is a lost device (``DeviceError``), as an unplugged camera is.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 import cv2
 import numpy as np

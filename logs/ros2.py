@@ -8,9 +8,10 @@ bytes are exactly what a ROS 2 node would publish, and the schema text handed to
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from functools import lru_cache
-from typing import Any, Callable
+from functools import cache
+from typing import Any
 
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -421,7 +422,7 @@ def decode(ros_type_name: str, data: bytes | memoryview) -> m.Message:
     return mp.from_ros(TYPESTORE.deserialize_cdr(data, ros_type_name))
 
 
-@lru_cache(maxsize=None)
+@cache
 def schema_text(ros_type_name: str) -> str:
     """Full ``ros2msg`` definition: the type's text, then every dependency after a ``MSG:`` separator."""
     return TYPESTORE.generate_msgdef(ros_type_name, ros_version=2)[0]

@@ -20,9 +20,10 @@ import platform
 import struct
 import threading
 import time
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Iterable, Mapping, NamedTuple
+from typing import IO, NamedTuple
 
 from mcap.writer import CompressionType, Writer
 

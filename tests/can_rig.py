@@ -6,10 +6,11 @@ from __future__ import annotations
 import math
 import time
 import uuid
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import can
 import numpy as np
@@ -18,8 +19,15 @@ from trundle.drivers.dbc_wheels import VESC_DBC
 from trundle.drivers.wheels import WheelsDriver, driver_from_url
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry, OdometrySink, odometry_from_config
 from trundle.logs import messages as m
-from trundle.tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes,
-                                               odrive_nodes, vesc_nodes)
+from trundle.tools.emulators.can_nodes import (
+    CanNodeRunner,
+    EmulatedNode,
+    VelocityScript,
+    WheelMotion,
+    cia406_nodes,
+    odrive_nodes,
+    vesc_nodes,
+)
 from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
 RADIUS, TRACK = 0.1, 0.5

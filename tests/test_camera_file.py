@@ -11,10 +11,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from camera_clips import avi_video_chunks, scene, wait_for, write_clip
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from camera_clips import avi_video_chunks, scene, wait_for, write_clip
 from trundle.drivers.camera import CameraDriver, driver_from_url
 from trundle.drivers.jpeg_check import jpeg_problem
 from trundle.drivers.lifecycle import DeviceError

@@ -10,8 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from camera_clips import avi_video_chunks, wait_for, write_clip
+
 from trundle.drivers.camera import CameraDriver, driver_from_url
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader

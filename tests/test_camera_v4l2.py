@@ -12,8 +12,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from camera_clips import wait_for, write_clip
+
 from trundle.drivers.camera import CameraDriver, count_dropped, driver_from_url
 from trundle.drivers.camera_config import parse_camera_url
 from trundle.drivers.frame_grabber import FrameGrabber

@@ -11,7 +11,7 @@ import uuid
 import can
 import pytest
 
-from trundle.drivers.can_bus import (CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_PROT, CAN_ERR_RESTARTED, CanBus, parse_url)
+from trundle.drivers.can_bus import CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_PROT, CAN_ERR_RESTARTED, CanBus, parse_url
 from trundle.drivers.lifecycle import DeviceError
 from trundle.logs.errors import UserError
 from trundle.tools.emulators.slcan_emulator import SlcanEmulator

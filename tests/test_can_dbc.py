@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.drivers.dbc_wheels import DbcWheels
 from tests.can_rig import VESC_DBC
+from trundle.drivers.dbc_wheels import DbcWheels
 
 SIGNALS = ["VESC_Status5_id9.Tachometer", "VESC_Status5_id10.Tachometer"]
 VELOCITIES = ["VESC_Status1_id9.ERPM", "VESC_Status1_id10.ERPM"]

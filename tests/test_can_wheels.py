@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from can.interfaces.slcan import slcanBus
 
+from tests.can_rig import RADIUS, assert_no_jump, can_rig
 from trundle.drivers.can_bus import Received
 from trundle.drivers.wheels import driver_from_url
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-from tests.can_rig import RADIUS, assert_no_jump, can_rig
 
 # Stand still, then both wheels at 1 turn/s for 0.5 s (half a turn = pi rad), then stop.
 STRAIGHT = "0:0,0;0.3:1,1;0.8:0,0"

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from lrf_harness import Recorder, running, wait_until
 
 from trundle.drivers.lrf import driver_from_url
-from lrf_harness import Recorder, running, wait_until
 from trundle.logs.writer import Logger
 from trundle.tools.cli.main import main
 from trundle.tools.emulators.device_server import DeviceServer
@@ -116,6 +116,7 @@ def test_real_hokuyo_log_gives_per_beam_noise_where_the_robot_stands_still(tmp_p
     """exp2.dat (a real URG-04LX with wheel encoders): standing-still stretches are found from
     the wheel angles; every beam that returned gets a noise figure, plotted."""
     from conftest import shared_file
+
     from trundle.logs.importers.breezyslam import import_breezyslam
 
     log = tmp_path / "exp2.mcap"
@@ -138,6 +139,7 @@ def test_real_hokuyo_log_gives_per_beam_noise_where_the_robot_stands_still(tmp_p
 def test_encoder_counts_per_revolution_from_real_ticks(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """exp2's wheel encoders give 2000 ticks per revolution (BreezySLAM's robot model)."""
     from conftest import shared_file
+
     from trundle.logs.importers.breezyslam import import_breezyslam
 
     log = tmp_path / "exp2.mcap"

@@ -6,8 +6,15 @@ import cv2
 import numpy as np
 import pytest
 
-from trundle.perception.color import (back_project, clean_mask, in_range, masked, segment_color, template_histograms,
-                                      to_hsv8)
+from trundle.perception.color import (
+    back_project,
+    clean_mask,
+    in_range,
+    masked,
+    segment_color,
+    template_histograms,
+    to_hsv8,
+)
 
 ORANGE = (0, 128, 255)     # BGR: H 30 deg -> 15, S 1 -> 255, V 1 -> 255 in OpenCV 8-bit units
 TEAL = (128, 128, 0)       # BGR: H 180 deg -> 90, S 255, V 128

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 from trundle.logs.reader import LogReader
-from trundle.tools.sim.camera_render import project
 from trundle.tools.config.toml_text import format_config
 from trundle.tools.daemon.status import query_status
-from trundle.tools.sim.robot import RobotSim
 from trundle.tools.emulators.sim_devices import SimDevices
+from trundle.tools.sim.camera_render import project
+from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
 
 REPO = Path(__file__).resolve().parents[1]

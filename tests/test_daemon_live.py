@@ -11,9 +11,9 @@ import time
 
 from websockets.sync import client as websockets_client
 
+from tests.test_daemon import Running, config, wait_for
 from trundle.logs import messages as m
 from trundle.logs import ros2
-from tests.test_daemon import Running, config, wait_for
 
 
 def free_port() -> int:

@@ -16,9 +16,9 @@ from trundle.drivers.lifecycle import Driver
 from trundle.fusion.geometry import compose, inverse
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
-from trundle.tools.sim.camera_render import optical_rotation
 from trundle.tools.config.robot import parse_config
 from trundle.tools.daemon.service import Daemon
+from trundle.tools.sim.camera_render import optical_rotation
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
 

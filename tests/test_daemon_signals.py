@@ -78,7 +78,7 @@ class Notify:
         while not self.closed.is_set():
             try:
                 self.messages.append(self.sock.recv(4096).decode())
-            except (socket.timeout, OSError):
+            except (TimeoutError, OSError):
                 continue
 
     def wait_for(self, prefix: str, timeout_s: float = 90.0) -> str:

@@ -22,8 +22,8 @@ from trundle.logs.reader import LogReader
 from trundle.tools.config.toml_text import format_config
 from trundle.tools.daemon.status import query_status
 from trundle.tools.emulators.faults import FaultPlan
-from trundle.tools.sim.robot import RobotSim
 from trundle.tools.emulators.sim_devices import SimDevices
+from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
 
 REPO = Path(__file__).resolve().parents[1]

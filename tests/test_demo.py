@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 from trundle.fusion.mapping.map_io import load_map, read_trajectory_csv
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
-from trundle.tools.cli.main import main
 from trundle.tools.cli.demo import camera_size
+from trundle.tools.cli.main import main
 from trundle.tools.demo.report import ATE_LIMIT_M, MARKER_MAP_LIMIT_M
 from trundle.tools.sim.world import load_world
 

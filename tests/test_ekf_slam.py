@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from landmark_world import in_map_frame, ring_of_landmarks, simulate
 from scipy.stats import chi2
 
-from landmark_world import in_map_frame, ring_of_landmarks, simulate
+from trundle.fusion.geometry import wrap_angle
+from trundle.fusion.odometry.increments import MotionNoise
 from trundle.fusion.slam.data_association import UNPAIRED, individual_d2, jcbb, joint_d2, nearest_neighbour
 from trundle.fusion.slam.ekf_slam import EkfSlam, EkfSlamConfig
-from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.slam.landmark_slam import EkfLandmarkSlam
-from trundle.fusion.odometry.increments import MotionNoise
 from trundle.logs import messages as m
 
 THREE_SIGMA_2DOF = float(chi2.ppf(0.9973, 2))

@@ -11,9 +11,19 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.fusion.evaluation.trajectory_errors import (Relations, Trajectory, absolute_trajectory_error, align_se2, read_reference,
-                                       read_relations, relation_error, relative_pose_error, revisit_relations,
-                                       seconds_to_ns, trajectory_relations)
+from trundle.fusion.evaluation.trajectory_errors import (
+    Relations,
+    Trajectory,
+    absolute_trajectory_error,
+    align_se2,
+    read_reference,
+    read_relations,
+    relation_error,
+    relative_pose_error,
+    revisit_relations,
+    seconds_to_ns,
+    trajectory_relations,
+)
 from trundle.fusion.geometry import compose
 from trundle.fusion.mapping.map_io import write_trajectory_csv
 from trundle.logs.errors import UserError

@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from trundle.fusion.optimization.factor_graph import BETWEEN, POINT_PRIOR, POSITION, RANGE_BEARING, FactorGraph, retract
 from trundle.fusion.geometry import compose, relative
+from trundle.fusion.optimization.factor_graph import BETWEEN, POINT_PRIOR, POSITION, RANGE_BEARING, FactorGraph, retract
 from trundle.fusion.optimization.pose_graph import PoseGraph
 
 

@@ -17,6 +17,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from tests.fleet_logs import START_NS, corrupt_log, robot_log
 from trundle import __version__
 from trundle.logs.errors import UserError
 from trundle.tools.cli.main import main
@@ -27,7 +28,6 @@ from trundle.tools.fleet.results import write_csv, write_parquet
 from trundle.tools.fleet.rows import COLUMNS, flatten
 from trundle.tools.fleet.summary import failed_checks, headline, markdown
 from trundle.tools.fleet.task import Task, process_log, read_marker
-from tests.fleet_logs import START_NS, corrupt_log, robot_log
 
 TRUNDLE = str(Path(sys.executable).with_name("trundle"))
 HOUR_NS = 3600 * 10**9

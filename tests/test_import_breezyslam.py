@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.conftest import shared_file
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.logs.importers.breezyslam import ANGLE_MIN, ANGLE_STEP, import_breezyslam, parse_line, ranges_to_metres
 from trundle.logs.reader import LogReader
-from tests.conftest import shared_file
 from trundle.tools.cli.main import main
 
 

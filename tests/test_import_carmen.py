@@ -9,13 +9,20 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.conftest import shared_file
 from trundle.fusion.geometry import relative
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.logs import messages as m
-from trundle.logs.importers.carmen import (CarmenLaser, CarmenOdom, import_carmen, messages, parse_line, read_carmen,
-                                           scan_poses)
+from trundle.logs.importers.carmen import (
+    CarmenLaser,
+    CarmenOdom,
+    import_carmen,
+    messages,
+    parse_line,
+    read_carmen,
+    scan_poses,
+)
 from trundle.logs.reader import LogReader
-from tests.conftest import shared_file
 from trundle.tools.cli.main import main
 
 

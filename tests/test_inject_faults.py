@@ -9,12 +9,12 @@ import math
 import numpy as np
 import pytest
 
+from tests.planar_world import ROOM, scan
 from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.logs import messages as m
 from trundle.logs.importers import write_log
 from trundle.logs.reader import LogReader
-from tests.planar_world import ROOM, scan
 from trundle.tools.cli.main import main
 
 

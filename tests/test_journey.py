@@ -16,8 +16,8 @@ import pytest
 
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
-from trundle.tools.emulators.can_nodes import CanNodeRunner, VelocityScript, WheelMotion, odrive_nodes
 from trundle.tools.emulators.camera_emulator import CameraEmulator
+from trundle.tools.emulators.can_nodes import CanNodeRunner, VelocityScript, WheelMotion, odrive_nodes
 from trundle.tools.emulators.device_server import DeviceServer
 from trundle.tools.emulators.scene import load_scene
 from trundle.tools.emulators.scip2_emulator import MODELS, ScipDevice

@@ -12,9 +12,9 @@ from tests.planar_world import ROOM, scan
 from tests.test_slam import loop_path
 from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error, landmark_error
 from trundle.fusion.geometry import compose, relative
-from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.fusion.slam.grid_slam import Slam, SlamConfig
+from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
 from trundle.logs import messages as m
 
 # markers on the walls of the test room, facing into it: (x, y, facing yaw)

@@ -10,8 +10,8 @@ import pytest
 
 from tests.planar_world import scan
 from trundle.fusion.geometry import compose, relative, scan_to_points, voxel_filter
-from trundle.fusion.localization.landmark_localization import LandmarkFixer, solve_pose
 from trundle.fusion.localization.grid_localization import TRACKING, Localizer
+from trundle.fusion.localization.landmark_localization import LandmarkFixer, solve_pose
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.logs import messages as m
 

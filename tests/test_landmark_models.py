@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.fusion.optimization.error_correlation import ar1_weights, correlation_time, previous_gaps
 from trundle.fusion.geometry import compose
-from trundle.fusion.odometry.increments import IncrementAccumulator, MotionNoise, OdometryIncrements, compose_jacobians
 from trundle.fusion.observation_models import point_from_range_bearing, range_bearing, relative_position
+from trundle.fusion.odometry.increments import IncrementAccumulator, MotionNoise, OdometryIncrements, compose_jacobians
+from trundle.fusion.optimization.error_correlation import ar1_weights, correlation_time, previous_gaps
 from trundle.logs import messages as m
 
 coordinates = st.floats(-20, 20)

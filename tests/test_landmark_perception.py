@@ -13,13 +13,12 @@ import pytest
 import scipy.linalg
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
-
 from planar_world import ROOM, scan
-from trundle.drivers.camera import OPTICAL_ROTATION
-from trundle.logs import messages as m
+from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
+from trundle.drivers.camera import OPTICAL_ROTATION
+from trundle.logs import messages as m
 from trundle.perception.landmarks import StaticFrames, marker_observation, viewing_cosine
 from trundle.perception.markers import Marker, marker_object_points, marker_pose
 from trundle.perception.scan_features import corner_observations, corners

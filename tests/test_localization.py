@@ -15,8 +15,15 @@ import numpy as np
 import pytest
 
 from trundle.fusion.geometry import compose, inverse, relative, scan_to_points, transform_points, voxel_filter
-from trundle.fusion.localization.grid_localization import (CoarseMap, Localizer, LocalizerConfig, coarse_map, correlate_headings,
-                                         global_search, grid_from_map)
+from trundle.fusion.localization.grid_localization import (
+    CoarseMap,
+    Localizer,
+    LocalizerConfig,
+    coarse_map,
+    correlate_headings,
+    global_search,
+    grid_from_map,
+)
 from trundle.fusion.mapping.map_io import read_trajectory_csv
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.odometry.drift import drifting_odometry

@@ -16,7 +16,8 @@ from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
 from trundle.tools.emulators.device_server import DeviceServer
 from trundle.tools.emulators.faults import parse_faults
-from trundle.tools.emulators.rplidar_emulator import FLAGS, KINDS, MODELS as RPLIDAR_MODELS, RplidarDevice
+from trundle.tools.emulators.rplidar_emulator import FLAGS, KINDS, RplidarDevice
+from trundle.tools.emulators.rplidar_emulator import MODELS as RPLIDAR_MODELS
 from trundle.tools.emulators.scene import DEFAULT_SCENE, load_scene
 from trundle.tools.emulators.scip2_emulator import MODELS, ScipDevice
 

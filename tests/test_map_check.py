@@ -7,13 +7,13 @@ import math
 
 import numpy as np
 
+from tests.planar_world import ROOM, scan
+from tests.test_slam import loop_path
 from trundle.fusion.geometry import compose, relative
 from trundle.fusion.mapping.map_check import _stretches
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.fusion.slam.grid_slam import Slam, SlamConfig
 from trundle.logs import messages as m
-from tests.planar_world import ROOM, scan
-from tests.test_slam import loop_path
 
 
 def mapped_room() -> Slam:

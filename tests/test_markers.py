@@ -12,10 +12,10 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from tests.conftest import shared_file
 from trundle.logs.errors import UserError
 from trundle.logs.messages import CameraInfo
 from trundle.perception.markers import Marker, MarkerDetector, dictionary_by_name, marker_object_points, marker_pose
-from tests.conftest import shared_file
 
 PHOTOS = ["singlemarkersoriginal.jpg", "choriginal.jpg", "chocclusion_original.jpg"]
 

@@ -9,12 +9,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.conftest import shared_file
 from trundle.fusion.geometry import wrap_angle
-from trundle.fusion.odometry.diff_drive import (DiffDriveOdometry, OdometrySink, integrate, integrate_path, odometry_from_config,
-                                     odometry_transform)
+from trundle.fusion.odometry.diff_drive import (
+    DiffDriveOdometry,
+    OdometrySink,
+    integrate,
+    integrate_path,
+    odometry_from_config,
+    odometry_transform,
+)
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-from tests.conftest import shared_file
 
 R, B = 0.1, 0.5  # wheel radius, track (m)
 

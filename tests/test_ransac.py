@@ -15,10 +15,23 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.perception.ransac import (RansacResult, camera_motion_from_odometry, find_essential, find_fundamental,
-                                       find_homography, fit_essential, fit_homography, fit_line, homography_residuals,
-                                       line_residuals, motion_prior_mask, project, ransac, required_trials,
-                                       sampson_distance)
+from trundle.perception.ransac import (
+    RansacResult,
+    camera_motion_from_odometry,
+    find_essential,
+    find_fundamental,
+    find_homography,
+    fit_essential,
+    fit_homography,
+    fit_line,
+    homography_residuals,
+    line_residuals,
+    motion_prior_mask,
+    project,
+    ransac,
+    required_trials,
+    sampson_distance,
+)
 
 SETTINGS = settings(max_examples=40, deadline=None)
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 from hypothesis import given, settings
+from strategies import ALL_MESSAGES
 
 from trundle.logs import messages as m
 from trundle.logs import ros2
-from strategies import ALL_MESSAGES
 
 # Planar yaw travels as a quaternion, so it comes back equal only to rounding.
 ANGLE_FIELDS = {"theta", "origin_theta", "yaw"}

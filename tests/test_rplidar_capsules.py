@@ -11,11 +11,12 @@ from pathlib import Path
 import numpy as np
 import pyrplidar_protocol
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from tests.lrf_harness import MUTATIONS, mutate
 from trundle.drivers import rplidar as rp
 from trundle.drivers import rplidar_capsules as rc
-from tests.lrf_harness import MUTATIONS, mutate
 
 FIXTURE = json.loads((Path(__file__).parent / "data" / "pyrplidar_capsules.json").read_text())
 FORMATS = (rc.EXPRESS, rc.HQ, rc.ULTRA, rc.DENSE, rc.ULTRA_DENSE)

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from tests.lrf_harness import MUTATIONS, mutate
 from trundle.drivers import scip2
 from trundle.drivers.scip2 import Measure, Reply, ScipError, ScipFramer
-from tests.lrf_harness import MUTATIONS, mutate
 
 # Byte-exact lines published for real sensors (lrf-protocols.md section 1.5, checksums included).
 URG_PP = [b"MODL:URG-04LX(Hokuyo Automatic Co.,Ltd.);N", b"DMIN:20;4", b"DMAX:5600;_", b"ARES:1024;\\",

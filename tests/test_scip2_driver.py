@@ -12,10 +12,10 @@ import time
 import numpy as np
 import pytest
 
+from tests.lrf_harness import Recorder, inject, replug_delay_ns, running, wait_until
 from trundle.drivers import lrf
 from trundle.drivers.scip2_driver import ScipConfig, ScipDriver
 from trundle.logs.errors import UserError
-from tests.lrf_harness import Recorder, inject, replug_delay_ns, running, wait_until
 from trundle.tools.emulators.device_server import DeviceServer
 from trundle.tools.emulators.faults import FaultPlan, parse_faults
 from trundle.tools.emulators.pty_link import PtyLink
@@ -96,7 +96,7 @@ def test_clean_stream_equals_what_the_sensor_sent(tmp_path):
     assert (tf.frame_id, tf.child_frame_id, tf.translation[0], tf.yaw) == ("base_link", "laser", 0.1, pytest.approx(0.5))
     names = [c[:3] for c in device.commands]
     assert names[0] == b"QT" and names[-1] == b"QT"  # stopped at start-up and at shutdown
-    assert [b"PP", b"VV", b"II", b"TM0"] == [n for n in names if n in (b"PP", b"VV", b"II", b"TM0")]
+    assert [n for n in names if n in (b"PP", b"VV", b"II", b"TM0")] == [b"PP", b"VV", b"II", b"TM0"]
     assert names.count(b"TM1") == 10 and b"MD0" in names
     assert "H0614967" in driver.hardware_id
     assert dict(driver.diagnostics().values)["serial"] == "H0614967"

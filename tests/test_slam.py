@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
+from tests.planar_world import ROOM, scan
 from trundle.fusion.geometry import compose, relative, wrap_angle
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.fusion.slam.grid_slam import Slam, SlamConfig
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-from tests.planar_world import ROOM, scan
 
 WAYPOINTS = np.array([(-4.2, -2.3), (0.0, -2.3), (0.0, 0.3), (4.4, 0.3), (4.4, 3.3), (-4.2, 3.3), (-4.2, -2.3)])
 

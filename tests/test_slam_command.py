@@ -10,13 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.planar_world import ROOM, scan
+from tests.test_slam import loop_path
 from trundle.fusion.mapping.map_io import load_map, read_trajectory_csv
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.logs import messages as m
 from trundle.logs.importers import write_log
 from trundle.logs.reader import LogReader
-from tests.planar_world import ROOM, scan
-from tests.test_slam import loop_path
 from trundle.tools.cli.main import main
 
 

@@ -11,12 +11,17 @@ import json
 import numpy as np
 import pytest
 
-from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
+from tests.conftest import shared_file
+from trundle.fusion.evaluation.trajectory_errors import (
+    Trajectory,
+    absolute_trajectory_error,
+    relation_error,
+    trajectory_relations,
+)
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.fusion.slam.grid_slam import Slam, SlamConfig
 from trundle.logs.importers import breezyslam, carmen
-from tests.conftest import shared_file
 from trundle.tools.cli.main import main
 
 

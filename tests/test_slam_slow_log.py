@@ -9,7 +9,12 @@ import math
 import numpy as np
 import pytest
 
-from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
+from trundle.fusion.evaluation.trajectory_errors import (
+    Trajectory,
+    absolute_trajectory_error,
+    relation_error,
+    trajectory_relations,
+)
 from trundle.fusion.slam.grid_slam import Slam, SlamConfig
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world

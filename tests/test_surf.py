@@ -8,8 +8,8 @@ import math
 import cv2
 import numpy as np
 import pytest
-
 from conftest import shared_file
+
 from trundle.perception.feature_eval import matching_score
 from trundle.perception.keypoints import from_cv, make_keypoints
 from trundle.perception.matching import match_descriptors

@@ -29,10 +29,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from trundle.fusion.odometry.ekf import PoseEKF, odometry_noise
 from trundle.fusion.geometry import compose, relative, voxel_filter, wrap_angle
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.matching.scan_matching import MatchResult, match_scan
+from trundle.fusion.odometry.ekf import PoseEKF, odometry_noise
 from trundle.logs.errors import UserError
 from trundle.logs.messages import OccupancyGrid
 

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from trundle.fusion.evaluation.trajectory_errors import align_se2
-from trundle.fusion.optimization.factor_graph import POSITION, FactorGraph
 from trundle.fusion.geometry import compose, relative, rotation
+from trundle.fusion.optimization.factor_graph import POSITION, FactorGraph
 from trundle.logs.messages import LandmarkList
 
 MIN_LANDMARK_SIGMA_M = 0.01   # a mapped landmark is never taken as known better than this

@@ -18,8 +18,13 @@ import cv2
 import numpy as np
 
 from trundle.logs.messages import CameraInfo
-from trundle.perception.markers import (CORNER_REFINEMENT, MarkerDetector, dictionary_by_name, marker_object_points,
-                                        marker_pose)
+from trundle.perception.markers import (
+    CORNER_REFINEMENT,
+    MarkerDetector,
+    dictionary_by_name,
+    marker_object_points,
+    marker_pose,
+)
 from trundle.tools.bench import report
 from trundle.tools.bench.bench_color import cpu_per_call
 

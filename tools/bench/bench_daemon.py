@@ -28,11 +28,11 @@ import cv2
 
 from trundle.logs.reader import LogReader
 from trundle.tools.bench import report
-from trundle.tools.sim.camera_render import CameraRenderer
-from trundle.tools.daemon.status import query_status
 from trundle.tools.config.toml_text import format_config
-from trundle.tools.sim.robot import RobotSim
+from trundle.tools.daemon.status import query_status
 from trundle.tools.emulators.sim_devices import SimDevices
+from trundle.tools.sim.camera_render import CameraRenderer
+from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
 
 REPO = Path(__file__).resolve().parents[2]

@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from trundle.fusion.slam.ekf_slam import EkfSlam
 from trundle.fusion.optimization.isam_graph import read_isam_graph
+from trundle.fusion.slam.ekf_slam import EkfSlam
 from trundle.logs import messages as m
 from trundle.logs.importers.mrclam import import_mrclam
 from trundle.logs.reader import LogReader

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from mcap.writer import CompressionType, Writer
+from mcap.writer import Writer
 
 from trundle.logs import messages as m
 from trundle.logs import ros2

@@ -35,15 +35,20 @@ from pathlib import Path
 
 import numpy as np
 
-from trundle.fusion.evaluation.trajectory_errors import (Trajectory, absolute_trajectory_error, relation_error, revisit_relations,
-                                       trajectory_relations)
+from trundle.fusion.evaluation.trajectory_errors import (
+    Trajectory,
+    absolute_trajectory_error,
+    relation_error,
+    revisit_relations,
+    trajectory_relations,
+)
 from trundle.fusion.geometry import scan_to_points, transform_points, voxel_filter
-from trundle.fusion.matching.icp import LineReference, icp
 from trundle.fusion.mapping.map_io import plot_trajectory
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
+from trundle.fusion.matching.icp import LineReference, icp
+from trundle.fusion.matching.scan_matching import angular_step, correlative_search, match_scan, refine_pose
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.fusion.odometry.drift import drifting_odometry
-from trundle.fusion.matching.scan_matching import angular_step, correlative_search, match_scan, refine_pose
 from trundle.fusion.slam.grid_slam import Slam, SlamConfig
 from trundle.logs.importers import breezyslam, carmen
 from trundle.logs.reader import LogReader

@@ -13,8 +13,8 @@ import signal
 from pathlib import Path
 
 from trundle.logs.errors import UserError
-from trundle.tools.config.arguments import non_negative_int, number_in, percent, positive
 from trundle.tools.cli.progress import Progress
+from trundle.tools.config.arguments import non_negative_int, number_in, percent, positive
 from trundle.tools.demo.report import ATE_LIMIT_M
 from trundle.tools.demo.run import LOG_NAME, DemoSettings, run_demo
 from trundle.tools.sim.world import DEFAULT_WORLD

@@ -20,8 +20,8 @@ from pathlib import Path
 
 from trundle.fusion.mapping.map_io import write_landmarks_csv, write_trajectory_csv
 from trundle.fusion.odometry.drift import drifting_odometry
-from trundle.logs.importers.breezyslam import import_breezyslam
 from trundle.logs.errors import UserError
+from trundle.logs.importers.breezyslam import import_breezyslam
 from trundle.logs.importers.carmen import ODOMETRY_SOURCES, choose_odometry, import_carmen, read_carmen, scan_poses
 from trundle.logs.importers.mrclam import ROBOT_SUBJECTS, import_mrclam
 from trundle.logs.paths import new_file

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 from trundle.logs.reader import LogReader
 from trundle.tools.jobs.info import as_dict
@@ -19,7 +19,7 @@ def register(p: argparse.ArgumentParser) -> None:
 def _when(ns: int | None) -> str:
     if ns is None:
         return "-"
-    t = datetime.fromtimestamp(ns / 1e9, tz=timezone.utc)
+    t = datetime.fromtimestamp(ns / 1e9, tz=UTC)
     return f"{t:%b %d %Y %H:%M:%S}.{ns % 1_000_000_000:09d} ({ns / 1e9:.9f})"
 
 

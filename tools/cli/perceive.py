@@ -26,8 +26,8 @@ from pathlib import Path
 from typing import Any
 
 from trundle.logs.errors import UserError
-from trundle.tools.config.arguments import non_negative, non_negative_int, number_in, positive, positive_int
 from trundle.tools.cli.progress import Progress
+from trundle.tools.config.arguments import non_negative, non_negative_int, number_in, positive, positive_int
 from trundle.tools.jobs.perceive import perceive_log
 
 

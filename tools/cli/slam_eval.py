@@ -16,12 +16,20 @@ from __future__ import annotations
 import argparse
 import json
 from dataclasses import asdict
-
 from pathlib import Path
 
-from trundle.fusion.evaluation.trajectory_errors import (Relations, Trajectory, absolute_trajectory_error, landmark_error, poses_at,
-                                       read_reference, relation_error, relative_pose_error, revisit_relations,
-                                       trajectory_relations)
+from trundle.fusion.evaluation.trajectory_errors import (
+    Relations,
+    Trajectory,
+    absolute_trajectory_error,
+    landmark_error,
+    poses_at,
+    read_reference,
+    relation_error,
+    relative_pose_error,
+    revisit_relations,
+    trajectory_relations,
+)
 from trundle.fusion.mapping.map_io import read_landmarks_csv
 from trundle.logs.errors import UserError
 from trundle.tools.config.arguments import non_negative, positive, positive_int

@@ -30,8 +30,9 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from trundle.drivers import devices
 from trundle.drivers.health import HealthReporter

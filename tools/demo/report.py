@@ -16,15 +16,21 @@ import cv2
 import numpy as np
 
 from trundle.fusion.evaluation.trajectory_errors import Trajectory, landmark_error, poses_at
-from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
 from trundle.fusion.mapping.map_io import plot_trajectory
+from trundle.fusion.slam.landmark_grid_slam import LandmarkGridSlam
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
 from trundle.perception.images import decode_image
 from trundle.tools.demo.ground_truth import Recording
-from trundle.tools.demo.scoring import (MarkerScore, camera_from_info, camera_pose, map_wall_distances, path_length,
-                                        score_trajectory)
+from trundle.tools.demo.scoring import (
+    MarkerScore,
+    camera_from_info,
+    camera_pose,
+    map_wall_distances,
+    path_length,
+    score_trajectory,
+)
 from trundle.tools.demo.slam import SlamRun
 from trundle.tools.demo.topics import IMAGE_TOPIC
 from trundle.tools.jobs.slam import map_check_report

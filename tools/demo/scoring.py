@@ -13,8 +13,14 @@ from typing import Any
 
 import numpy as np
 
-from trundle.fusion.evaluation.trajectory_errors import (AbsoluteError, RelativeError, Trajectory, absolute_trajectory_error, poses_at,
-                                       relative_pose_error)
+from trundle.fusion.evaluation.trajectory_errors import (
+    AbsoluteError,
+    RelativeError,
+    Trajectory,
+    absolute_trajectory_error,
+    poses_at,
+    relative_pose_error,
+)
 from trundle.fusion.geometry import compose, transform_points
 from trundle.fusion.mapping.map_io import OCCUPIED_THRESH
 from trundle.logs import messages as m
@@ -22,8 +28,8 @@ from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
 from trundle.perception.images import decode_image, to_gray
 from trundle.perception.markers import MarkerDetector, marker_pose
-from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 from trundle.tools.demo.topics import CAMERA_INFO_TOPIC, IMAGE_TOPIC
+from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 from trundle.tools.sim.camera_render import CameraPose, CameraRenderer, PinholeCamera, optical_rotation
 from trundle.tools.sim.robot import Mount
 from trundle.tools.sim.world import World

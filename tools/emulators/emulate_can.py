@@ -21,8 +21,15 @@ from trundle.drivers.dbc_wheels import VESC_DBC
 from trundle.drivers.lifecycle import SignalFlag
 from trundle.logs.errors import UserError
 from trundle.tools.config.arguments import number_in, positive
-from trundle.tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes,
-                                               odrive_nodes, vesc_nodes)
+from trundle.tools.emulators.can_nodes import (
+    CanNodeRunner,
+    EmulatedNode,
+    VelocityScript,
+    WheelMotion,
+    cia406_nodes,
+    odrive_nodes,
+    vesc_nodes,
+)
 from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
 DEFAULT_NODES = {"odrive": "0,1", "cia406": "5,6", "dbc": "9,10"}

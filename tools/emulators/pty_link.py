@@ -20,7 +20,6 @@ from pathlib import Path
 
 from trundle.logs.errors import UserError
 
-
 PTY_SLAVES = "/dev/pts/"
 
 

@@ -29,7 +29,15 @@ from trundle.logs.paths import input_file
 from trundle.perception.color import ColorSegmentation, HsvTemplate, segment_color, template_histograms
 from trundle.perception.landmarks import StaticFrames, marker_observation
 from trundle.perception.markers import MarkerDetector, marker_pose
-from trundle.tools.jobs.image_markers import CYAN, GREEN, MAGENTA, YELLOW, closed_line_list, ellipse_outline, image_marker
+from trundle.tools.jobs.image_markers import (
+    CYAN,
+    GREEN,
+    MAGENTA,
+    YELLOW,
+    closed_line_list,
+    ellipse_outline,
+    image_marker,
+)
 
 Detections = tuple[int, list[tuple[str, m.Message]]]   # count and the (topic, message) pairs to write
 Triple = tuple[float, float, float]

@@ -12,6 +12,7 @@ Run: python tools/bench/bench_aruco.py [--repeat N]
 from __future__ import annotations
 
 import argparse
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -82,10 +83,10 @@ def main() -> None:
             raise SystemExit(f"{name}: marker counts differ")
         best = dict.fromkeys(("ours", "bare", "ours_pose", "bare_pose"), float("inf"))
         for _ in range(args.repeat):
-            best["ours"] = min(best["ours"], cpu_per_call(lambda: ours.detect(image)))
-            best["bare"] = min(best["bare"], cpu_per_call(lambda: bare.detectMarkers(image)))
-            best["ours_pose"] = min(best["ours_pose"], cpu_per_call(lambda: our_poses(ours, image)))
-            best["bare_pose"] = min(best["bare_pose"], cpu_per_call(lambda: bare_poses(bare, image)))
+            best["ours"] = min(best["ours"], cpu_per_call(partial(ours.detect, image)))
+            best["bare"] = min(best["bare"], cpu_per_call(partial(bare.detectMarkers, image)))
+            best["ours_pose"] = min(best["ours_pose"], cpu_per_call(partial(our_poses, ours, image)))
+            best["bare_pose"] = min(best["bare_pose"], cpu_per_call(partial(bare_poses, bare, image)))
         figures[f"{name}_markers"] = count
         figures[f"{name}_detect_ms"] = best["ours"] * 1e3
         figures[f"{name}_bare_detect_ms"] = best["bare"] * 1e3

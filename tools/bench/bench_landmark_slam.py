@@ -23,6 +23,7 @@ import importlib.util
 import math
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +58,7 @@ def ekf_update_figures(repeat: int) -> dict[str, float]:
         picks = rng.choice(n, 5, replace=False)
         sightings = [m.LandmarkObservation(str(j), float(np.hypot(*positions[j])), math.atan2(positions[j][1], positions[j][0]),
                                            np.diag([0.01, 0.0004])) for j in picks]
-        figures[f"ekf_update_ms_{n}"] = report.best_of(lambda: ekf.update(sightings), repeat, 20) * 1e3
+        figures[f"ekf_update_ms_{n}"] = report.best_of(partial(ekf.update, sightings), repeat, 20) * 1e3
     for n in SIZES:
         figures[f"ekf_update_over_10_{n}"] = figures[f"ekf_update_ms_{n}"] / figures["ekf_update_ms_10"]
     big = [n for n in SIZES if n >= 50]

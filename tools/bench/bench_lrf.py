@@ -25,6 +25,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -78,8 +79,8 @@ def decode_figures() -> dict[str, float]:
         np.testing.assert_array_equal(got, want[:, 0] if measure.intensity else want)
         t_ours = t_theirs = float("inf")
         for _ in range(7):  # interleaved, so a busy moment of the machine hits both alike
-            t_ours = min(t_ours, report.best_of(lambda: ours(raw, measure), repeat=1, number=100))
-            t_theirs = min(t_theirs, report.best_of(lambda: theirs(raw, measure), repeat=1, number=5))
+            t_ours = min(t_ours, report.best_of(partial(ours, raw, measure), repeat=1, number=100))
+            t_theirs = min(t_theirs, report.best_of(partial(theirs, raw, measure), repeat=1, number=5))
         key = command.lower()
         figures[f"decode_{key}_ours_us"] = t_ours * 1e6
         figures[f"decode_{key}_hokuyolx_us"] = t_theirs * 1e6

@@ -31,6 +31,7 @@ import math
 import os
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -88,6 +89,24 @@ def exhaustive(grid: LogOddsGrid, points: np.ndarray, pose: np.ndarray, window: 
     return best
 
 
+def matchers(grid: LogOddsGrid, points: np.ndarray, guess: np.ndarray, near: np.ndarray, window: float,
+             window_theta: float) -> list[tuple[str, Callable[[], object]]]:
+    """The timed matchers on one scan: searches from ``guess``, refinements from ``near`` (m, rad).
+
+    "cold" and "search" are the same call: the first one builds the grid's pyramid.
+    """
+    step = math.radians(0.5)
+    return [("cold", lambda: correlative_search(grid, points, guess, window_xy_m=window,
+                                                window_theta_rad=window_theta, angular_step_rad=step)),
+            ("search", lambda: correlative_search(grid, points, guess, window_xy_m=window,
+                                                  window_theta_rad=window_theta, angular_step_rad=step)),
+            ("match", lambda: match_scan(grid, points, guess, window_xy_m=window,
+                                         window_theta_rad=window_theta, angular_step_rad=step)),
+            ("refine", lambda: refine_pose(grid, points, near)),
+            ("icp", lambda: icp(LineReference(grid.occupied_points()), points, near)),
+            ("exhaustive", lambda: exhaustive(grid, points, guess, window, window_theta, step))]
+
+
 def time_matches(log: carmen.CarmenLog, first: int, count: int) -> dict[str, float]:
     _, reference = carmen.scan_poses(log)
     scans = [carmen.to_scan(laser, "laser", carmen.infer_no_return(log)) for laser in log.lasers]
@@ -102,16 +121,7 @@ def time_matches(log: carmen.CarmenLog, first: int, count: int) -> dict[str, flo
         points = voxel_filter(scan_to_points(scans[k], range_max=30.0), 0.05)
         guess = reference[k] + offset
         grid.likelihood_field(0.05), grid.distance_field(0.5)  # fields are shared by all matchers: not timed
-        step = math.radians(0.5)
-        for name, run in (("cold", lambda: correlative_search(grid, points, guess, window_xy_m=window,
-                                                              window_theta_rad=window_theta, angular_step_rad=step)),
-                          ("search", lambda: correlative_search(grid, points, guess, window_xy_m=window,
-                                                                window_theta_rad=window_theta, angular_step_rad=step)),
-                          ("match", lambda: match_scan(grid, points, guess, window_xy_m=window,
-                                                       window_theta_rad=window_theta, angular_step_rad=step)),
-                          ("refine", lambda: refine_pose(grid, points, reference[k] + offset / 5)),
-                          ("icp", lambda: icp(LineReference(grid.occupied_points()), points, reference[k] + offset / 5)),
-                          ("exhaustive", lambda: exhaustive(grid, points, guess, window, window_theta, step))):
+        for name, run in matchers(grid, points, guess, reference[k] + offset / 5, window, window_theta):
             start = time.process_time()
             result = run()
             times[name].append(time.process_time() - start)

@@ -17,6 +17,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable
+from functools import partial
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
@@ -186,6 +187,10 @@ class CameraEmulator:
                 self._latest = (self.frames_made, data)
                 self._cond.notify_all()
 
+    def _news_for(self, connection: socket.socket, seen: int) -> bool:
+        """True once a frame newer than ``seen`` is out, the emulator stops or the client is dropped."""
+        return self._latest[0] != seen or self._stop.is_set() or connection not in self._clients
+
     def _serve(self, handler: _Handler) -> None:
         """Send every new frame to one client until it leaves or the emulator is unplugged."""
         connection = handler.connection
@@ -195,8 +200,7 @@ class CameraEmulator:
         try:
             while not self._stop.is_set() and connection in self._clients:
                 with self._cond:
-                    self._cond.wait_for(lambda: self._latest[0] != seen or self._stop.is_set()
-                                        or connection not in self._clients, timeout=0.5)
+                    self._cond.wait_for(partial(self._news_for, connection, seen), timeout=0.5)
                     if self._latest[0] == seen:
                         continue
                     seen, data = self._latest

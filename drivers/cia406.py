@@ -119,7 +119,7 @@ class Cia406Encoders(EncoderProtocol):
         self.tpdo_period_ms, self.heartbeat_ms = int(tpdo_period_ms), int(heartbeat_ms)
         self.sdo_timeout_s, self.sdo_retries = float(sdo_timeout_s), int(sdo_retries)
         self.reset_period_ns = int(reset_period_s * 1e9)
-        self.nodes = {n: _Node(n, w) for n, w in zip(node_ids, wheels)}
+        self.nodes = {n: _Node(n, w) for n, w in zip(node_ids, wheels, strict=True)}
         self._by_cob: dict[int, _Node] = {}  # heartbeat, EMCY and SDO response COB-IDs
         self._tpdo: dict[int, _Node] = {}  # position TPDO COB-IDs, known once configured
         self.heartbeats = HeartbeatWatchdog(heartbeat_timeout_factor * heartbeat_ms / 1000.0)

@@ -42,6 +42,8 @@ class DbcWheels(EncoderProtocol):
         super().__init__(wheels)
         if len(signals) != len(wheels):
             raise ValueError("one position signal per wheel")
+        if velocity_signals and len(velocity_signals) != len(wheels):
+            raise ValueError("one velocity signal per wheel")
         try:
             self.db = cantools.database.load_file(str(dbc), strict=False)
         except (OSError, CantoolsError, ValueError) as error:
@@ -55,7 +57,7 @@ class DbcWheels(EncoderProtocol):
         self._routes: dict[tuple[int, bool], tuple[object, list[tuple[int, object, bool]]]] = {}
         self._modulus: dict[int, int | None] = {}
         self._scale: dict[int, float] = {}
-        for wheel, name, unit in zip(wheels, signals, units):
+        for wheel, name, unit in zip(wheels, signals, units, strict=True):
             message, signal = self._add_route(name, wheel, True)
             if signal.is_float:
                 self._modulus[wheel], self._scale[wheel] = None, 1.0
@@ -63,8 +65,8 @@ class DbcWheels(EncoderProtocol):
             else:
                 self._modulus[wheel], self._scale[wheel] = 2**signal.length, float(signal.scale)
                 self.counts_per_rev[wheel] = unit / float(signal.scale)
-        self._velocity_scale = dict(zip(wheels, vscale))
-        for wheel, name in zip(wheels, velocity_signals or []):
+        self._velocity_scale = dict(zip(wheels, vscale, strict=True))
+        for wheel, name in zip(wheels, velocity_signals or [], strict=False):  # none: no speed routes
             self._add_route(name, wheel, False)
         self.data = HeartbeatWatchdog(data_timeout_s)
         self._velocity: dict[int, float] = {}

@@ -22,6 +22,7 @@ import struct
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 
@@ -181,7 +182,7 @@ def _ultra_dense(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
                   cab[..., 2] | (cab[..., 3] << 8) | ((cab[..., 4] >> 4) << 16)), axis=-1).reshape(n, 64)
     scale = v & 3
     field_ = [(v & 0xFFC) * 2, (v & 0x1FFC) * 3, (v & 0x3FFC) * 4, (v & 0x7FFC) * 5]
-    dist = np.choose(scale, [f + (b << 2) for f, b in zip(field_, ULTRA_DENSE_BASE_MM)])
+    dist = np.choose(scale, [f + (b << 2) for f, b in zip(field_, ULTRA_DENSE_BASE_MM, strict=True)])
     quality = np.choose(scale, [v >> 12, (v >> 13) << 1, (v >> 14) << 2, (v >> 15) << 3])
     encoder = _wrap_q6(raw >> 10)
     return encoder, encoder, dist, quality >> 2
@@ -294,7 +295,7 @@ class CapsuleNodeDecoder:
         parts: list[rp.Nodes] = []
         cuts = np.flatnonzero(broken).tolist()
         bounds = sorted({0, *cuts, len(rows)})
-        for a, b in zip(bounds[:-1], bounds[1:]):
+        for a, b in pairwise(bounds):
             if broken[a]:
                 lost += fmt.samples * len(self._held)
                 self._held = self._held[:0]

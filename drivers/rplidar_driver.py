@@ -571,7 +571,7 @@ class RplidarDriver(Driver):
         before = self._decoder_stats()
         bad_before = self.counters["corrupt_revolutions"] + self.counters["incomplete_revolutions"]
         nodes = decoder.feed(data)
-        bad, resyncs, skipped = (a - b for a, b in zip(self._decoder_stats(), before))
+        bad, resyncs, skipped = (a - b for a, b in zip(self._decoder_stats(), before, strict=True))
         self.counters["bad_capsules" if isinstance(decoder, rc.CapsuleNodeDecoder) else "bad_nodes"] += bad
         self.counters["resyncs"] += resyncs
         self.counters["skipped_bytes"] += skipped

@@ -412,7 +412,7 @@ class ScipFramer:
 
     def _find(self, prefix: bytes, start: int) -> tuple[int, bytes]:
         best, which = -1, b""
-        for echo, head in zip(self._echoes, self._heads[prefix]):
+        for echo, head in zip(self._echoes, self._heads[prefix], strict=True):
             pos = self._buf.find(head, start)
             if pos >= 0 and (best < 0 or pos < best):
                 best, which = pos, echo

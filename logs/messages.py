@@ -43,7 +43,7 @@ def _eq(a: object, b: object) -> bool:
             return bool(np.array_equal(a, b, equal_nan=True))
         return bool(np.array_equal(a, b))
     if isinstance(a, tuple) and isinstance(b, tuple):
-        return len(a) == len(b) and all(_eq(x, y) for x, y in zip(a, b))
+        return len(a) == len(b) and all(_eq(x, y) for x, y in zip(a, b, strict=True))
     return a == b
 
 
@@ -87,7 +87,7 @@ class LaserScan(Message):
     def __post_init__(self) -> None:
         scalars = np.array([self.angle_min, self.angle_max, self.angle_increment, self.time_increment,
                             self.scan_time, self.range_min, self.range_max], np.float32).tolist()
-        for name, value in zip(_SCAN_SCALARS, scalars):
+        for name, value in zip(_SCAN_SCALARS, scalars, strict=True):
             object.__setattr__(self, name, value)
         object.__setattr__(self, "ranges", _frozen_array(_f32(self.ranges)))
         object.__setattr__(self, "intensities", _frozen_array(_f32(self.intensities)))

@@ -261,7 +261,7 @@ def _grid_from(r: Any) -> m.OccupancyGrid:
 
 def _path_to(msg: m.Path) -> Any:
     poses = [_T["geometry_msgs/msg/PoseStamped"](header=header(int(t), msg.frame_id), pose=_pose(*p))
-             for t, p in zip(msg.stamps_ns, msg.poses)]
+             for t, p in zip(msg.stamps_ns, msg.poses, strict=True)]
     return _T["nav_msgs/msg/Path"](header=header(msg.stamp_ns, msg.frame_id), poses=poses)
 
 

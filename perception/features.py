@@ -18,6 +18,7 @@ import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from itertools import pairwise
 
 import cv2
 import numpy as np
@@ -156,9 +157,9 @@ def _blobs(kind: str) -> Callable[..., Keypoints]:
         sigmas = min_sigma * k ** np.arange(count + (1 if kind == "dog" else 0))
         blurred = [cv2.GaussianBlur(image, (0, 0), float(s)) for s in sigmas]
         if kind == "log":
-            layers = [float(s * s) * np.abs(cv2.Laplacian(b, cv2.CV_32F)) for s, b in zip(sigmas, blurred)]
+            layers = [float(s * s) * np.abs(cv2.Laplacian(b, cv2.CV_32F)) for s, b in zip(sigmas, blurred, strict=True)]
         else:   # (G(k s) - G(s)) ~ (k - 1) s^2 LoG: divide by (k - 1) for LoG's scale
-            layers = [np.abs(b1 - b0) / np.float32(k - 1) for b0, b1 in zip(blurred[:-1], blurred[1:])]
+            layers = [np.abs(b1 - b0) / np.float32(k - 1) for b0, b1 in pairwise(blurred)]
             sigmas = sigmas[:-1]
         stack = np.stack(layers)
         spread = np.stack([cv2.dilate(layer, np.ones((3, 3), np.uint8)) for layer in layers])

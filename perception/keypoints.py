@@ -70,7 +70,7 @@ def to_cv(keypoints: Keypoints) -> list[cv2.KeyPoint]:
     degrees = np.where(np.isnan(keypoints.angle), -1.0, np.degrees(keypoints.angle))
     return [cv2.KeyPoint(float(x), float(y), float(s), float(a), float(r), int(o))
             for (x, y), s, a, r, o in zip(keypoints.xy, keypoints.size, degrees, keypoints.response,
-                                          keypoints.octave)]
+                                          keypoints.octave, strict=True)]
 
 
 def strongest(keypoints: Keypoints, limit: int | None) -> np.ndarray:

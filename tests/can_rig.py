@@ -9,6 +9,7 @@ import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -148,7 +149,7 @@ def assert_no_jump(rig: Rig, speed_m_s: float) -> int:
     cumulative wheel positions say (the motion across the gap is kept). Returns how many stale
     periods were crossed."""
     odoms = rig.topic("/odom")
-    for a, b in zip(odoms, odoms[1:]):
+    for a, b in pairwise(odoms):
         step = math.hypot(b.x - a.x, b.y - a.y)
         assert step <= speed_m_s * max((b.stamp_ns - a.stamp_ns) * 1e-9, 0.5) + 0.005, (step, a, b)
     before, stale, crossed = None, False, 0

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import shutil
 import tempfile
+from itertools import pairwise
 from pathlib import Path
 
 import cv2
@@ -140,7 +141,7 @@ def test_source_removed_and_restored_reconnects(clip: Path, tmp_path: Path) -> N
     good = {payload for _, payload in avi_video_chunks(clip)}
     assert all(msg.data in good for msg in logged)
     stamps = [msg.stamp_ns for msg in logged]
-    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert all(b > a for a, b in pairwise(stamps))
     assert "disappeared" in driver.last_error or "cannot open" in driver.last_error
 
 

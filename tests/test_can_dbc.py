@@ -70,6 +70,8 @@ def test_configuration_errors():
         DbcWheels("/nonexistent.dbc", ["A.b"], (0,))
     with pytest.raises(ValueError, match="units_per_rev"):
         DbcWheels(VESC_DBC, SIGNALS, (0, 1), units_per_rev=[42])
+    with pytest.raises(ValueError, match="one velocity signal per wheel"):  # wheel 1 would have no speed
+        DbcWheels(VESC_DBC, SIGNALS, (0, 1), velocity_signals=VELOCITIES[:1])
 
 
 FUZZED = DbcWheels(VESC_DBC, SIGNALS, (0, 1), units_per_rev=42, velocity_signals=VELOCITIES)

@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -124,7 +125,7 @@ def soak(tmp_path: Path, duration_s: float, period_s: float, away_s: float) -> N
             assert away or starved, (name, (begin - t00) / 1e9, (end - begin) / 1e9, "lost while the emulator was producing",
                                      {n: [(a - t00) / 1e9 for a, _ in w] for n, w in windows.items()}, devices_status[name]["counters"],
                                      np.diff(inside).max() / 1e9 if inside.size > 1 else None,
-                                     {t: [((a - t00) / 1e9, (b - a) / 1e9) for a, b in zip(np.sort(v)[:-1], np.sort(v)[1:]) if b - a > 0.3e9] for t, v in times.items()})
+                                     {t: [((a - t00) / 1e9, (b - a) / 1e9) for a, b in pairwise(np.sort(v)) if b - a > 0.3e9] for t, v in times.items()})
 
 
 # Real processes on emulated ptys, sharing 2 cores with the rest of the suite: seen failing

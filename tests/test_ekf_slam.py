@@ -58,7 +58,7 @@ def test_known_ids_map_every_landmark_within_three_sigma():
         slam.process(topic, msg)
     ids, positions, covariances = slam.ekf.landmarks()
     assert sorted(ids, key=int) == [str(k) for k in range(12)]
-    for name, p, c in zip(ids, positions, covariances):
+    for name, p, c in zip(ids, positions, covariances, strict=True):
         e = p - points[int(name)]
         assert e @ np.linalg.solve(c, e) <= THREE_SIGMA_2DOF
     assert slam.ekf.stats.added == 12 and slam.ekf.stats.outliers == 0
@@ -173,7 +173,7 @@ def _anonymous_run(seed: int, association: str) -> tuple[int, float]:
             continue
         slam._advance(msg.stamp_ns)
         report = slam.ekf.update(msg.landmarks)
-        for true, j, new in zip(run.seen[msg.stamp_ns], report.landmark, report.added):
+        for true, j, new in zip(run.seen[msg.stamp_ns], report.landmark, report.added, strict=True):
             if j >= 0 and new:
                 origin[int(j)] = true
             elif j >= 0 and origin[int(j)] != true:
@@ -181,7 +181,7 @@ def _anonymous_run(seed: int, association: str) -> tuple[int, float]:
     _, points = in_map_frame(run)
     _, positions, covariances = slam.ekf.landmarks()
     worst = max(float((p - points[origin[k]]) @ np.linalg.solve(c, p - points[origin[k]]))
-                for k, (p, c) in enumerate(zip(positions, covariances)))
+                for k, (p, c) in enumerate(zip(positions, covariances, strict=True)))
     return wrong, worst
 
 

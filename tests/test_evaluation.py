@@ -194,7 +194,7 @@ def test_revisits_hand_computed():
     xs = np.concatenate([np.arange(0.0, 20.0), np.arange(20.0, -1.0, -1.0)])  # 0..19 out, 20..0 back: 41 poses
     reference = Trajectory(np.arange(len(xs)) * SECOND, np.column_stack([xs, np.zeros_like(xs), np.zeros_like(xs)]))
     relations = revisit_relations(reference, max_distance_m=1.0, min_gap_s=30.0)
-    pairs = {(int(a // SECOND), int(b // SECOND)) for a, b in zip(relations.t1_ns, relations.t2_ns)}
+    pairs = {(int(a // SECOND), int(b // SECOND)) for a, b in zip(relations.t1_ns, relations.t2_ns, strict=True)}
     assert pairs == {(a, b) for a in range(41) for b in range(a + 31, 41) if abs(xs[a] - xs[b]) <= 1.0}
     assert pairs and all(b - a > 30 for a, b in pairs)
     back = reference.poses.copy()

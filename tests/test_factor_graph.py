@@ -97,10 +97,10 @@ def test_marginals_equal_the_dense_inverse():
     jac = g._system(g.poses, g.points, {}, columns)[0].toarray()
     inverse = np.linalg.inv(jac.T @ jac)
     poses, points = g.marginal_covariances(poses=[1, 3], points=[0, 2])
-    for k, block in zip([1, 3], poses):
+    for k, block in zip([1, 3], poses, strict=True):
         c = pose_col[k]
         np.testing.assert_allclose(block, inverse[c:c + 3, c:c + 3], rtol=1e-8, atol=1e-12)
-    for k, block in zip([0, 2], points):
+    for k, block in zip([0, 2], points, strict=True):
         c = point_col[k]
         np.testing.assert_allclose(block, inverse[c:c + 2, c:c + 2], rtol=1e-8, atol=1e-12)
     assert np.all(g.marginal_covariances(poses=[0])[0] == 0)   # pose 0 is fixed

@@ -121,7 +121,7 @@ def test_output_folder_names_are_distinct_and_plain_stems_when_the_stem_is_uniqu
     names = folder_names(sources)
     assert len(set(names)) == len(names) and all("/" not in n for n in names)
     stems = [p[-1] for p in paths]
-    for name, stem in zip(names, stems):
+    for name, stem in zip(names, stems, strict=True):
         assert name.endswith(stem)
         if stems.count(stem) == 1:
             assert name == stem

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -110,8 +111,8 @@ def test_intel_gfs_log_counts_ranges_and_times(tmp_path) -> None:
         scans = [item for item in reader.messages(["/scan"])]
         info = reader.info()
     assert [s.msg.stamp_ns for s in scans] == [round(l.stamp_s * 1e9) for l in log.lasers]  # file order kept
-    assert all(b.log_time_ns >= a.log_time_ns for a, b in zip(scans, scans[1:]))
-    assert sum(b.msg.stamp_ns < a.msg.stamp_ns for a, b in zip(scans, scans[1:])) == 4  # the log's own step-backs
+    assert all(b.log_time_ns >= a.log_time_ns for a, b in pairwise(scans))
+    assert sum(b.msg.stamp_ns < a.msg.stamp_ns for a, b in pairwise(scans)) == 4  # the log's own step-backs
     ranges = np.concatenate([s.msg.ranges for s in scans])
     assert scans[0].msg.range_max == pytest.approx(81.83)
     assert np.isposinf(ranges).mean() == pytest.approx(0.025, abs=0.003)  # README: 81.83 = no return, 2.5 %

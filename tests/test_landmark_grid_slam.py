@@ -86,7 +86,7 @@ def test_markers_seen_again_hold_the_map_together():
     error = landmark_error(mapped.ids, mapped.positions, [f"aruco_{k}" for k in range(len(MARKERS))], MARKERS[:, :2],
                            with_markers.alignment_xyt)
     assert error.count == len(MARKERS) and error.max_m < 0.10 and error.mean_m < 0.05, error
-    for name, yaw in zip(mapped.ids, mapped.yaw):
+    for name, yaw in zip(mapped.ids, mapped.yaw, strict=True):
         facing = MARKERS[int(name.split("_")[1]), 2]
         assert abs(math.remainder(yaw + with_markers.alignment_xyt[2] - facing, 2 * math.pi)) < math.radians(5)
     assert np.all(np.linalg.eigvalsh(mapped.covariances) > 0)

@@ -93,7 +93,7 @@ def test_a_square_room_needs_the_landmarks_to_localise(square_map):
     fixer = LandmarkFixer(list(MARKERS), np.array(list(MARKERS.values())), np.full((3, 2), 0.01))
     updates = _drive(localizer, poses, fixer, rng)
     assert localizer.stats.converged_at == [1] and localizer.status == TRACKING   # the fix after the first scan
-    for pose, update in zip(poses[1:], updates[1:]):
+    for pose, update in zip(poses[1:], updates[1:], strict=True):
         assert np.hypot(*(update.pose[:2] - pose[:2])) < 0.05
         assert abs(math.remainder(update.pose[2] - pose[2], 2 * math.pi)) < math.radians(2)
 

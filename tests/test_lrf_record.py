@@ -39,7 +39,7 @@ def test_record_scip2_to_mcap(tmp_path):
     sent = {s.timestamp: s for s in device.sent}
     timing = [x.msg for x in messages if x.topic == "/scan/timing"]
     assert len(timing) == len(scans)
-    for scan, info in zip(scans, timing):
+    for scan, info in zip(scans, timing, strict=True):
         raw = int(dict(info.status[0].values)["raw_ms"])
         want = sent[raw].distances / 1000.0
         want = np.where(sent[raw].distances == 0, np.inf, np.where(sent[raw].distances < 20, np.nan, want))

@@ -84,7 +84,7 @@ def test_scip2_stream_survives_thousands_of_faults():
     assert len(logged) == len(intact) == counters["scans"]
     first_beam = int(round((360 - (540 - 720)) / 1440 * device.period_ns))
     reset_seen = False
-    for (scan, timing), want in zip(logged, intact):
+    for (scan, timing), want in zip(logged, intact, strict=True):
         assert timing.raw == want.timestamp
         np.testing.assert_array_equal(scan.ranges, stream.ranges(want.distances))
         reset_seen |= timing.event == "reset"

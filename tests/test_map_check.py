@@ -21,7 +21,7 @@ def mapped_room() -> Slam:
     truth = loop_path(laps=2)
     odometry = drifting_odometry(truth, seed=5)
     slam = Slam(SlamConfig())
-    for k, (pose, odo) in enumerate(zip(truth, odometry)):
+    for k, (pose, odo) in enumerate(zip(truth, odometry, strict=True)):
         stamp = 1_000_000_000 + k * 500_000_000
         slam.process("/odom", m.Odometry(stamp, "odom", "base_link", *odo))
         slam.process("/scan", scan(ROOM, pose, beams=271, fov=math.radians(270.0), noise_m=0.01, seed=k,

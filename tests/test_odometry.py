@@ -35,7 +35,7 @@ def js(stamp_ns: int, left_rad: float, right_rad: float, names=("left", "right")
 
 def run(odo: DiffDriveOdometry, left_rad, right_rad) -> m.Odometry:
     out = None
-    for k, (a, b) in enumerate(zip(left_rad, right_rad)):
+    for k, (a, b) in enumerate(zip(left_rad, right_rad, strict=True)):
         out = odo.update(js(k * 10_000_000, a, b))
     return out
 
@@ -95,7 +95,7 @@ def test_any_chunking_gives_the_same_pose(ticks, data):
     one.update_many(stamps, left, right)
     cuts = sorted(data.draw(st.sets(st.integers(1, left.size - 1), max_size=left.size)))
     chunked = DiffDriveOdometry(R, B)
-    for lo, hi in zip([0, *cuts], [*cuts, left.size]):
+    for lo, hi in zip([0, *cuts], [*cuts, left.size], strict=True):
         chunked.update_many(stamps[lo:hi], left[lo:hi], right[lo:hi])
     single = DiffDriveOdometry(R, B)
     run(single, left, right)

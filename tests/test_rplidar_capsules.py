@@ -201,8 +201,8 @@ def test_a_bad_capsule_is_counted_and_the_stream_realigns(fmt):
     nodes = rp.Nodes.concat([decoder.feed(bytes(stream[:500])), decoder.feed(bytes(stream[500:]))])
     assert decoder.bad_capsules == 1 and decoder.framer.resyncs == 1
     # capsule 5 is lost, and with it the held-back ones before it; the samples after the break are intact
-    kept = set(zip(nodes.encoder_q6.tolist(), nodes.distance_q2.tolist()))
-    assert kept <= set(zip(((np.arange(distance.size) * 16) % rp.FULL_CIRCLE_Q6).tolist(), distance.tolist()))
+    kept = set(zip(nodes.encoder_q6.tolist(), nodes.distance_q2.tolist(), strict=True))
+    assert kept <= set(zip(((np.arange(distance.size) * 16) % rp.FULL_CIRCLE_Q6).tolist(), distance.tolist(), strict=True))
     assert nodes.broken.sum() == 1 and nodes.encoder_q6[np.flatnonzero(nodes.broken)[0]] == 6 * fmt.samples * 16
 
 
@@ -225,4 +225,4 @@ def test_one_mutation_never_yields_a_wrong_sample(seed, how, value, where, fmt):
     mutate(stream, how, where, value)
     nodes = rc.CapsuleNodeDecoder(fmt).feed(bytes(stream))
     fields = ("encoder_q6", "angle_q6", "distance_q2", "quality")
-    assert set(zip(*(getattr(nodes, f).tolist() for f in fields))) <= set(zip(*(getattr(original, f).tolist() for f in fields)))
+    assert set(zip(*(getattr(nodes, f).tolist() for f in fields), strict=True)) <= set(zip(*(getattr(original, f).tolist() for f in fields), strict=True))

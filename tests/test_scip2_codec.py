@@ -179,7 +179,7 @@ def test_framer_is_independent_of_chunking(data):
     framer = ScipFramer()
     framer.expect(measure.echo())
     replies = []
-    for a, b in zip([0, *cuts], [*cuts, len(stream)]):
+    for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True):
         replies += framer.feed(stream[a:b])
     assert [scip2.decode_scan(r, measure).timestamp for r in replies] == [0, 1, 2]
     assert framer.resyncs == 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ def loop_path(laps: int = 2, step_m: float = 0.25, turn_step_rad: float = math.r
     poses = []
     heading = 0.0
     for _ in range(laps):
-        for a, b in zip(WAYPOINTS[:-1], WAYPOINTS[1:]):
+        for a, b in pairwise(WAYPOINTS):
             target = math.atan2(b[1] - a[1], b[0] - a[0])
             turn = wrap_angle(target - heading)
             for k in range(1, int(math.ceil(abs(turn) / turn_step_rad)) + 1):

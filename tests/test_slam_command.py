@@ -34,7 +34,7 @@ def simulated_log(tmp_path_factory):
     odometry = drifting_odometry(truth, seed=4)
     mount = np.array([0.1, 0.0, 0.0])
     items = [("/tf_static", m.TFMessage((m.TransformStamped.planar(0, "base_link", "laser", 0.1, 0.0, 0.0),)), 0)]
-    for k, (pose, odo) in enumerate(zip(truth, odometry)):
+    for k, (pose, odo) in enumerate(zip(truth, odometry, strict=True)):
         stamp = 10**9 * (k + 1) // 2
         laser = pose + np.array([mount[0] * math.cos(pose[2]), mount[0] * math.sin(pose[2]), 0.0])
         items.append(("/odom", m.Odometry(stamp, "odom", "base_link", *odo), stamp))

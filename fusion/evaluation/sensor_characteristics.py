@@ -268,7 +268,7 @@ def static_intervals(stamps_ns: np.ndarray, speeds: np.ndarray, threshold: float
     still = np.concatenate([[False], s < threshold, [False]])
     edges = np.flatnonzero(np.diff(still.astype(np.int8)))
     out = []
-    for a, b in zip(edges[::2], edges[1::2]):
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
         if (t[b - 1] - t[a]) * 1e-9 >= min_duration_s:
             out.append((int(t[a]), int(t[b - 1])))
     return out

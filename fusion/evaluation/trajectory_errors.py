@@ -302,8 +302,8 @@ def landmark_error(ids: list[str], positions: np.ndarray, reference_ids: list[st
                    alignment_xyt) -> LandmarkError:
     """Errors of mapped landmarks (map frame) against the reference, the map placed by ``alignment_xyt``
     (e.g. the trajectory's ATE alignment, so map and path are judged in one frame)."""
-    reference = {name: np.asarray(p, np.float64) for name, p in zip(reference_ids, reference_positions)}
-    mapped = {name: np.asarray(p, np.float64) for name, p in zip(ids, positions)}
+    reference = {name: np.asarray(p, np.float64) for name, p in zip(reference_ids, reference_positions, strict=True)}
+    mapped = {name: np.asarray(p, np.float64) for name, p in zip(ids, positions, strict=True)}
     common = [name for name in mapped if name in reference]
     if not common:
         raise UserError("no mapped landmark has an id of the reference landmarks")
@@ -312,5 +312,5 @@ def landmark_error(ids: list[str], positions: np.ndarray, reference_ids: list[st
     errors = np.hypot(*(aligned - np.array([reference[n] for n in common])).T)
     return LandmarkError(len(common), float(errors.mean()), float(np.sqrt(np.mean(errors ** 2))),
                          float(np.median(errors)), float(errors.max()),
-                         {n: float(e) for n, e in zip(common, errors)},
+                         {n: float(e) for n, e in zip(common, errors, strict=True)},
                          sorted(set(reference) - set(mapped)), sorted(set(mapped) - set(reference)))

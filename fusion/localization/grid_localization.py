@@ -258,7 +258,7 @@ class Localizer:
     def hypotheses(self) -> list[tuple[np.ndarray, float]]:
         """Current hypotheses as (pose, probability), best first."""
         probabilities = self._probabilities()
-        return [(h.pose.copy(), float(p)) for h, p in zip(self._hypotheses, probabilities)]
+        return [(h.pose.copy(), float(p)) for h, p in zip(self._hypotheses, probabilities, strict=True)]
 
     def update(self, points_xy: np.ndarray, odometry_delta_xyt: np.ndarray | None = None) -> LocalizationUpdate:
         """Process one scan: ``points_xy`` (N, 2) in the robot frame, ``odometry_delta_xyt`` the motion
@@ -389,7 +389,7 @@ class Localizer:
         self._hypotheses = kept
         if kept:
             probabilities = self._probabilities()
-            self._hypotheses = [h for h, p in zip(kept, probabilities) if p >= cfg.prune_probability]
+            self._hypotheses = [h for h, p in zip(kept, probabilities, strict=True) if p >= cfg.prune_probability]
 
     def _probabilities(self) -> np.ndarray:
         if not self._hypotheses:

@@ -103,7 +103,7 @@ def write_trajectory_csv(path: str | os.PathLike[str], stamps_ns: np.ndarray, po
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["t_ns", "x", "y", "theta"])
-        for t, (x, y, theta) in zip(np.asarray(stamps_ns, np.int64), np.asarray(poses, np.float64)):
+        for t, (x, y, theta) in zip(np.asarray(stamps_ns, np.int64), np.asarray(poses, np.float64), strict=True):
             writer.writerow([int(t), f"{x:.6f}", f"{y:.6f}", f"{theta:.6f}"])
 
 
@@ -164,7 +164,7 @@ def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajector
         cv2.rectangle(image, tuple(end - 3 * scale), tuple(end + 3 * scale), colour, 2)
     if landmarks is not None:
         magenta = (200, 0, 200)
-        for name, xy, cov in zip(*landmarks):
+        for name, xy, cov in zip(*landmarks, strict=True):
             centre = pixels(np.asarray(xy, np.float64).reshape(1, 2))[0]
             values, vectors = np.linalg.eigh(np.nan_to_num(np.asarray(cov, np.float64).reshape(2, 2)))
             axes = np.maximum(3.0 * np.sqrt(np.maximum(values, 0.0)) / grid.resolution * scale, 3.0)
@@ -218,7 +218,7 @@ def write_landmarks_csv(path: str | os.PathLike[str], ids: list[str], positions:
         writer = csv.writer(f)
         writer.writerow(LANDMARKS_HEADER)
         for name, (x, y), (sx, sy) in zip(ids, np.asarray(positions, np.float64).reshape(-1, 2),
-                                          np.asarray(sigmas, np.float64).reshape(-1, 2)):
+                                          np.asarray(sigmas, np.float64).reshape(-1, 2), strict=True):
             writer.writerow([name, f"{x:.6f}", f"{y:.6f}", f"{sx:.6f}", f"{sy:.6f}"])
 
 

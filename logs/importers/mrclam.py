@@ -125,8 +125,8 @@ def read_mrclam(folder: str | os.PathLike[str], robot: int) -> MrclamRun:
         malformed[measurement_file] = malformed.get(measurement_file, 0) + int((~valid).sum())
     run = MrclamRun(odometry_ns[order], odometry[order], sightings_ns[valid],
                     [(int(b), float(r), float(a)) for b, r, a in sightings[valid]],
-                    {int(b): int(s) for s, b in zip(subjects, barcodes[:, 0])},
-                    {int(s): tuple(float(v) for v in row) for s, row in zip(landmark_ids, landmarks)},
+                    {int(b): int(s) for s, b in zip(subjects, barcodes[:, 0], strict=True)},
+                    {int(s): tuple(float(v) for v in row) for s, row in zip(landmark_ids, landmarks, strict=True)},
                     malformed=malformed)
     truth_path = folder / f"Robot{robot}_Groundtruth.dat"
     if truth_path.is_file():
@@ -165,7 +165,7 @@ def landmark_lists(run: MrclamRun) -> tuple[list[m.LandmarkList], dict[str, int]
     of robots, unknown barcodes)."""
     groups: dict[int, list[m.LandmarkObservation]] = {}
     dropped = {"robot_sightings": 0, "unknown_barcodes": 0}
-    for stamp, (barcode, range_m, bearing) in zip(run.sightings_ns, run.sightings):
+    for stamp, (barcode, range_m, bearing) in zip(run.sightings_ns, run.sightings, strict=True):
         subject = run.subject_of_barcode.get(barcode)
         if subject is None:
             dropped["unknown_barcodes"] += 1
@@ -181,7 +181,7 @@ def messages(run: MrclamRun, sightings: list[m.LandmarkList]) -> Iterator[Item]:
     """``/odom`` and ``/landmarks`` in time order (log time = stamp; odometry first at equal times)."""
     poses = integrate(run.odometry_ns, run.odometry)
     odometry = [(int(t), 0, m.Odometry(int(t), "odom", "base_link", *pose, vx=float(v), wz=float(w)))
-                for t, pose, (v, w) in zip(run.odometry_ns, poses, run.odometry)]
+                for t, pose, (v, w) in zip(run.odometry_ns, poses, run.odometry, strict=True)]
     for t, kind, msg in sorted(odometry + [(s.stamp_ns, 1, s) for s in sightings], key=lambda item: item[:2]):
         yield ("/odom" if kind == 0 else "/landmarks"), msg, t
 

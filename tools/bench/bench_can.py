@@ -28,6 +28,7 @@ import sys
 import tempfile
 import time
 import timeit
+from itertools import pairwise
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -82,7 +83,7 @@ def _summarise(rate: float, seqs: list[int], lat_us: list[int], info: dict, cpu_
     instead), so a rate counts as sustained only if the emulator could offer all of it, nothing
     was lost or reordered and the median latency stayed under 20 ms (no standing backlog; the
     p99 is reported but not judged, as it follows the load of the shared machine)."""
-    inversions = sum(1 for a, b in zip(seqs, seqs[1:]) if b < a)
+    inversions = sum(1 for a, b in pairwise(seqs) if b < a)
     lat = sorted(lat_us)
     achieved = info["sent"] / info["offer_s"]
     p99 = lat[int(0.99 * (len(lat) - 1))] / 1000 if lat else float("inf")

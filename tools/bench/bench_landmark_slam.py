@@ -129,7 +129,7 @@ def draw_mrclam(path: Path, run, outputs: dict[str, Path]) -> None:
     survey_ids = [str(s) for s in sorted(run.landmarks) if s > 5]
     survey = np.array([run.landmarks[int(s)][:2] for s in survey_ids])
     figure, axes = plt.subplots(1, len(outputs), figsize=(5.0 * len(outputs), 7.5), sharey=True)
-    for ax, (name, folder) in zip(np.atleast_1d(axes), outputs.items()):
+    for ax, (name, folder) in zip(np.atleast_1d(axes), outputs.items(), strict=True):
         estimate = Trajectory(*read_trajectory_csv(folder / "trajectory.csv"))
         ate = absolute_trajectory_error(estimate, truth, 20_000_000)
         aligned = compose(np.array(ate.alignment_xyt), estimate.poses)

@@ -91,7 +91,7 @@ def marker_map(run: SlamRun, world: World, map_to_world) -> dict[str, Any]:
         return {"mapped": 0, "errors_m": {}}
     error = landmark_error(mapped.ids, mapped.positions, [str(d.marker_id) for d in known],
                            np.array([[d.x, d.y] for d in known]), map_to_world)
-    sightings = dict(zip(mapped.ids, mapped.sightings.tolist()))
+    sightings = dict(zip(mapped.ids, mapped.sightings.tolist(), strict=True))
     return {"mapped": len(mapped.ids), "errors_m": error.per_landmark_m, "mean_error_m": error.mean_m,
             "max_error_m": error.max_m, "not_in_world": error.extra,
             "sightings": {k: int(v) for k, v in sorted(sightings.items())},

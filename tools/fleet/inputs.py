@@ -98,7 +98,7 @@ def folder_names(sources: Sequence[str]) -> list[str]:
     parts = [_parts(s) for s in sources]
     depth = [1] * len(parts)
     while True:
-        names = [SEPARATOR.join(p[-d:]) for p, d in zip(parts, depth)]
+        names = [SEPARATOR.join(p[-d:]) for p, d in zip(parts, depth, strict=True)]
         groups: dict[str, list[int]] = {}
         for i, name in enumerate(names):
             groups.setdefault(name, []).append(i)

@@ -94,7 +94,7 @@ def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[
         try:
             started = time.perf_counter()
             refs = {cluster.submit(Task(job, s, n, str(output), dict(options), key, force), retries, cpus_per_log): i
-                    for i, (s, n) in enumerate(zip(sources, names))}
+                    for i, (s, n) in enumerate(zip(sources, names, strict=True))}
             bar = progress("fleet", len(sources))
             pending = list(refs)
             try:

@@ -57,7 +57,7 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
             new = _joint_states(items, times, faults, wheels.left, wheels.right,
                                 0.5 * (wheels.left_radius_m + wheels.right_radius_m), wheels.track_m)
         lost = dropped(times, faults)
-        for (r, _), msg, gone in zip(items, new, lost):
+        for (r, _), msg, gone in zip(items, new, lost, strict=True):
             replacements[(topic, r.log_time_ns, r.data)] = None if gone else ros2.encode(msg)[1]
         counts[topic] = {"messages": len(items), "dropped": int(lost.sum())}
 
@@ -73,7 +73,7 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
 def _odometry(items: list[tuple[Any, m.Odometry]], times: np.ndarray, faults: list[OdometryFault]) -> list[m.Odometry]:
     poses = np.array([[msg.x, msg.y, msg.theta] for _, msg in items])
     new = faulty_poses(times, poses, faults)
-    return [dataclasses.replace(msg, x=float(p[0]), y=float(p[1]), theta=float(p[2])) for (_, msg), p in zip(items, new)]
+    return [dataclasses.replace(msg, x=float(p[0]), y=float(p[1]), theta=float(p[2])) for (_, msg), p in zip(items, new, strict=True)]
 
 
 def _joint_states(items: list[tuple[Any, m.JointState]], times: np.ndarray, faults: list[OdometryFault],
@@ -91,7 +91,7 @@ def _joint_states(items: list[tuple[Any, m.JointState]], times: np.ndarray, faul
     new_left, new_right = lefts.copy(), rights.copy()
     new_left[good], new_right[good] = faulty_wheels(times[rows[good]], lefts[good], rights[good], faults, radius_m,
                                                     track_m)
-    for (k, i, j), a, b in zip(index, new_left, new_right):
+    for (k, i, j), a, b in zip(index, new_left, new_right, strict=True):
         position = np.array(out[k].position, np.float64)
         position[i], position[j] = a, b
         out[k] = dataclasses.replace(out[k], position=position)

@@ -201,7 +201,7 @@ def _build_atlas(world: World, plaster: np.ndarray, skirting_m: float) -> _Atlas
     z = world.wall_height - (np.arange(strip_h) - 0.5) / WALL_PX_PER_M          # texel centre heights
     rows = ((z % TEXTURE_TILE_M) * TEXTURE_PX / TEXTURE_TILE_M).astype(int) % TEXTURE_PX
     skirting = np.clip((skirting_m - z) * WALL_PX_PER_M + 0.5, 0.0, 1.0).astype(np.float32)  # texel coverage
-    for i, ((px, py), w) in enumerate(zip(positions, strip_w)):
+    for i, ((px, py), w) in enumerate(zip(positions, strip_w, strict=True)):
         along = (np.arange(w) - 0.5) / WALL_PX_PER_M
         cols = ((along % TEXTURE_TILE_M) * TEXTURE_PX / TEXTURE_TILE_M).astype(int) % TEXTURE_PX
         texture = plaster[rows[:, None], cols[None, :]]
@@ -278,7 +278,7 @@ class CameraRenderer:
         image = cv2.remap(atlas.image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
         ray = np.stack([np.cos(angles), np.sin(angles)], 1)
-        for decal, mips in zip(world.decals, self._decal_mips):
+        for decal, mips in zip(world.decals, self._decal_mips, strict=True):
             self._draw_decal(image, decal, mips, hits, ray, depth, pose.z)
         if rng is not None:
             image = cv2.add(image, self._noise[rng.integers(len(self._noise))], dtype=cv2.CV_8U)

@@ -11,6 +11,7 @@ rate-limited); its boot-up heartbeat triggers the configuration again.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import struct
@@ -264,10 +265,8 @@ class Cia406Encoders(EncoderProtocol):
         pdo.event_timer = self.tpdo_period_ms
         pdo.enabled = True
         pdo.save()
-        try:
+        with contextlib.suppress(SdoAbortedError, KeyError):  # an optional object
             remote.sdo[CYCLIC_TIMER].raw = self.tpdo_period_ms
-        except (SdoAbortedError, KeyError):
-            pass  # optional object
         var = pdo.map[0]
         node.layout = PositionLayout(var.offset // 8, var.length // 8, var.od.data_type in _SIGNED)
         node.modulus = total if total > 1 else 2**32

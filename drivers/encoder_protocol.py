@@ -107,10 +107,10 @@ class EncoderProtocol(ABC):
     def healthy_wheels(self, now_ns: int) -> set[int]:
         """Wheels whose node is alive and whose positions can be trusted now."""
 
-    def poll(self, now_ns: int) -> None:
+    def poll(self, now_ns: int) -> None:  # noqa: B027  an optional hook: protocols without periodic work keep it
         """Periodic work (requests, watchdog recovery); called often by the driver."""
 
-    def stop(self) -> None:
+    def stop(self) -> None:  # noqa: B027  an optional hook: protocols without a worker keep it
         """Stop any worker; the bus is closed by the driver."""
 
     def silence_hint(self, seen_ids: set[int]) -> str:

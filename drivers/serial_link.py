@@ -12,6 +12,7 @@ sends last words (stop streaming, stop the motor) and never raises.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import select
@@ -120,10 +121,8 @@ class SerialLink:
                 self.port.flush()
         except (OSError, serial.SerialException, ValueError, termios.error):  # tcdrain on a line that died: EIO
             pass
-        try:
+        with contextlib.suppress(OSError, serial.SerialException, termios.error):
             self.port.close()
-        except (OSError, serial.SerialException, termios.error):
-            pass
 
 
 def set_modem_line(port: serial.SerialBase, name: str, value: bool) -> bool:

@@ -366,7 +366,8 @@ class Logger:
             path = self.base_path
         self._split_index += 1
         active = path.with_name(path.name + ACTIVE_SUFFIX)
-        stream = open(active, "xb")  # exclusive: never truncates another writer's file
+        # exclusive: never truncates another writer's file; closed by _finish_file, not here
+        stream = open(active, "xb")  # noqa: SIM115  the file outlives this method
         fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # marks the file live for salvage_folder
         writer = Writer(stream, chunk_size=self.chunk_size, compression=COMPRESSION[self.compression])
         writer.start(profile="ros2", library=f"trundle/{__version__}")

@@ -11,6 +11,7 @@ processes), then every process left in the namespace is killed by pid, whatever 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 import shutil
@@ -145,10 +146,8 @@ class LoopbackCluster:
                 node.process.kill()
                 node.process.wait()
         for pid in self.processes():
-            try:
+            with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
         self.holder.kill()
         self.holder.wait()
         self.holder.stdout.close()

@@ -31,8 +31,9 @@ def intel_run(scans: int | None, loop_closure: bool = True) -> tuple[Slam, Traje
     stamps, reference = carmen.scan_poses(log)
     odometry = drifting_odometry(reference, seed=1)
     slam = Slam(SlamConfig(loop_closure=loop_closure))
-    for k, (topic, msg, _) in enumerate(item for item in carmen.messages(log, odometry="laser", laser_odometry=odometry)
-                                        if item[0] != "/tf_static"):
+    for topic, msg, _ in carmen.messages(log, odometry="laser", laser_odometry=odometry):
+        if topic == "/tf_static":
+            continue
         if scans is not None and slam.stats.scans >= scans:
             break
         slam.process(topic, msg)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import dataclasses
 import json
@@ -61,9 +62,8 @@ def run(args: argparse.Namespace) -> int:
     if args.output:
         new_file(args.output, "-o")
     items = reader.messages([args.topic])
-    out = open(args.output, "w", newline="") if args.output else sys.stdout
     count = 0
-    try:
+    with open(args.output, "w", newline="") if args.output else contextlib.nullcontext(sys.stdout) as out:
         writer = None
         for item in items:
             if args.format == "ndjson":
@@ -75,9 +75,6 @@ def run(args: argparse.Namespace) -> int:
                     writer.writeheader()
                 writer.writerow(row)
             count += 1
-    finally:
-        if args.output:
-            out.close()
     if count == 0:
         raise UserError(f"no messages on topic {args.topic} that trundle can decode")
     return 0

@@ -13,6 +13,7 @@ closed, then back on the same port).
 from __future__ import annotations
 
 import collections
+import contextlib
 import socket
 import threading
 import time
@@ -238,10 +239,8 @@ class CameraEmulator:
             clients, self._clients = list(self._clients), set()
             self._cond.notify_all()
         for connection in clients:
-            try:
+            with contextlib.suppress(OSError):
                 connection.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
         if self._server_thread is not None:
             self._server_thread.join(2.0)
 

@@ -287,7 +287,10 @@ def _source_factory(config: CameraConfig, unsupported: set[str]) -> tuple[Callab
         size = _file_size(path)
         kind = ImageFolderSource if path.is_dir() else VideoFileSource
         return partial(kind, path, fps=config.fps or None, pace=config.pace, loop=config.loop), size
-    return partial(MjpegStreamSource, config.target, timeout_s=2 * config.stall_timeout_s), (config.width, config.height)
+    return partial(MjpegStreamSource, config.target, timeout_s=2 * config.stall_timeout_s), (
+        config.width,
+        config.height,
+    )
 
 
 def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = None) -> CameraDriver:

@@ -332,7 +332,9 @@ def _start(start_angle_q6: int, new_scan: bool) -> bytes:
     return struct.pack("<H", (start_angle_q6 & 0x7FFF) | (0x8000 if new_scan else 0))
 
 
-def encode_capsule(start_angle_q6: int, distance_q2: np.ndarray, dtheta_q3: np.ndarray, new_scan: bool = False) -> bytes:
+def encode_capsule(
+    start_angle_q6: int, distance_q2: np.ndarray, dtheta_q3: np.ndarray, new_scan: bool = False
+) -> bytes:
     """An express capsule: 32 distances (1/4 mm, multiples of 4) with their angle offsets (1/8
     deg, 0..63), after a start angle in 1/64 deg."""
     dist = np.asarray(distance_q2, np.int64).reshape(16, 2)

@@ -220,7 +220,9 @@ class ScipScanStream:
             return None
         reading = self.clock.update(raw, host_rx_ns)
         if reading.event:
-            self.counters[{"wrap": "clock_wraps", "reset": "clock_resets", "resync": "clock_resyncs"}[reading.event]] += 1
+            self.counters[
+                {"wrap": "clock_wraps", "reset": "clock_resets", "resync": "clock_resyncs"}[reading.event]
+            ] += 1
         if reading.event == "reset" and self.hold_after_reset:
             self.unsynced = True
         if self._last_ts is not None and reading.event != "reset":
@@ -365,7 +367,9 @@ class ScipDriver(Driver):
         first = self._status(self._request(b"RB\n"))
         second = self._status(self._request(b"RB\n"))
         self.counters["reboots"] += 1
-        raise DeviceError(f"sensor in abnormal state (status {status}); rebooted it with RB (replies {first}, {second})")
+        raise DeviceError(
+            f"sensor in abnormal state (status {status}); rebooted it with RB (replies {first}, {second})"
+        )
 
     def _sync_clock(self) -> None:
         """TM0, N x TM1 round trips (median offset), TM2; without TM, anchor on the first scan."""

@@ -155,10 +155,14 @@ class VideoFileSource(CaptureSource, _PacedFile):
         cap = self._cap
         native_fps = cap.get(cv2.CAP_PROP_FPS)
         self._settings = {
-            "width": str(int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))), "height": str(int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))),
-            "fps": f"{self.fps or native_fps:g}", "file_fps": f"{native_fps:g}",
-            "fourcc": fourcc_text(cap.get(cv2.CAP_PROP_FOURCC)), "pass_through": str(self._raw).lower(),
-            "frames": str(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)))}
+            "width": str(int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))),
+            "height": str(int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))),
+            "fps": f"{self.fps or native_fps:g}",
+            "file_fps": f"{native_fps:g}",
+            "fourcc": fourcc_text(cap.get(cv2.CAP_PROP_FOURCC)),
+            "pass_through": str(self._raw).lower(),
+            "frames": str(int(cap.get(cv2.CAP_PROP_FRAME_COUNT))),
+        }
 
     def read(self) -> Frame:
         self._check_present()

@@ -137,7 +137,11 @@ class Image(Message):
         """The pixels as H x W (x channels) uint8 for 8-bit encodings."""
         channels = self.step // max(self.width, 1)
         shape = (self.height, self.width) if channels == 1 else (self.height, self.width, channels)
-        return self.data[: self.height * self.step].reshape(self.height, self.step)[:, : self.width * channels].reshape(shape)
+        return (
+            self.data[: self.height * self.step]
+            .reshape(self.height, self.step)[:, : self.width * channels]
+            .reshape(shape)
+        )
 
 
 @dataclass(frozen=True, eq=False)

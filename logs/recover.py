@@ -126,5 +126,7 @@ def _register(writer: Writer, channel: Channel, schemas: dict[int, Schema], sche
         schema_id = schema_ids.get(channel.schema_id, 0)
         schema = schemas.get(channel.schema_id)
         if not schema_id and schema is not None:
-            schema_id = schema_ids[channel.schema_id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            schema_id = schema_ids[channel.schema_id] = writer.register_schema(
+                schema.name, schema.encoding, schema.data
+            )
     return writer.register_channel(channel.topic, channel.message_encoding, schema_id, dict(channel.metadata))

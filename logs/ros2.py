@@ -351,9 +351,21 @@ def _scene_markers_to(msg: m.SceneMarkers) -> Any:
 def _scene_markers_from(r: Any) -> m.SceneMarkers:
     def marker(k: Any) -> m.SceneMarker:
         c = k.color
-        return m.SceneMarker(stamp_ns(k), k.header.frame_id, k.ns, int(k.id), int(k.type), float(k.pose.position.x),
-                             float(k.pose.position.y), float(k.pose.position.z), _yaw(k.pose.orientation),
-                             (k.scale.x, k.scale.y, k.scale.z), (float(c.r), float(c.g), float(c.b), float(c.a)), k.text)
+        return m.SceneMarker(
+            stamp_ns(k),
+            k.header.frame_id,
+            k.ns,
+            int(k.id),
+            int(k.type),
+            float(k.pose.position.x),
+            float(k.pose.position.y),
+            float(k.pose.position.z),
+            _yaw(k.pose.orientation),
+            (k.scale.x, k.scale.y, k.scale.z),
+            (float(c.r), float(c.g), float(c.b), float(c.a)),
+            k.text,
+        )
+
     return m.SceneMarkers(tuple(marker(k) for k in r.markers))
 
 

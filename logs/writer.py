@@ -135,7 +135,9 @@ class Logger:
         self.queue_size = queue_size
         self.batch_s = batch_s
         self._urgent_at = max(1, min(queue_size // 4, 256))  # a batch this long is written at once
-        self.metadata = log_metadata.encode({"trundle_version": __version__, "host": platform.node(), **(metadata or {})})
+        self.metadata = log_metadata.encode(
+            {"trundle_version": __version__, "host": platform.node(), **(metadata or {})}
+        )
         self.latched_topics = frozenset(latched_topics)
         self.stats: dict[str, TopicStats] = collections.defaultdict(TopicStats)
         self.files: list[Path] = []

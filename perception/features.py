@@ -209,7 +209,12 @@ def edge_map(image: np.ndarray, method: str = "canny", threshold: float | None =
                 float(magnitude.max()), 1e-9) / 255.0
         edges = magnitude > threshold
     y, x = np.nonzero(edges)
-    return x + offset, y + offset, magnitude[y, x].astype(np.float64), np.mod(np.arctan2(gy[y, x], gx[y, x]), 2 * math.pi)
+    return (
+        x + offset,
+        y + offset,
+        magnitude[y, x].astype(np.float64),
+        np.mod(np.arctan2(gy[y, x], gx[y, x]), 2 * math.pi),
+    )
 
 
 def _edges(method: str) -> Callable[..., Keypoints]:

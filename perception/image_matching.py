@@ -40,9 +40,18 @@ class PairMatch:
         return out
 
 
-def match_features(f1: Features, f2: Features, model: str = "homography", cross_check: bool = True,
-                   max_ratio: float = 0.8, min_difference: float = 0.0, max_distance: float = math.inf,
-                   flann: bool = False, threshold: float = 3.0, rng: np.random.Generator | int | None = None) -> PairMatch:
+def match_features(
+    f1: Features,
+    f2: Features,
+    model: str = "homography",
+    cross_check: bool = True,
+    max_ratio: float = 0.8,
+    min_difference: float = 0.0,
+    max_distance: float = math.inf,
+    flann: bool = False,
+    threshold: float = 3.0,
+    rng: np.random.Generator | int | None = None,
+) -> PairMatch:
     """Match two feature sets and fit `model` ("homography": x2 ~ H x1, inlier band `threshold`
     px of transfer error; "fundamental": x2^T F x1 = 0, band `threshold` px Sampson distance)."""
     if f1.metric != f2.metric:

@@ -160,7 +160,10 @@ class MarkerDetector:
         corners, ids, _ = self._detector.detectMarkers(image)
         if ids is None:
             return []
-        found = [Marker(int(i), np.asarray(c, dtype=np.float64).reshape(4, 2)) for i, c in zip(ids.ravel(), corners, strict=True)]
+        found = [
+            Marker(int(i), np.asarray(c, dtype=np.float64).reshape(4, 2))
+            for i, c in zip(ids.ravel(), corners, strict=True)
+        ]
         if self.refinement == "edges":
             grey = (image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)).astype(np.float32)
             found = [Marker(f.id, refine_on_edges(grey, f.corners, self._bits)) for f in found]

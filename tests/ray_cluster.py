@@ -63,8 +63,12 @@ class LoopbackCluster:
                                            ["{pid}", "-U", "-n", "--preserve-credentials"])
         unshare = ["unshare", "-n"] if privileged else ["unshare", "-U", "-r", "-n"]
         try:
-            self.holder = subprocess.Popen(unshare + ["sh", "-c", "ip link set lo up && echo up && exec sleep infinity"],
-                                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            self.holder = subprocess.Popen(
+                unshare + ["sh", "-c", "ip link set lo up && echo up && exec sleep infinity"],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
         except FileNotFoundError as error:
             raise NamespaceUnavailable(f"unshare not found: {error}") from None
         if self.holder.stdout.readline().strip() != "up":
@@ -84,10 +88,27 @@ class LoopbackCluster:
     def _start(self, ip: str, args: list[str]) -> Node:
         log = self.folder / f"node-{ip}.log"
         with open(log, "w") as out:
-            process = subprocess.Popen(self.command([RAY, "start", "--block", "--node-ip-address", ip, "--num-cpus", "1",
-                                                     "--object-store-memory", str(100 * 2**20),
-                                                     "--disable-usage-stats", *args]),
-                                       stdout=out, stderr=subprocess.STDOUT, env=ENV, start_new_session=True)
+            process = subprocess.Popen(
+                self.command(
+                    [
+                        RAY,
+                        "start",
+                        "--block",
+                        "--node-ip-address",
+                        ip,
+                        "--num-cpus",
+                        "1",
+                        "--object-store-memory",
+                        str(100 * 2**20),
+                        "--disable-usage-stats",
+                        *args,
+                    ]
+                ),
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                env=ENV,
+                start_new_session=True,
+            )
         node = Node(ip, process, log)
         self.nodes.append(node)
         deadline = time.monotonic() + START_TIMEOUT_S

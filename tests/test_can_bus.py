@@ -189,7 +189,8 @@ def _has_socketcan(interface: str) -> str | None:
     try:
         sock.bind((interface,))
     except OSError as error:
-        return f"no {interface} interface ({error}); create it with: ip link add dev {interface} type vcan && ip link set up {interface}"
+        return (f"no {interface} interface ({error}); create it with: "
+                f"ip link add dev {interface} type vcan && ip link set up {interface}")
     finally:
         sock.close()
     return None

@@ -57,7 +57,9 @@ class Sweep:
             return len(self.rows) >= SWEEP.size * SCANS_PER_HOLD
 
 
-def test_injected_characteristics_are_recovered_within_5_percent(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_injected_characteristics_are_recovered_within_5_percent(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     base = MODELS["utm-30lx"]
     model = dataclasses.replace(base, params=dataclasses.replace(base.params, rpm=RPM))
     sweep = Sweep(model.steps.size)
@@ -160,8 +162,11 @@ def test_camera_rate_jitter_and_dropped_frames(tmp_path: Path, capsys: pytest.Ca
     log = tmp_path / "cam.mcap"
     with Logger(log) as logger:
         for k in frames:
-            logger.write("/camera/image_raw/compressed", m.CompressedImage(k * period, "camera", "jpeg", b"\xff\xd8\xff\xd9"),
-                         k * period)
+            logger.write(
+                "/camera/image_raw/compressed",
+                m.CompressedImage(k * period, "camera", "jpeg", b"\xff\xd8\xff\xd9"),
+                k * period,
+            )
     assert main(["characterize", str(log), "--topic", "/camera/image_raw/compressed", "--json"]) == 0
     fig = json.loads(capsys.readouterr().out)
     assert fig["class"]["energy"] == "passive"

@@ -180,9 +180,15 @@ def test_default_socket_follows_systemd_then_xdg(monkeypatch):
     assert default_socket_path() == Path("/run/user/1000/trundle/status.sock")
 
 
-values = st.one_of(st.none(), st.booleans(), st.integers(-10, 10**6), st.floats(allow_nan=True),
-                   st.text(max_size=4), st.lists(st.integers(-2, 2), max_size=4), st.dictionaries(st.text(max_size=3),
-                                                                                                   st.integers(), max_size=2))
+values = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-10, 10**6),
+    st.floats(allow_nan=True),
+    st.text(max_size=4),
+    st.lists(st.integers(-2, 2), max_size=4),
+    st.dictionaries(st.text(max_size=3), st.integers(), max_size=2),
+)
 
 
 @settings(max_examples=200, deadline=None)

@@ -61,7 +61,9 @@ class SimRobotDriver(Driver):
         if t >= self.next_image:
             self.next_image = t + 0.2
             ok, jpeg = cv2.imencode(".jpg", self.sim.frame_at(t), (cv2.IMWRITE_JPEG_QUALITY, 90))
-            self.publish("/camera/image_raw/compressed", m.CompressedImage(now, "camera_optical", "jpeg", jpeg.tobytes()))
+            self.publish(
+                "/camera/image_raw/compressed", m.CompressedImage(now, "camera_optical", "jpeg", jpeg.tobytes())
+            )
 
     def close(self) -> None:
         pass

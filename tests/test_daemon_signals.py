@@ -101,8 +101,14 @@ class Notify:
 def start(tmp_path: Path, config: Path, notify: Notify) -> subprocess.Popen:
     env = {**os.environ, "NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": "200000",
            "WATCHDOG_PID": "", "PYTHONPATH": str(REPO)}
-    return subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "daemon", "--config", str(config)], cwd=tmp_path,
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "trundle.tools.cli", "daemon", "--config", str(config)],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def trundle(capsys, *args: str) -> tuple[int, str, str]:

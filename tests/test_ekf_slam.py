@@ -143,7 +143,9 @@ def test_jcbb_hypothesis_is_jointly_compatible_and_at_least_as_large_as_any_othe
         assert all(d2[i, j] <= 9.21 for i, j in enumerate(pairs) if j != UNPAIRED)
     near = nearest_neighbour(nu, c, r, gate_chi2=9.21)
     nn_used = near.pairs[near.pairs != UNPAIRED]
-    if len(set(nn_used.tolist())) == len(nn_used) and joint_d2(near.pairs, nu, c, r) <= chi2.ppf(0.99, 2 * max(len(nn_used), 1)):
+    if len(set(nn_used.tolist())) == len(nn_used) and joint_d2(near.pairs, nu, c, r) <= chi2.ppf(
+        0.99, 2 * max(len(nn_used), 1)
+    ):
         assert found.paired >= near.paired   # a jointly compatible NN answer cannot beat the optimum
 
 

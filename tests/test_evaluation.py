@@ -243,7 +243,9 @@ def test_slam_eval_command(tmp_path, capsys):
     assert "ate" not in report
 
 
-@pytest.mark.parametrize("args", [["absent.csv", "ref.csv"], ["traj.csv", "bad.relations"], ["traj.csv", "ref.csv", "--step", "0"]])
+@pytest.mark.parametrize(
+    "args", [["absent.csv", "ref.csv"], ["traj.csv", "bad.relations"], ["traj.csv", "ref.csv", "--step", "0"]]
+)
 def test_slam_eval_user_errors_are_one_line(tmp_path, capsys, monkeypatch, args):
     from trundle.tools.cli.main import main
 

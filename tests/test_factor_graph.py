@@ -109,7 +109,9 @@ def test_marginals_equal_the_dense_inverse():
 def test_pose_only_graph_agrees_with_the_pose_graph():
     """A noisy loop: the factor graph built from a PoseGraph reaches the pose graph's optimum."""
     rng = np.random.default_rng(2)
-    truth = np.array([[2 * math.cos(a), 2 * math.sin(a), a + math.pi / 2] for a in np.linspace(0, 2 * math.pi, 13)[:-1]])
+    truth = np.array(
+        [[2 * math.cos(a), 2 * math.sin(a), a + math.pi / 2] for a in np.linspace(0, 2 * math.pi, 13)[:-1]]
+    )
     pg = PoseGraph()
     drift = truth.copy()
     drift[:, :2] += rng.normal(0, 0.2, (len(truth), 2))
@@ -128,7 +130,9 @@ def test_pose_only_graph_agrees_with_the_pose_graph():
 
 
 def test_robust_kernel_bounds_an_outlier():
-    """Ten agreeing sightings and one 5 m off: without a kernel the outlier drags the point, with Cauchy it barely moves."""
+    """Ten agreeing sightings and one 5 m off: without a kernel the outlier drags the point,
+    with Cauchy it barely moves."""
+
     def solved(kernels):
         g = FactorGraph()
         g.add_pose([0.0, 0.0, 0.0])
@@ -146,7 +150,9 @@ def test_retract_follows_the_exponential_map():
     """A pure turn-and-drive step moves a pose along an arc: (r sin w, r (1 - cos w)) for unit speed."""
     pose = np.array([[1.0, 2.0, 0.5]])
     w = 0.8
-    step = np.array([[math.cos(0.5) * 1.0 - math.sin(0.5) * 0.0, math.sin(0.5) * 1.0, w]])  # body (1, 0, w) in map frame
+    step = np.array(
+        [[math.cos(0.5) * 1.0 - math.sin(0.5) * 0.0, math.sin(0.5) * 1.0, w]]
+    )  # body (1, 0, w) in map frame
     moved = retract(pose, step)[0]
     arc = np.array([math.sin(w) / w, (1 - math.cos(w)) / w, w])
     np.testing.assert_allclose(moved, compose(pose[0], arc), atol=1e-12)

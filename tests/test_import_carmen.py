@@ -55,8 +55,11 @@ def test_robotlaser_both_variants_give_the_mount() -> None:
         np.testing.assert_allclose(record.laser_offset, (0.5, 0.0, 0.0), atol=1e-5)  # 1.5708 ~ pi/2
         assert record.stamp_s == 10.0 and record.logger_s == 10.1 and record.max_range == 81.9
         assert record.angle_min == -1.5708 and record.angle_increment == 0.0174533
-    scan = next(msg for topic, msg, _ in messages(read_lines([f"{head} 1 2.5 1.5708 1 2 1.5708 0.1 0.2 0.3 0.4 10.0 host 10.1"]))
-                if topic == "/scan")
+    scan = next(
+        msg
+        for topic, msg, _ in messages(read_lines([f"{head} 1 2.5 1.5708 1 2 1.5708 0.1 0.2 0.3 0.4 10.0 host 10.1"]))
+        if topic == "/scan"
+    )
     assert np.isposinf(scan.ranges[2]) and scan.ranges[0] == 1.0  # 81.9 = max range = no return
 
 
@@ -74,8 +77,18 @@ def read_lines(lines: list[str]):
     return log
 
 
-@pytest.mark.parametrize("line", ["ODOM 1 2 3", "FLASER 5 1 2", "FLASER x 1", "ROBOTLASER1 0 0 0", "ODOM a b c d e f g h i",
-                                  "FLASER 2 1 2 0 0 0 0 0 0 nan h 1", "FLASER -1 0 0 0 0 0 0 0 0 0 0"])
+@pytest.mark.parametrize(
+    "line",
+    [
+        "ODOM 1 2 3",
+        "FLASER 5 1 2",
+        "FLASER x 1",
+        "ROBOTLASER1 0 0 0",
+        "ODOM a b c d e f g h i",
+        "FLASER 2 1 2 0 0 0 0 0 0 nan h 1",
+        "FLASER -1 0 0 0 0 0 0 0 0 0 0",
+    ],
+)
 def test_malformed_lines_raise_value_error(line: str) -> None:
     with pytest.raises(ValueError):
         parse_line(line)

@@ -94,10 +94,16 @@ def test_markers_seen_again_hold_the_map_together():
 
 def test_anonymous_and_early_sightings_are_counted_not_used():
     slam = LandmarkGridSlam()
-    slam.process("/landmarks", m.LandmarkList(0, "base_link", (m.LandmarkObservation("7", 1.0, 0.0, np.eye(2) * 0.01),)))
+    slam.process(
+        "/landmarks", m.LandmarkList(0, "base_link", (m.LandmarkObservation("7", 1.0, 0.0, np.eye(2) * 0.01),))
+    )
     slam.process("/scan", scan(ROOM, np.zeros(3), beams=271, fov=math.radians(270.0), stamp_ns=1))
     slam.process("/landmarks", m.LandmarkList(2, "base_link", (m.LandmarkObservation("", 1.0, 0.0, np.eye(2) * 0.01),)))
-    assert (slam.landmark_stats.before_first_scan, slam.landmark_stats.anonymous, slam.landmark_stats.sightings) == (1, 1, 0)
+    assert (slam.landmark_stats.before_first_scan, slam.landmark_stats.anonymous, slam.landmark_stats.sightings) == (
+        1,
+        1,
+        0,
+    )
     slam.finish()
     assert slam.landmarks().ids == []
 
@@ -108,7 +114,9 @@ def _pnp_sighting(rng: np.random.Generator, name: str, local: np.ndarray) -> m.L
     distance = math.hypot(*local)
     along = local / distance
     across = np.array([-along[1], along[0]])
-    covariance = np.outer(along, along) * (0.006 * distance ** 2) ** 2 + np.outer(across, across) * (0.001 * distance) ** 2
+    covariance = (
+        np.outer(along, along) * (0.006 * distance**2) ** 2 + np.outer(across, across) * (0.001 * distance) ** 2
+    )
     return m.LandmarkObservation.from_position(name, rng.multivariate_normal(local, covariance), covariance)
 
 

@@ -15,7 +15,9 @@ from trundle.fusion.localization.landmark_localization import LandmarkFixer, sol
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.logs import messages as m
 
-SQUARE = np.array([[-3.0, -3.0, 3.0, -3.0], [3.0, -3.0, 3.0, 3.0], [3.0, 3.0, -3.0, 3.0], [-3.0, 3.0, -3.0, -3.0]]) + 0.0123
+SQUARE = (
+    np.array([[-3.0, -3.0, 3.0, -3.0], [3.0, -3.0, 3.0, 3.0], [3.0, 3.0, -3.0, 3.0], [-3.0, 3.0, -3.0, -3.0]]) + 0.0123
+)
 MARKERS = {"5": np.array([2.9, 1.0]), "8": np.array([-1.5, 2.9]), "9": np.array([-2.9, -2.0])}
 
 

@@ -62,7 +62,9 @@ def test_inverse_model_round_trip_and_jacobians(x, y, theta, r, b):
     local, lp, ll = relative_position(pose[None], point)
     np.testing.assert_allclose(local[0], [r * math.cos(b), r * math.sin(b)], atol=1e-9)
     np.testing.assert_allclose(lp[0], _numeric(lambda p: relative_position(p[None], point)[0][0], pose), atol=1e-4)
-    np.testing.assert_allclose(ll[0], _numeric(lambda q: relative_position(pose[None], q[None])[0][0], point[0]), atol=1e-4)
+    np.testing.assert_allclose(
+        ll[0], _numeric(lambda q: relative_position(pose[None], q[None])[0][0], point[0]), atol=1e-4
+    )
 
 
 def test_position_to_range_bearing_covariance():

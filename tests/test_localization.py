@@ -182,7 +182,10 @@ def test_intel_converges_within_20_scans(intel, start):
     updates = run(localizer, intel.poses[index], [intel.points[k] for k in index], intel.odometry[index])
     converged = [k for k, u in enumerate(updates) if u.converged]
     assert converged and converged[0] < 20
-    errors = [np.hypot(*(u.pose[:2] - p[:2])) for u, p in zip(updates[converged[0]:], intel.poses[index][converged[0]:], strict=True)]
+    errors = [
+        np.hypot(*(u.pose[:2] - p[:2]))
+        for u, p in zip(updates[converged[0] :], intel.poses[index][converged[0] :], strict=True)
+    ]
     assert max(errors) < 0.15
     assert localizer.stats.kidnaps_at == []
 

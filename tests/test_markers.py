@@ -48,9 +48,14 @@ def test_edge_refined_corners_on_photos_move_out_of_the_black_square(photo: str)
     edges = MarkerDetector("DICT_6X6_250").detect(image)
     assert [m.id for m in edges] == [m.id for m in subpix] == sorted(int(i) for i in _gold()[photo])
     assert max(np.abs(a.corners - b.corners).max() for a, b in zip(edges, subpix, strict=True)) <= 2.0
-    outwards = [np.mean(np.linalg.norm(e.corners - s.corners.mean(axis=0), axis=1)
-                        - np.linalg.norm(s.corners - s.corners.mean(axis=0), axis=1))
-                for e, s in zip(edges, subpix, strict=True) if not np.array_equal(e.corners, s.corners)]  # too small: kept
+    outwards = [
+        np.mean(
+            np.linalg.norm(e.corners - s.corners.mean(axis=0), axis=1)
+            - np.linalg.norm(s.corners - s.corners.mean(axis=0), axis=1)
+        )
+        for e, s in zip(edges, subpix, strict=True)
+        if not np.array_equal(e.corners, s.corners)
+    ]  # too small: kept
     assert len(outwards) >= 3 and np.mean(outwards) > 0.05
 
 

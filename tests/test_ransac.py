@@ -181,7 +181,9 @@ def _two_views(seed: int, n: int, rotation: np.ndarray, t: np.ndarray) -> tuple[
     return x1[:, :2] / x1[:, 2:], x2[:, :2] / x2[:, 2:]
 
 
-def _far_from_epipolar(f: np.ndarray, x1: np.ndarray, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+def _far_from_epipolar(
+    f: np.ndarray, x1: np.ndarray, rng: np.random.Generator, n: int
+) -> tuple[np.ndarray, np.ndarray]:
     src = rng.uniform(0, 640, (4 * n, 2))
     dst = rng.uniform(0, 640, (4 * n, 2))
     far = sampson_distance(f, src, dst) > 20.0

@@ -57,7 +57,15 @@ def test_pp_replies_parse_to_the_model_table():
     assert (urg.model, urg.dmin, urg.dmax, urg.ares, urg.amin, urg.amax, urg.afrt, urg.rpm) == (
         "URG-04LX(Hokuyo Automatic Co.,Ltd.)", 20, 5600, 1024, 44, 725, 384, 600)
     utm = scip2.SensorParams.from_info(scip2.parse_info(reply_of(b"PP", b"00P", UTM_PP)))
-    assert (utm.dmin, utm.dmax, utm.ares, utm.amin, utm.amax, utm.afrt, utm.rpm) == (23, 60000, 1440, 0, 1080, 540, 2400)
+    assert (utm.dmin, utm.dmax, utm.ares, utm.amin, utm.amax, utm.afrt, utm.rpm) == (
+        23,
+        60000,
+        1440,
+        0,
+        1080,
+        540,
+        2400,
+    )
     assert utm.scan_period_s == pytest.approx(0.025)
     # URG-04LX step 44 = -119.53 deg, step 725 = +119.88 deg (spec geometry)
     assert np.degrees(urg.step_angle(44)) == pytest.approx(-119.53, abs=0.01)

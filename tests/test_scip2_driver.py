@@ -94,7 +94,12 @@ def test_clean_stream_equals_what_the_sensor_sent(tmp_path):
     assert (scan.range_min, scan.range_max) == (pytest.approx(0.02), pytest.approx(5.6))
     assert all(b.stamp_ns - a.stamp_ns == pytest.approx(1e8, abs=2e6) for a, b in pairwise(scans))
     (tf,) = driver.static_messages()[0][1].transforms
-    assert (tf.frame_id, tf.child_frame_id, tf.translation[0], tf.yaw) == ("base_link", "laser", 0.1, pytest.approx(0.5))
+    assert (tf.frame_id, tf.child_frame_id, tf.translation[0], tf.yaw) == (
+        "base_link",
+        "laser",
+        0.1,
+        pytest.approx(0.5),
+    )
     names = [c[:3] for c in device.commands]
     assert names[0] == b"QT" and names[-1] == b"QT"  # stopped at start-up and at shutdown
     assert [n for n in names if n in (b"PP", b"VV", b"II", b"TM0")] == [b"PP", b"VV", b"II", b"TM0"]

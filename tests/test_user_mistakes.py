@@ -64,10 +64,16 @@ CASES = [
     (["import", "carmen", "/dev/zero", "-o", "{d}/c.mcap"], "/dev/zero is not a regular file"),
     (["import", "breezyslam", "/dev/zero", "-o", "{d}/b.mcap"], "/dev/zero is not a regular file"),
     # numbers once accepted without complaint
-    (["record", "--lrf", "scip2:///dev/null", "--duration", "-1", "-o", "{d}/r.mcap"], "--duration: -1 must be above 0"),
+    (
+        ["record", "--lrf", "scip2:///dev/null", "--duration", "-1", "-o", "{d}/r.mcap"],
+        "--duration: -1 must be above 0",
+    ),
     (["record", "--lrf", "scip2:///dev/null", "--duration", "0", "-o", "{d}/r.mcap"], "--duration: 0 must be above 0"),
     (["record", "--lrf", "scip2:///dev/null", "--duration", "nan", "-o", "{d}/r.mcap"], "'nan' is not a finite number"),
-    (["record", "--lrf", "scip2:///dev/null", "--split-size", "-1", "-o", "{d}/r.mcap"], "--split-size: -1 must be above 0"),
+    (
+        ["record", "--lrf", "scip2:///dev/null", "--split-size", "-1", "-o", "{d}/r.mcap"],
+        "--split-size: -1 must be above 0",
+    ),
     (["replay", "{log}", "--rate", "nan"], "'nan' is not a finite number"),
     (["replay", "{log}", "--rate", "inf"], "'inf' is not a finite number"),
     (["localize", "{log}", "--map", "{d}/map", "--max-range", "-1"], "--max-range: -1 must be above 0"),
@@ -83,7 +89,10 @@ CASES = [
     # misleading messages
     (["info", "{d}/folder"], "is a folder, not an MCAP log"),
     (["info", "/dev/zero"], "/dev/zero is not a regular file"),
-    (["slam", "{d}/wrongtype.mcap", "-o", "{d}/o"], "/scan carries sensor_msgs/msg/JointState, not sensor_msgs/msg/LaserScan"),
+    (
+        ["slam", "{d}/wrongtype.mcap", "-o", "{d}/o"],
+        "/scan carries sensor_msgs/msg/JointState, not sensor_msgs/msg/LaserScan",
+    ),
 ]
 
 

@@ -136,7 +136,9 @@ def read_relations(path: str | Path) -> Relations:
                 t1.append(seconds_to_ns(tokens[0]))
                 t2.append(seconds_to_ns(tokens[1]))
             except (ValueError, InvalidOperation):
-                raise UserError(f"{path}:{number}: expected 't1 t2 x y z roll pitch yaw', got {line.strip()!r}") from None
+                raise UserError(
+                    f"{path}:{number}: expected 't1 t2 x y z roll pitch yaw', got {line.strip()!r}"
+                ) from None
             deltas.append([values[0], values[1], values[5]])
     if not deltas:
         raise UserError(f"{path}: no relations")
@@ -261,7 +263,9 @@ def align_se2(source_xy: np.ndarray, target_xy: np.ndarray) -> np.ndarray:
     target = np.asarray(target_xy, dtype=np.float64).reshape(-1, 2)
     ms, mt = source.mean(axis=0), target.mean(axis=0)
     s, t = source - ms, target - mt
-    theta = math.atan2(float(np.sum(s[:, 0] * t[:, 1] - s[:, 1] * t[:, 0])), float(np.sum(s[:, 0] * t[:, 0] + s[:, 1] * t[:, 1])))
+    theta = math.atan2(
+        float(np.sum(s[:, 0] * t[:, 1] - s[:, 1] * t[:, 0])), float(np.sum(s[:, 0] * t[:, 0] + s[:, 1] * t[:, 1]))
+    )
     c, si = math.cos(theta), math.sin(theta)
     shift = mt - np.array([c * ms[0] - si * ms[1], si * ms[0] + c * ms[1]])
     return np.array([shift[0], shift[1], theta])

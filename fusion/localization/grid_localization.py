@@ -312,7 +312,10 @@ class Localizer:
             return self._report(converged=True)
         if self._ekf.correct(pose, covariance, gate_chi2):
             self._fix_misses = 0
-            self._hypotheses[0].pose, self._hypotheses[0].covariance = self._ekf.pose.copy(), self._ekf.covariance.copy()
+            self._hypotheses[0].pose, self._hypotheses[0].covariance = (
+                self._ekf.pose.copy(),
+                self._ekf.covariance.copy(),
+            )
             return self._report()
         self.stats.fixes_rejected += 1
         self._fix_misses += 1
@@ -426,7 +429,11 @@ class Localizer:
                 self._ekf.reset(slipped.pose, slipped.covariance)
         self._bad = 0 if good else self._bad + 1
         hypothesis.motion = relative(previous, self._ekf.pose)
-        hypothesis.pose, hypothesis.covariance, hypothesis.score = self._ekf.pose.copy(), self._ekf.covariance.copy(), score
+        hypothesis.pose, hypothesis.covariance, hypothesis.score = (
+            self._ekf.pose.copy(),
+            self._ekf.covariance.copy(),
+            score,
+        )
         if self._bad >= cfg.lost_after:
             return None
         return LocalizationUpdate(self._ekf.pose.copy(), self._ekf.covariance.copy(), TRACKING, score, 1.0, 1)

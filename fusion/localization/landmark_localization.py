@@ -75,7 +75,9 @@ class LandmarkFixer:
                                                                         MIN_LANDMARK_SIGMA_M) ** 2))
                     for name, p, s in zip(ids, positions, sigmas, strict=True)}
         self.window_s, self.window_m = window_s, window_m
-        self._recent: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray, float]] = []  # stamp, id, odom pose, xy, cov, path
+        self._recent: list[
+            tuple[int, str, np.ndarray, np.ndarray, np.ndarray, float]
+        ] = []  # stamp, id, odom pose, xy, cov, path
         self._path_m = 0.0
         self._last_odometry: np.ndarray | None = None
         self.unknown = 0

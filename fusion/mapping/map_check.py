@@ -97,7 +97,9 @@ def check_map(submaps: list[Submap], submap_frames: np.ndarray, keyframe_poses: 
         if not submap.nodes or submap.grid.shape[0] == 0:
             continue
         first, last = min(submap.nodes), max(submap.nodes)
-        corners = np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) * np.array(submap.grid.shape[::-1]) * submap.grid.resolution
+        corners = (
+            np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) * np.array(submap.grid.shape[::-1]) * submap.grid.resolution
+        )
         box = transform_points(frame, corners + submap.grid.origin)
         lo, hi = box.min(axis=0), box.max(axis=0)
         ks = np.flatnonzero(np.all(highs >= lo, axis=1) & np.all(lows <= hi, axis=1))

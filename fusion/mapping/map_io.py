@@ -169,8 +169,18 @@ def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajector
             values, vectors = np.linalg.eigh(np.nan_to_num(np.asarray(cov, np.float64).reshape(2, 2)))
             axes = np.maximum(3.0 * np.sqrt(np.maximum(values, 0.0)) / grid.resolution * scale, 3.0)
             angle = -math.degrees(math.atan2(vectors[1, 1], vectors[0, 1]))
-            cv2.ellipse(image, tuple(int(v) for v in centre), (int(axes[1] * (1 << shift)), int(axes[0] * (1 << shift))),
-                        angle, 0, 360, magenta, 1, cv2.LINE_AA, shift)
+            cv2.ellipse(
+                image,
+                tuple(int(v) for v in centre),
+                (int(axes[1] * (1 << shift)), int(axes[0] * (1 << shift))),
+                angle,
+                0,
+                360,
+                magenta,
+                1,
+                cv2.LINE_AA,
+                shift,
+            )
             c = centre >> shift
             cv2.drawMarker(image, (int(c[0]), int(c[1])), magenta, cv2.MARKER_CROSS, 4 * scale + 6, 1)
             cv2.putText(image, str(name), (int(c[0]) + 6, int(c[1]) - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4, magenta, 1,

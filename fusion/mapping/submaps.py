@@ -86,8 +86,9 @@ class SubmapStack:
                                        LogOddsGrid(self.resolution, **self.grid_options)))
         origin = transform_points(pose_local, np.asarray(sensor_robot, dtype=np.float64).reshape(1, 2))[0]
         free = None if free_ends_robot is None else transform_points(pose_local, free_ends_robot)
-        rays = trace_rays(self.submaps[-1].grid.origin, self.resolution, origin, transform_points(pose_local, points_robot),
-                          free)
+        rays = trace_rays(
+            self.submaps[-1].grid.origin, self.resolution, origin, transform_points(pose_local, points_robot), free
+        )
         done = []
         for submap in self.active:
             submap.insert(node, pose_local, rays)

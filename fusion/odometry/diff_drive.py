@@ -166,7 +166,9 @@ class DiffDriveOdometry:
             try:
                 self._indices = (names.index(self.left), names.index(self.right))
             except ValueError:
-                raise UserError(f"wheel joints {self.left!r} and {self.right!r} not in joint state names {list(names)}") from None
+                raise UserError(
+                    f"wheel joints {self.left!r} and {self.right!r} not in joint state names {list(names)}"
+                ) from None
             self._names = names
         return self._indices
 

@@ -108,9 +108,22 @@ def messages(lines: list[DatLine]) -> Iterator[Item]:
                                                                        0.0, 0.0),)), last
         angles = np.array([line.left_ticks, line.right_ticks], np.float64) * (2.0 * math.pi / TICKS_PER_REV)
         yield "/joint_states", m.JointState(stamp, "base_link", ("left", "right"), angles), last
-        yield "/scan", m.LaserScan(stamp - SWEEP_NS, "laser", ANGLE_MIN, ANGLE_MIN + ANGLE_STEP * (BEAMS - 1), ANGLE_STEP,
-                                   STEP_S, SCAN_TIME_S, RANGE_MIN_M, RANGE_MAX_M,
-                                   ranges_to_metres(line.ranges_mm)), last
+        yield (
+            "/scan",
+            m.LaserScan(
+                stamp - SWEEP_NS,
+                "laser",
+                ANGLE_MIN,
+                ANGLE_MIN + ANGLE_STEP * (BEAMS - 1),
+                ANGLE_STEP,
+                STEP_S,
+                SCAN_TIME_S,
+                RANGE_MIN_M,
+                RANGE_MAX_M,
+                ranges_to_metres(line.ranges_mm),
+            ),
+            last,
+        )
 
 
 def import_breezyslam(path: str | os.PathLike[str], out: str | os.PathLike[str]) -> dict[str, int]:

@@ -39,8 +39,10 @@ WIDTH, HEIGHT, QUALITY = 1280, 720, 90
 def camera_frames(count: int) -> list[np.ndarray]:
     """A moving scene with sensor-like noise, so JPEG sizes resemble a real 720p camera's."""
     rng = np.random.default_rng(0)
-    return [np.clip(synthetic_frame(i / 30, WIDTH, HEIGHT) + rng.normal(0, 4, (HEIGHT, WIDTH, 3)), 0, 255).astype(np.uint8)
-            for i in range(count)]
+    return [
+        np.clip(synthetic_frame(i / 30, WIDTH, HEIGHT) + rng.normal(0, 4, (HEIGHT, WIDTH, 3)), 0, 255).astype(np.uint8)
+        for i in range(count)
+    ]
 
 
 def cpu_per_frame(jpegs: list[bytes], to_message: Callable[[bytes, int], m.CompressedImage], folder: Path,

@@ -58,8 +58,10 @@ def _offer(link: str, rate: float, duration_s: float, ready, done, result) -> No
             due = int((now - start) * rate) + 1
             if due > sent:
                 stamp = (time.monotonic_ns() // 1000) & 0xFFFFFFFF
-                batch = [can.Message(arbitration_id=0x100 + (i & 0xFF), data=PAYLOAD.pack(i, stamp), is_extended_id=False)
-                         for i in range(sent, due)]
+                batch = [
+                    can.Message(arbitration_id=0x100 + (i & 0xFF), data=PAYLOAD.pack(i, stamp), is_extended_id=False)
+                    for i in range(sent, due)
+                ]
                 adapter.bus.send_many(batch)
                 sent = due
             time.sleep(0.001)
@@ -274,11 +276,13 @@ def main() -> int:
         results["throughput"].append(row)
         for name in ("bare_line_reader", "canbus_lines", "canbus_python-can"):
             r = row[name]
-            print(f"  {rate:5d}/s {name:<18} offered {r['achieved_offer_per_s']:6.0f}/s received {r['received']:6d} "
-                  f"lost {r['lost']:4d} reordered {r['out_of_order']:3d} latency median {r['latency_median_ms']:8.2f} ms "
-                  f"p99 {r['latency_p99_ms']:8.2f} ms cpu {r['host_cpu_percent']:3.0f}% "
-                  f"{'sustained' if r['sustained'] else 'NOT sustained (limited by ' + r['limited_by'] + ')'}"
-                  + (f"  rate x{r['ratio_received_per_s_to_bare']:.2f} of bare" if name != "bare_line_reader" else ""))
+            print(
+                f"  {rate:5d}/s {name:<18} offered {r['achieved_offer_per_s']:6.0f}/s received {r['received']:6d} "
+                f"lost {r['lost']:4d} reordered {r['out_of_order']:3d} latency median {r['latency_median_ms']:8.2f} ms "
+                f"p99 {r['latency_p99_ms']:8.2f} ms cpu {r['host_cpu_percent']:3.0f}% "
+                f"{'sustained' if r['sustained'] else 'NOT sustained (limited by ' + r['limited_by'] + ')'}"
+                + (f"  rate x{r['ratio_received_per_s_to_bare']:.2f} of bare" if name != "bare_line_reader" else "")
+            )
     for name in ("canbus_lines", "canbus_python-can", "bare_line_reader"):
         ok = [row["offered_per_s"] for row in results["throughput"] if row[name]["sustained"]]
         results[f"max_sustained_per_s_{name}"] = max(ok) if ok else 0

@@ -56,8 +56,15 @@ def ekf_update_figures(repeat: int) -> dict[str, float]:
         ekf = ekf_with(n, rng)
         _, positions, _ = ekf.landmarks()
         picks = rng.choice(n, 5, replace=False)
-        sightings = [m.LandmarkObservation(str(j), float(np.hypot(*positions[j])), math.atan2(positions[j][1], positions[j][0]),
-                                           np.diag([0.01, 0.0004])) for j in picks]
+        sightings = [
+            m.LandmarkObservation(
+                str(j),
+                float(np.hypot(*positions[j])),
+                math.atan2(positions[j][1], positions[j][0]),
+                np.diag([0.01, 0.0004]),
+            )
+            for j in picks
+        ]
         figures[f"ekf_update_ms_{n}"] = report.best_of(partial(ekf.update, sightings), repeat, 20) * 1e3
     for n in SIZES:
         figures[f"ekf_update_over_10_{n}"] = figures[f"ekf_update_ms_{n}"] / figures["ekf_update_ms_10"]
@@ -142,7 +149,9 @@ def draw_mrclam(path: Path, run, outputs: dict[str, Path]) -> None:
         ax.scatter(survey[:, 0], survey[:, 1], marker="s", s=40, facecolors="none", edgecolors="k", label="survey")
         ax.scatter(mapped[:, 0], mapped[:, 1], marker="x", s=40, color="tab:purple",
                    label=f"landmarks: mean error {error.mean_m * 100:.1f} cm")
-        ax.set_title(f"MRCLAM Dataset 2, robot 1: {'landmark graph (default)' if name == 'graph' else 'EKF-SLAM alone'}")
+        ax.set_title(
+            f"MRCLAM Dataset 2, robot 1: {'landmark graph (default)' if name == 'graph' else 'EKF-SLAM alone'}"
+        )
         ax.set_aspect("equal")
         ax.set_xlabel("x (m)")
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, fontsize=8)

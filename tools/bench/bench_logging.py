@@ -39,7 +39,9 @@ def bare(path: Path, pool: list[bytes], n: int, compression: str) -> float:
     with open(path, "wb") as f:
         w = Writer(f, compression=COMPRESSION[compression])
         w.start(profile="ros2", library="bench")
-        sid = w.register_schema("sensor_msgs/msg/LaserScan", "ros2msg", ros2.schema_text("sensor_msgs/msg/LaserScan").encode())
+        sid = w.register_schema(
+            "sensor_msgs/msg/LaserScan", "ros2msg", ros2.schema_text("sensor_msgs/msg/LaserScan").encode()
+        )
         cid = w.register_channel("/scan", "cdr", sid)
         for i in range(n):
             w.add_message(cid, i, pool[i % len(pool)], i, i)
@@ -72,8 +74,13 @@ def main() -> None:
     pool = [ros2.encode(scan(seed))[1] for seed in range(200)]
     with tempfile.TemporaryDirectory() as tmp:
         for compression in ("none", "zstd"):
-            rounds = [(bare(Path(tmp) / f"bare-{compression}{i}.mcap", pool, args.messages, compression),
-                       ours(Path(tmp) / f"ours-{compression}{i}.mcap", pool, args.messages, compression)) for i in range(7)]
+            rounds = [
+                (
+                    bare(Path(tmp) / f"bare-{compression}{i}.mcap", pool, args.messages, compression),
+                    ours(Path(tmp) / f"ours-{compression}{i}.mcap", pool, args.messages, compression),
+                )
+                for i in range(7)
+            ]
             b, o = min(r[0] for r in rounds), min(r[1] for r in rounds)  # interleaved: load drift hits both
             figures[f"bare_mcap_msgs_per_cpu_s_{compression}"] = args.messages / b
             figures[f"logger_msgs_per_cpu_s_{compression}"] = args.messages / o

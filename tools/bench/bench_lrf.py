@@ -123,7 +123,12 @@ def record_path(make_driver, out: Path, lost_counters: tuple[str, ...]):
         driver.stop()
         logger.close()
         out.unlink()
-        return {"scans": scans, "errors": driver.counters["errors"], "lost": sum(driver.counters[k] for k in lost_counters)}
+        return {
+            "scans": scans,
+            "errors": driver.counters["errors"],
+            "lost": sum(driver.counters[k] for k in lost_counters),
+        }
+
     return work
 
 
@@ -180,7 +185,9 @@ def path_figures(prefix: str, result: dict, seconds: float, nominal_hz: float) -
         f"{prefix}_scan_rate_hz": rate,
         f"{prefix}_record_cpu_share_percent": 100 * share,
         f"{prefix}_record_cpu_per_scan_ms": 1000 * share / rate if rate else float("inf"),
-        f"{prefix}_record_cpu_share_at_{nominal_hz:g}hz_percent": 100 * share * nominal_hz / rate if rate else float("inf"),
+        f"{prefix}_record_cpu_share_at_{nominal_hz:g}hz_percent": 100 * share * nominal_hz / rate
+        if rate
+        else float("inf"),
         f"{prefix}_record_scans_lost": stats["lost"],
         f"{prefix}_record_errors": stats["errors"],
         f"{prefix}_bare_read_cpu_share_percent": 100 * bare,
@@ -188,7 +195,9 @@ def path_figures(prefix: str, result: dict, seconds: float, nominal_hz: float) -
         f"{prefix}_record_over_bare_read": share / bare if bare else float("inf"),
     }
     if "record_without_timing_topic" in result:
-        figures[f"{prefix}_record_without_timing_topic_cpu_share_percent"] = 100 * result["record_without_timing_topic"][0]
+        figures[f"{prefix}_record_without_timing_topic_cpu_share_percent"] = (
+            100 * result["record_without_timing_topic"][0]
+        )
     return figures
 
 

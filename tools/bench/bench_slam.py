@@ -11,10 +11,10 @@ closure (green) and ours (red) over our map.
 Scan matches are timed on Intel scans 40..119 against a submap built from the 20 scans before
 each, from GMapping's pose perturbed by (0.1 m, -0.1 m, 3 deg): the correlative search alone
 (its branch-and-bound pyramid already built, as it is for every scan matched against a finished
-submap; the first search with the build is reported too) is the baseline; the full match (search + Levenberg-Marquardt), the refinement alone, point-to-line
-ICP and an exhaustive search over the same lattice are given as ratios to it; matches are timed
-in CPU seconds. Wall-clock figures depend on the machine's load (shared with other work), so CPU
-time and the load average are recorded too.
+submap; the first search with the build is reported too) is the baseline; the full match
+(search + Levenberg-Marquardt), the refinement alone, point-to-line ICP and an exhaustive search
+over the same lattice are given as ratios to it; matches are timed in CPU seconds. Wall-clock
+figures depend on the machine's load (shared with other work), so CPU time and the load average are recorded too.
 fr079 (issue 14) is mapped laser-only from GMapping's corrected scans, as ``trundle import carmen
 --odometry none`` makes it, and scored against the corrected poses (consecutive relations, revisits
 less than 3 m and more than 30 s apart, ATE). Each log's real-time factor is given with
@@ -59,7 +59,9 @@ DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 CARTOGRAPHER_RTF = {"intel": 15.0, "fr079": 17.0, "csail": 12.0}  # Hess et al. 2016, Table V
 
 
-def map_log(path: Path, wheels: DiffDriveOdometry | None, loop_closure: bool = True) -> tuple[Slam, float, float, float]:
+def map_log(
+    path: Path, wheels: DiffDriveOdometry | None, loop_closure: bool = True
+) -> tuple[Slam, float, float, float]:
     """Run SLAM over an MCAP log as ``trundle slam`` does; returns it, duration, wall and CPU seconds."""
     reader = LogReader(path)
     duration = reader.info().duration_s
@@ -129,12 +131,21 @@ def time_matches(log: carmen.CarmenLog, first: int, count: int) -> dict[str, flo
                 errors.append(float(np.hypot(*(result.pose[:2] - reference[k][:2]))))
     median = {name: float(np.median(values)) * 1e3 for name, values in times.items()}
     base = median["search"]
-    return {"match_scans": count, "search_with_pyramid_build_ms": median["cold"], "search_ms": base, "full_match_ms": median["match"],
-            "full_match_vs_search": median["match"] / base, "refine_only_ms": median["refine"],
-            "refine_only_vs_search": median["refine"] / base, "icp_ms": median["icp"], "icp_vs_search": median["icp"] / base,
-            "exhaustive_ms": median["exhaustive"], "exhaustive_vs_search": median["exhaustive"] / base,
-            "match_error_to_gmapping_median_m": float(np.median(errors)),
-            "search_angular_step_formula_deg": math.degrees(angular_step(0.05, 30.0))}
+    return {
+        "match_scans": count,
+        "search_with_pyramid_build_ms": median["cold"],
+        "search_ms": base,
+        "full_match_ms": median["match"],
+        "full_match_vs_search": median["match"] / base,
+        "refine_only_ms": median["refine"],
+        "refine_only_vs_search": median["refine"] / base,
+        "icp_ms": median["icp"],
+        "icp_vs_search": median["icp"] / base,
+        "exhaustive_ms": median["exhaustive"],
+        "exhaustive_vs_search": median["exhaustive"] / base,
+        "match_error_to_gmapping_median_m": float(np.median(errors)),
+        "search_angular_step_formula_deg": math.degrees(angular_step(0.05, 30.0)),
+    }
 
 
 def fr079_figures(path: Path, folder: Path) -> dict[str, object]:

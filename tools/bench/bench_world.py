@@ -44,8 +44,11 @@ def main() -> None:
     laser = (10.2, 5.25, 0.0)
     scan = report.best_of(lambda: simulate_scan(world, laser, model, np.random.default_rng(0)), repeat=5, number=20)
     angles = laser[2] + model.angles()
-    per_beam = report.best_of(lambda: [cast_rays(world.segments, laser[:2], angles[i:i + 1]) for i in range(angles.size)],
-                              repeat=3, number=1)
+    per_beam = report.best_of(
+        lambda: [cast_rays(world.segments, laser[:2], angles[i : i + 1]) for i in range(angles.size)],
+        repeat=3,
+        number=1,
+    )
     figures["scan_1081_beams_ms"] = scan * 1e3
     figures["scan_cpu_percent_at_40hz"] = 100.0 * 40.0 * scan
     figures["scan_per_beam_loop_vs_vectorised_ratio"] = per_beam / scan

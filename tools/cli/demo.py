@@ -26,7 +26,9 @@ def register(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("-o", "--output", type=Path, default=Path("trundle-demo"),
                    help="output folder (default ./trundle-demo)")
-    p.add_argument("--duration", type=positive, help="robot time to record, s (default: the whole route, about a minute)")
+    p.add_argument(
+        "--duration", type=positive, help="robot time to record, s (default: the whole route, about a minute)"
+    )
     p.add_argument("--camera-fps", type=number_in(0.0, 60.0, low_open=True), default=DemoSettings.camera_fps,
                    help="camera frame rate, above 0 and at most 60 (default %(default)s)")
     p.add_argument("--camera-size", default="x".join(map(str, DemoSettings.camera_size)),

@@ -50,7 +50,9 @@ def register(p: argparse.ArgumentParser) -> None:
     b.add_argument("input", type=Path)
     b.add_argument("-o", "--output", type=Path, required=True, help="output .mcap (must not exist)")
     b.set_defaults(func=run_breezyslam)
-    r = formats.add_parser("mrclam", help="UTIAS MRCLAM dataset folder (RobotN_Odometry.dat, RobotN_Measurement.dat, ...)")
+    r = formats.add_parser(
+        "mrclam", help="UTIAS MRCLAM dataset folder (RobotN_Odometry.dat, RobotN_Measurement.dat, ...)"
+    )
     r.add_argument("input", type=Path, help="dataset folder")
     r.add_argument("--robot", type=number_in(min(ROBOT_SUBJECTS), max(ROBOT_SUBJECTS), whole=True), required=True,
                    help=f"robot number ({min(ROBOT_SUBJECTS)}-{max(ROBOT_SUBJECTS)})")

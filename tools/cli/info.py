@@ -36,7 +36,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(as_dict(info), indent=2))
         return 0 if info.message_count or info.complete else 1
-    state = "complete" if info.complete else f"INCOMPLETE: {info.error} (read what was intact; `trundle recover` fixes it)"
+    state = (
+        "complete" if info.complete else f"INCOMPLETE: {info.error} (read what was intact; `trundle recover` fixes it)"
+    )
     lines = [
         f"Files:             {info.path.name}",
         f"Bag size:          {_size(info.size_bytes)}",

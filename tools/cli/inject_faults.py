@@ -34,7 +34,9 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--slip", action="append", default=[], metavar="T:S:FRACTION")
     p.add_argument("--scale", type=finite, metavar="FRACTION", help="distance scale error over the whole log")
     p.add_argument("--dropout", action="append", default=[], metavar="T:S")
-    p.add_argument("--glitches", type=non_negative_int, default=0, metavar="N", help="N heading glitches at random times")
+    p.add_argument(
+        "--glitches", type=non_negative_int, default=0, metavar="N", help="N heading glitches at random times"
+    )
     p.add_argument("--glitch-deg", type=finite, default=20.0, help="size of each random glitch (default 20 deg)")
     p.add_argument("--glitch-s", type=positive, default=0.6, help="duration of each random glitch (default 0.6 s)")
     p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the random glitches' times and signs")

@@ -32,7 +32,12 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--descriptor", choices=sorted(DESCRIPTORS),
                    help="descriptor (default: the detector's own, SIFT for detectors without one)")
     p.add_argument("--max-keypoints", type=positive_int, help="keep the strongest N keypoints per image")
-    p.add_argument("--ratio", type=number_in(0.0, 1.0, low_open=True), default=0.8, help="Lowe's ratio test, best/second best (1 = off; 0.8)")
+    p.add_argument(
+        "--ratio",
+        type=number_in(0.0, 1.0, low_open=True),
+        default=0.8,
+        help="Lowe's ratio test, best/second best (1 = off; 0.8)",
+    )
     p.add_argument("--min-difference", type=non_negative, default=0.0,
                    help="reject when second best - best distance is below this (0 = off)")
     p.add_argument("--max-distance", type=positive, default=math.inf, help="reject matches farther than this")

@@ -223,12 +223,16 @@ def report_markdown(report: dict[str, Any]) -> str:
         f"heading RMSE {odo['rotation_rmse_deg']:.2f} deg |",
     ]
     if report["ate_rmse_without_markers_m"] is not None:
-        lines.append(f"| SLAM without the markers as landmarks, ATE RMSE | {report['ate_rmse_without_markers_m'] * 100:.1f} cm |")
+        lines.append(
+            f"| SLAM without the markers as landmarks, ATE RMSE | {report['ate_rmse_without_markers_m'] * 100:.1f} cm |"
+        )
     if report["marker_map"]["errors_m"]:
         mm = report["marker_map"]
         each = ", ".join(f"{k}: {v * 100:.1f}" for k, v in sorted(mm["errors_m"].items(), key=lambda kv: int(kv[0])))
-        lines.append(f"| marker map against the world file (mean, max; per id, cm) | {mm['mean_error_m'] * 100:.1f} cm, "
-                     f"{mm['max_error_m'] * 100:.1f} cm; {each} |")
+        lines.append(
+            f"| marker map against the world file (mean, max; per id, cm) | {mm['mean_error_m'] * 100:.1f} cm, "
+            f"{mm['max_error_m'] * 100:.1f} cm; {each} |"
+        )
     if tr["rpe"]:
         rpe = tr["rpe"]
         lines.append(f"| SLAM relative error over {rpe['step']} scans (RMSE) | "

@@ -221,7 +221,9 @@ class Cia406Node(EmulatedNode):
     reset-communication keeps the application objects), sends boot-up and re-enables a stopped
     heartbeat, as a real device's reset would."""
 
-    def __init__(self, node_id: int, wheel: int, *, eds: str | Path = cia406.DEFAULT_EDS, position_offset: int = 0) -> None:
+    def __init__(
+        self, node_id: int, wheel: int, *, eds: str | Path = cia406.DEFAULT_EDS, position_offset: int = 0
+    ) -> None:
         super().__init__(wheel)
         self.node_id = node_id
         self.local = canopen.LocalNode(node_id, str(eds))
@@ -493,7 +495,9 @@ def cia406_nodes(node_ids: Sequence[int], **options: object) -> list[EmulatedNod
     return [Cia406Node(n, w, **options) for w, n in enumerate(node_ids)]
 
 
-def vesc_nodes(dbc: str | Path, controller_ids: Sequence[int], pole_pairs: int = 7, **options: object) -> list[EmulatedNode]:
+def vesc_nodes(
+    dbc: str | Path, controller_ids: Sequence[int], pole_pairs: int = 7, **options: object
+) -> list[EmulatedNode]:
     """VESC controllers per the example DBC: tachometer in STATUS_5, ERPM in STATUS."""
     db = cantools.database.load_file(str(dbc))
     return [DbcNode(db, w, f"VESC_Status5_id{c}.Tachometer", velocity_signal=f"VESC_Status1_id{c}.ERPM",

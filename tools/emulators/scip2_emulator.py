@@ -256,7 +256,17 @@ class ScipDevice:
             info = {b"VV": self.model.version, b"PP": self.params.info(), b"II": self._state_info(now)}[name]
             return reply("00", scip2.encode_info(info))
         if name == b"%ST":
-            state = "900" if self.abnormal else "002" if self.tm else "004" if self.stream else "003" if self.laser else "000"
+            state = (
+                "900"
+                if self.abnormal
+                else "002"
+                if self.tm
+                else "004"
+                if self.stream
+                else "003"
+                if self.laser
+                else "000"
+            )
             return reply("00", scip2.with_checksum(state.encode()) + b"\n")
         if name == b"TM":
             code = text[2:3]

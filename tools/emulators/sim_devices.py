@@ -92,7 +92,9 @@ class SimDevices:
         self.can_adapter: SlcanEmulator | None = None
         self.can_nodes: CanNodeRunner | None = None
         self.camera_emulator: CameraEmulator | None = None
-        self.activity: dict[str, collections.deque[int]] = {k: collections.deque(maxlen=1 << 20) for k in ("lrf", "can", "camera")}
+        self.activity: dict[str, collections.deque[int]] = {
+            k: collections.deque(maxlen=1 << 20) for k in ("lrf", "can", "camera")
+        }
 
     # ------------------------------------------------------------------ clock
     def sim_time(self, wall_ns: int) -> float:

@@ -40,7 +40,9 @@ _HEX = frozenset(b"0123456789ABCDEFabcdef")
 def format_frame(msg: can.Message, stamp_ms: int | None = None) -> bytes:
     """The SLCAN line (with CR) an adapter sends for a received frame."""
     if msg.is_remote_frame:
-        line = (f"R{msg.arbitration_id:08X}{msg.dlc:d}" if msg.is_extended_id else f"r{msg.arbitration_id:03X}{msg.dlc:d}")
+        line = (
+            f"R{msg.arbitration_id:08X}{msg.dlc:d}" if msg.is_extended_id else f"r{msg.arbitration_id:03X}{msg.dlc:d}"
+        )
     else:
         head = f"T{msg.arbitration_id:08X}" if msg.is_extended_id else f"t{msg.arbitration_id:03X}"
         line = f"{head}{len(msg.data):d}{bytes(msg.data).hex().upper()}"

@@ -121,7 +121,8 @@ def identity(source: str) -> str:
     if is_url(source):
         fs, path = _filesystem(source)
         info = fs.info(path)
-        return f"{info.get('size')}:{info.get('ETag') or info.get('etag') or info.get('mtime') or info.get('LastModified')}"
+        version = info.get("ETag") or info.get("etag") or info.get("mtime") or info.get("LastModified")
+        return f"{info.get('size')}:{version}"
     if not Path(source).is_file():
         raise _missing(source)
     st = os.stat(source)

@@ -111,13 +111,16 @@ def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[
                     total, busy = cluster.cpus()
                     run.cpus = total
                     done = len(sources) - len(pending)
-                    bar.update(done, f"{done - run.count('failed')} done, {run.count('failed')} failed, "
-                                     f"{min(len(pending), round(busy / cpus_per_log))} running, {len(pending)} remaining")
+                    bar.update(
+                        done,
+                        f"{done - run.count('failed')} done, {run.count('failed')} failed, "
+                        f"{min(len(pending), round(busy / cpus_per_log))} running, {len(pending)} remaining",
+                    )
             except KeyboardInterrupt:
                 run.interrupted = True
                 left = [ref for ref, i in refs.items() if rows[i] is None]
                 cluster.cancel(left)
-                try:   # tasks that finished before the cancel reached them still give their rows
+                try:  # tasks that finished before the cancel reached them still give their rows
                     finished, _ = cluster.wait(left, CANCEL_WAIT_S)
                 except KeyboardInterrupt:
                     finished = []
@@ -125,8 +128,12 @@ def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[
                     result = cluster.result(ref, retries)
                     rows[refs[ref]] = result if isinstance(result, dict) else None
                 for i in (refs[ref] for ref in left if rows[refs[ref]] is None):
-                    rows[i] = {"log": sources[i], "name": names[i], "status": "cancelled",
-                               "error": "interrupted before it finished"}
+                    rows[i] = {
+                        "log": sources[i],
+                        "name": names[i],
+                        "status": "cancelled",
+                        "error": "interrupted before it finished",
+                    }
             finally:
                 bar.close()
             run.elapsed_s = time.perf_counter() - started

@@ -23,7 +23,9 @@ from trundle.tools.jobs.sensor_report import markdown, write_plots
 
 
 def read_reference(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(t_ns, value) sorted by time from a CSV with a header naming t_ns or t_s, and value; a bad file is a UserError."""
+    """(t_ns, value) sorted by time from a CSV with a header naming t_ns or t_s, and value.
+
+    A bad file is a UserError."""
     rows = list(csv.DictReader(io.StringIO(read_text(path, "reference CSV"))))
     if not rows or "value" not in rows[0] or not ({"t_ns", "t_s"} & set(rows[0])):
         raise UserError(f"reference {path} needs a header with t_ns (or t_s) and value columns")
@@ -63,9 +65,10 @@ def characterize_log(log: str | Path, topic: str, output: Path | None = None, re
     (folder, created) as ``report.md``, ``report.json`` and PNG plots.
 
     ``reference`` is the true value that laser ``beam`` (an index or ``"all"``) is compared with:
-    a CSV of values over time (see :func:`read_reference`) or one number (m, held throughout); ``stated_min`` / ``stated_max`` the device's
-    stated limits (default: from the messages); ``bits`` its A/D bits; ``min_still_s`` the
-    shortest standing-still stretch used (s). Returns the figures (JSON-able; what report.json holds).
+    a CSV of values over time (see :func:`read_reference`) or one number (m, held throughout);
+    ``stated_min`` / ``stated_max`` the device's stated limits (default: from the messages);
+    ``bits`` its A/D bits; ``min_still_s`` the shortest standing-still stretch used (s). Returns
+    the figures (JSON-able; what report.json holds).
     """
     reader = LogReader(log)
     if output:

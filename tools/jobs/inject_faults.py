@@ -73,7 +73,10 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
 def _odometry(items: list[tuple[Any, m.Odometry]], times: np.ndarray, faults: list[OdometryFault]) -> list[m.Odometry]:
     poses = np.array([[msg.x, msg.y, msg.theta] for _, msg in items])
     new = faulty_poses(times, poses, faults)
-    return [dataclasses.replace(msg, x=float(p[0]), y=float(p[1]), theta=float(p[2])) for (_, msg), p in zip(items, new, strict=True)]
+    return [
+        dataclasses.replace(msg, x=float(p[0]), y=float(p[1]), theta=float(p[2]))
+        for (_, msg), p in zip(items, new, strict=True)
+    ]
 
 
 def _joint_states(items: list[tuple[Any, m.JointState]], times: np.ndarray, faults: list[OdometryFault],

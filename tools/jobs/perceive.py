@@ -4,7 +4,8 @@ Every image (sensor_msgs/Image or CompressedImage) of the chosen topics goes thr
 of :mod:`trundle.tools.jobs.image_pipelines`; its detections are written as
 visualization_msgs/ImageMarker (stamped and framed like the image) with the image's log time. The
 images and camera infos are copied into the output too (unless ``images=False``), so it opens on
-its own, and so is ``/tf_static`` (the marker pipeline places the camera on the robot by it). A corrupt message or image is counted and skipped, never fatal.
+its own, and so is ``/tf_static`` (the marker pipeline places the camera on the robot by it). A
+corrupt message or image is counted and skipped, never fatal.
 """
 
 from __future__ import annotations
@@ -50,7 +51,8 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
                  topics: Sequence[str] | None = None, images: bool = True, camera_info: str | None = None,
                  provenance: Mapping[str, Any] | None = None,
                  progress: ProgressFactory = NoProgress) -> dict[str, Any]:
-    """Run the ``pipeline`` (``color``, ``markers`` or ``features``) over the images of ``log`` into the MCAP ``output``.
+    """Run the ``pipeline`` (``color``, ``markers`` or ``features``) over the images of ``log``
+    into the MCAP ``output``.
 
     ``options`` are the keyword arguments of the pipeline's class in
     :data:`trundle.tools.jobs.image_pipelines.PIPELINES`; ``topics`` the image topics (default:

@@ -72,8 +72,14 @@ class PinholeCamera:
         """The same lens on a sensor of ``width`` x ``height`` pixels: horizontal field of view and
         pixel aspect kept, principal point offset from the centre scaled (e.g. 4:3 -> 16:9 crops)."""
         s = width / self.width
-        return PinholeCamera(width, height, self.fx * s, self.fy * s, (width - 1) / 2 + (self.cx - (self.width - 1) / 2) * s,
-                             (height - 1) / 2 + (self.cy - (self.height - 1) / 2) * s)
+        return PinholeCamera(
+            width,
+            height,
+            self.fx * s,
+            self.fy * s,
+            (width - 1) / 2 + (self.cx - (self.width - 1) / 2) * s,
+            (height - 1) / 2 + (self.cy - (self.height - 1) / 2) * s,
+        )
 
 
 class CameraPose(NamedTuple):
@@ -175,7 +181,9 @@ def _build_atlas(world: World, plaster: np.ndarray, skirting_m: float) -> _Atlas
     centres_y = y0 + (np.arange(fh) + 0.5) / floor_ppm
     tile = world.floor_tile_m
     parity = (np.floor(centres_x / tile)[None, :] + np.floor(centres_y / tile)[:, None]) % 2 == 0
-    floor = np.where(parity[:, :, None], np.asarray(world.floor_bgr[0], np.uint8), np.asarray(world.floor_bgr[1], np.uint8))
+    floor = np.where(
+        parity[:, :, None], np.asarray(world.floor_bgr[0], np.uint8), np.asarray(world.floor_bgr[1], np.uint8)
+    )
 
     seg = world.segments
     lengths = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])

@@ -14,7 +14,8 @@ each, from GMapping's pose perturbed by (0.1 m, -0.1 m, 3 deg): the correlative 
 submap; the first search with the build is reported too) is the baseline; the full match
 (search + Levenberg-Marquardt), the refinement alone, point-to-line ICP and an exhaustive search
 over the same lattice are given as ratios to it; matches are timed in CPU seconds. Wall-clock
-figures depend on the machine's load (shared with other work), so CPU time and the load average are recorded too.
+figures depend on the machine's load (shared with other work), so CPU time and the load average
+are recorded too.
 fr079 (issue 14) is mapped laser-only from GMapping's corrected scans, as ``trundle import carmen
 --odometry none`` makes it, and scored against the corrected poses (consecutive relations, revisits
 less than 3 m and more than 30 s apart, ATE). Each log's real-time factor is given with

@@ -29,7 +29,8 @@ import numpy as np
 from trundle.drivers import rplidar as rp
 
 FULL_Q8 = 360 << 8
-UNPACK = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+Decoded = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # a decoder's four node arrays
+UNPACK = Callable[[np.ndarray, np.ndarray], Decoded]
 
 # Ultra capsules (handler_capsules.cpp): a 12-bit "major" distance in a variable bit scale,
 # the scaled value at which each scale starts, its first distance (mm) and its step (2^level).
@@ -117,7 +118,7 @@ def _wrap_q6(angle: np.ndarray) -> np.ndarray:
     return np.mod(angle, rp.FULL_CIRCLE_Q6)
 
 
-def _express(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
+def _express(rows: np.ndarray, nxt: np.ndarray) -> Decoded:
     """Express: per cabin two u16 ``distance_angle`` words (distance in bits 15..2, high bits of
     the angle offset in 1..0) and a byte of two 4-bit low offsets, Q3 degrees subtracted."""
     raw = _raw_q16(rows, nxt, 2, 32)
@@ -144,7 +145,7 @@ def ultra_offset_q6(distance_q2: np.ndarray, raw_q16: np.ndarray) -> np.ndarray:
     return _wrap_q6((raw_q16 - np.trunc(offset * 180 / 3.14159265).astype(np.int64)) >> 10)
 
 
-def _ultra(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
+def _ultra(rows: np.ndarray, nxt: np.ndarray) -> Decoded:
     """Ultra: per cabin a u32 of a 12-bit major distance and two signed 10-bit predictions; the
     first sample is the major, the second predicts from it, the third from the next cabin's."""
     n = len(rows)
@@ -164,7 +165,7 @@ def _ultra(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
     return ultra_offset_q6(dist, raw), _wrap_q6(raw >> 10), dist, np.zeros_like(dist)
 
 
-def _dense(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
+def _dense(rows: np.ndarray, nxt: np.ndarray) -> Decoded:
     """Dense: 40 u16 distances (mm) at equally spaced angles, no per-sample offset."""
     raw = _raw_q16(rows, nxt, 2, 40)
     dist = np.ascontiguousarray(rows[:, 4:]).view("<u2").astype(np.int64) << 2
@@ -172,7 +173,7 @@ def _dense(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
     return encoder, encoder, dist, np.zeros_like(dist)
 
 
-def _ultra_dense(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
+def _ultra_dense(rows: np.ndarray, nxt: np.ndarray) -> Decoded:
     """Ultra-dense: after a u32 timestamp and u16 status, 32 cabins of two u16 and a byte of two
     nibbles; each sample's 20 bits hold a 2-bit scale, the distance and an 8-bit quality."""
     n = len(rows)
@@ -188,7 +189,7 @@ def _ultra_dense(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
     return encoder, encoder, dist, quality >> 2
 
 
-def _hq(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
+def _hq(rows: np.ndarray, nxt: np.ndarray) -> Decoded:
     """HQ: 96 nodes of u16 angle (Q14 of 90 deg), u32 distance (Q2 mm), quality and flag bytes."""
     nodes = np.ascontiguousarray(rows[:, 9:9 + 96 * 8]).reshape(len(rows), 96, 8)
     q14 = nodes[..., 0:2].copy().view("<u2")[..., 0].astype(np.int64)

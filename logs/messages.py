@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -51,6 +51,7 @@ class Message:
     """Base of every message: value equality over fields, arrays compared by value."""
 
     __slots__ = ()
+    __dataclass_fields__: ClassVar[dict[str, Any]]  # every message is a dataclass
 
     def __eq__(self, other: object) -> bool:
         if type(self) is not type(other):
@@ -259,8 +260,8 @@ class TransformStamped(Message):
     def planar(cls, stamp_ns: int, frame_id: str, child_frame_id: str, x: float, y: float, yaw: float,
                z: float = 0.0) -> TransformStamped:
         """A transform in the plane: translation (x, y, z) and a rotation of ``yaw`` about z."""
-        return cls(stamp_ns, frame_id, child_frame_id, (x, y, z),
-                   (0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0)))
+        return cls(stamp_ns, frame_id, child_frame_id, np.array((x, y, z)),
+                   np.array((0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))))
 
     @property
     def yaw(self) -> float:
@@ -411,7 +412,7 @@ class LandmarkObservation(Message):
         object.__setattr__(self, "covariance", _frozen_array(_f64(self.covariance, (2, 2))))
         translation = self.translation
         if translation is None:
-            translation = (self.range * math.cos(self.bearing), self.range * math.sin(self.bearing), 0.0)
+            translation = np.array((self.range * math.cos(self.bearing), self.range * math.sin(self.bearing), 0.0))
         object.__setattr__(self, "translation", _frozen_array(_f64(translation, (3,))))
         object.__setattr__(self, "rotation", _frozen_array(_f64(self.rotation, (4,))))
 
@@ -431,7 +432,7 @@ class LandmarkObservation(Message):
         jac = np.array([[x / r, y / r], [-y / q, x / q]])
         covariance = jac @ np.asarray(covariance_xy, np.float64).reshape(2, 2) @ jac.T
         return cls(landmark_id, r, math.atan2(y, x), 0.5 * (covariance + covariance.T),
-                   (x, y, 0.0) if translation is None else translation, rotation, yaw_variance)
+                   np.array((x, y, 0.0)) if translation is None else translation, rotation, yaw_variance)
 
     def position_covariance(self) -> np.ndarray:
         """The 2x2 covariance (m^2) of the range-bearing point in the tracking frame (first order)."""

@@ -104,9 +104,10 @@ def _copy(reader: LogReader, tmp: Path, replace: Replace | None,
                 data = record.data
                 if replace is not None and channel is not None:
                     schema = schemas.get(channel.schema_id)
-                    data = replace(channel.topic, schema.name if schema else "", record.log_time, record.data)
-                    if data is None:
+                    replaced = replace(channel.topic, schema.name if schema else "", record.log_time, record.data)
+                    if replaced is None:
                         continue
+                    data = replaced
                 writer.add_message(new_id, record.log_time, data, record.publish_time, record.sequence)
                 count += 1
             elif isinstance(record, Metadata):

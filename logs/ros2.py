@@ -232,7 +232,7 @@ def _transform_to(msg: m.TransformStamped) -> Any:
 def _transform_from(r: Any) -> m.TransformStamped:
     t, q = r.transform.translation, r.transform.rotation
     return m.TransformStamped(stamp_ns(r), r.header.frame_id, r.child_frame_id,
-                              (t.x, t.y, t.z), (q.x, q.y, q.z, q.w))
+                              np.array((t.x, t.y, t.z)), np.array((q.x, q.y, q.z, q.w)))
 
 
 def _tf_to(msg: m.TFMessage) -> Any:
@@ -311,6 +311,7 @@ def _landmark_entry_to(o: m.LandmarkObservation) -> Any:
     planar = np.linalg.eigvalsh(o.position_covariance())
     sigma = float(np.sqrt(max(planar.max(), 0.0)))
     qx, qy, qz, qw = (float(v) for v in o.rotation)
+    assert o.translation is not None  # set by __post_init__
     tx, ty, tz = (float(v) for v in o.translation)
     pose = _Pose(position=_Point(x=tx, y=ty, z=tz), orientation=_Quaternion(x=qx, y=qy, z=qz, w=qw))
     return _T["trundle_msgs/msg/LandmarkEntry"](
@@ -329,7 +330,7 @@ def _landmarks_from(r: Any) -> m.LandmarkList:
     def entry(e: Any) -> m.LandmarkObservation:
         p, q = e.tracking_from_landmark_transform.position, e.tracking_from_landmark_transform.orientation
         return m.LandmarkObservation(e.id, float(e.range), float(e.bearing), e.range_bearing_covariance,
-                                     (p.x, p.y, p.z), (q.x, q.y, q.z, q.w), float(e.yaw_variance))
+                                     np.array((p.x, p.y, p.z)), np.array((q.x, q.y, q.z, q.w)), float(e.yaw_variance))
     return m.LandmarkList(stamp_ns(r), r.header.frame_id, tuple(entry(e) for e in r.landmarks))
 
 
@@ -361,7 +362,7 @@ def _scene_markers_from(r: Any) -> m.SceneMarkers:
             float(k.pose.position.y),
             float(k.pose.position.z),
             _yaw(k.pose.orientation),
-            (k.scale.x, k.scale.y, k.scale.z),
+            np.array((k.scale.x, k.scale.y, k.scale.z)),
             (float(c.r), float(c.g), float(c.b), float(c.a)),
             k.text,
         )

@@ -321,7 +321,9 @@ class Logger:
             return True
         # the file as it would be finished with this message in it: split before it would pass the limit
         extra = MESSAGE_RECORD_BYTES + MESSAGE_INDEX_ENTRY_BYTES + len(item.data)
-        return bool(self.split_bytes) and file.finished_size(extra) > self.split_bytes
+        if not self.split_bytes:
+            return False
+        return file.finished_size(extra) > self.split_bytes
 
     def _add(self, file: _OpenFile, item: _Item) -> None:
         channel = file.channels.get(item.topic)

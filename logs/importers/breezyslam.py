@@ -133,6 +133,10 @@ def import_breezyslam(path: str | os.PathLike[str], out: str | os.PathLike[str])
     make odometry from the wheel angles without a config file.
     """
     lines, malformed = read_dat(path)
-    metadata = {"command": "import breezyslam", "source": os.fspath(path), "malformed_lines": str(malformed),
-                "robot": ROBOT}
+    metadata: dict[str, object] = {
+        "command": "import breezyslam",
+        "source": os.fspath(path),
+        "malformed_lines": str(malformed),
+        "robot": ROBOT,
+    }
     return write_log(messages(lines), out, metadata=metadata)

@@ -282,8 +282,13 @@ def import_carmen(path: str | os.PathLike[str], out: str | os.PathLike[str], *, 
     log = read_carmen(path) if log is None else log
     if laser_odometry is None or odometry != "laser":
         odometry, description = choose_odometry(log, odometry)
-    metadata = {"command": "import carmen", "source": os.fspath(path), "odometry": odometry,
-                "odometry_description": description, "malformed_lines": str(log.malformed),
-                "skipped_lines": log.skipped}
+    metadata: dict[str, object] = {
+        "command": "import carmen",
+        "source": os.fspath(path),
+        "odometry": odometry,
+        "odometry_description": description,
+        "malformed_lines": str(log.malformed),
+        "skipped_lines": log.skipped,
+    }
     return write_log(messages(log, odometry=odometry, laser_odometry=laser_odometry, max_range_m=max_range_m),
                      out, metadata=metadata)

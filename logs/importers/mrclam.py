@@ -126,7 +126,8 @@ def read_mrclam(folder: str | os.PathLike[str], robot: int) -> MrclamRun:
     run = MrclamRun(odometry_ns[order], odometry[order], sightings_ns[valid],
                     [(int(b), float(r), float(a)) for b, r, a in sightings[valid]],
                     {int(b): int(s) for s, b in zip(subjects, barcodes[:, 0], strict=True)},
-                    {int(s): tuple(float(v) for v in row) for s, row in zip(landmark_ids, landmarks, strict=True)},
+                    {int(s): (float(x), float(y), float(sx), float(sy))
+                     for s, (x, y, sx, sy) in zip(landmark_ids, landmarks, strict=True)},
                     malformed=malformed)
     truth_path = folder / f"Robot{robot}_Groundtruth.dat"
     if truth_path.is_file():
@@ -180,8 +181,10 @@ def landmark_lists(run: MrclamRun) -> tuple[list[m.LandmarkList], dict[str, int]
 def messages(run: MrclamRun, sightings: list[m.LandmarkList]) -> Iterator[Item]:
     """``/odom`` and ``/landmarks`` in time order (log time = stamp; odometry first at equal times)."""
     poses = integrate(run.odometry_ns, run.odometry)
-    odometry = [(int(t), 0, m.Odometry(int(t), "odom", "base_link", *pose, vx=float(v), wz=float(w)))
-                for t, pose, (v, w) in zip(run.odometry_ns, poses, run.odometry, strict=True)]
+    odometry = [
+        (int(t), 0, m.Odometry(int(t), "odom", "base_link", pose[0], pose[1], pose[2], vx=float(v), wz=float(w)))
+        for t, pose, (v, w) in zip(run.odometry_ns, poses, run.odometry, strict=True)
+    ]
     for t, kind, msg in sorted(odometry + [(s.stamp_ns, 1, s) for s in sightings], key=lambda item: item[:2]):
         yield ("/odom" if kind == 0 else "/landmarks"), msg, t
 
@@ -192,9 +195,17 @@ def import_mrclam(folder: str | os.PathLike[str], robot: int, out: str | os.Path
     ``--reference``: its ground truth and the survey) and the sightings dropped, by reason."""
     run = read_mrclam(folder, robot)
     sightings, dropped = landmark_lists(run)
-    metadata = {"command": "import mrclam", "source": os.fspath(folder), "robot_number": str(robot),
-                "dropped_sightings": dropped, "malformed_rows": run.malformed,
-                "landmark_sensor": {"range_sigma_m": RANGE_SIGMA_M, "range_sigma_fraction": RANGE_SIGMA_FRACTION,
-                                    "bearing_sigma_rad": BEARING_SIGMA_RAD}}
+    metadata: dict[str, object] = {
+        "command": "import mrclam",
+        "source": os.fspath(folder),
+        "robot_number": str(robot),
+        "dropped_sightings": dropped,
+        "malformed_rows": run.malformed,
+        "landmark_sensor": {
+            "range_sigma_m": RANGE_SIGMA_M,
+            "range_sigma_fraction": RANGE_SIGMA_FRACTION,
+            "bearing_sigma_rad": BEARING_SIGMA_RAD,
+        },
+    }
     counts = write_log(messages(run, sightings), out, metadata=metadata)
     return counts, run, dropped

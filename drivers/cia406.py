@@ -40,7 +40,7 @@ _SIGNED = {INTEGER8, INTEGER16, INTEGER32, INTEGER64}
 log = logging.getLogger(__name__)
 
 
-def decode_heartbeat(data: bytes) -> int:
+def decode_heartbeat(data: bytes | bytearray) -> int:
     """NMT state of a heartbeat (0 boot-up, 4 stopped, 5 operational, 127 pre-operational);
     the toggle bit (node guarding) is masked off."""
     if len(data) < 1:
@@ -51,7 +51,7 @@ def decode_heartbeat(data: bytes) -> int:
     return state
 
 
-def decode_emcy(data: bytes) -> tuple[int, int]:
+def decode_emcy(data: bytes | bytearray) -> tuple[int, int]:
     """``(error code, error register)`` of an emergency frame."""
     if len(data) < 3:
         raise ValueError(f"CANopen EMCY needs 3 bytes, got {len(data)}")
@@ -66,7 +66,7 @@ class PositionLayout:
     size: int = 4
     signed: bool = False
 
-    def decode(self, data: bytes) -> int:
+    def decode(self, data: bytes | bytearray) -> int:
         end = self.offset + self.size
         if len(data) < end:
             raise ValueError(f"TPDO of {len(data)} bytes too short for the position at bytes {self.offset}..{end - 1}")

@@ -9,9 +9,13 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import cast
 
 import can
 import cantools
+from cantools.database.can import Database as CanDatabase
+from cantools.database.can import Message as DbcMessage
+from cantools.database.can import Signal
 from cantools.database.errors import Error as CantoolsError
 
 from trundle.drivers.can_bus import CanBus
@@ -45,16 +49,19 @@ class DbcWheels(EncoderProtocol):
         if velocity_signals and len(velocity_signals) != len(wheels):
             raise ValueError("one velocity signal per wheel")
         try:
-            self.db = cantools.database.load_file(str(dbc), strict=False)
+            db = cantools.database.load_file(str(dbc), strict=False)
         except (OSError, CantoolsError, ValueError) as error:
             raise ValueError(f"cannot read {dbc}: {error}") from None
+        if not isinstance(db, CanDatabase):
+            raise ValueError(f"cannot read {dbc}: a diagnostics database, not a CAN one")
+        self.db = db
         n = len(wheels)
         units = per_wheel(units_per_rev, n, "units_per_rev")
         vscale = per_wheel(velocity_scale, n, "velocity_scale")
         if any(u <= 0 for u in units):
             raise ValueError("units_per_rev must be positive")
         # frame id -> (message, [(wheel, signal, is position)])
-        self._routes: dict[tuple[int, bool], tuple[object, list[tuple[int, object, bool]]]] = {}
+        self._routes: dict[tuple[int, bool], tuple[DbcMessage, list[tuple[int, Signal, bool]]]] = {}
         self._modulus: dict[int, int | None] = {}
         self._scale: dict[int, float] = {}
         for wheel, name, unit in zip(wheels, signals, units, strict=True):
@@ -71,7 +78,7 @@ class DbcWheels(EncoderProtocol):
         self.data = HeartbeatWatchdog(data_timeout_s)
         self._velocity: dict[int, float] = {}
 
-    def _add_route(self, qualified: str, wheel: int, is_position: bool):
+    def _add_route(self, qualified: str, wheel: int, is_position: bool) -> tuple[DbcMessage, Signal]:
         message_name, dot, signal_name = str(qualified).rpartition(".")
         if not dot:
             raise ValueError(f"signal {qualified!r} must be written Message.Signal")
@@ -98,7 +105,8 @@ class DbcWheels(EncoderProtocol):
             return []
         message, targets = route
         try:
-            raw = message.decode(bytes(msg.data), decode_choices=False, scaling=False)
+            # neither choices nor scaling: every value is the signal's raw number
+            raw = cast(dict[str, int | float], message.decode(bytes(msg.data), decode_choices=False, scaling=False))
         except (CantoolsError, ValueError, KeyError, IndexError) as error:
             raise ValueError(f"{message.name}: {error}") from None
         readings = []

@@ -12,7 +12,7 @@ import math
 from abc import ABC, abstractmethod
 from collections import Counter
 from collections.abc import Hashable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import can
 
@@ -32,7 +32,7 @@ class WheelReading(NamedTuple):
 
 def per_wheel(value: object, n: int, what: str) -> list[float]:
     """A per-wheel setting given as one number or one number per wheel; ``ValueError`` if not."""
-    values = list(value) if isinstance(value, (list, tuple)) else [value] * n
+    values: list[Any] = list(value) if isinstance(value, (list, tuple)) else [value] * n  # float() checks each
     if len(values) != n:
         raise ValueError(f"{what} has {len(values)} values for {n} wheels")
     try:

@@ -389,17 +389,17 @@ class RplidarDriver(Driver):
 
     def _check_health(self) -> None:
         for attempt in range(2):
-            self.health = self._health()
-            if self.health.status == rp.HEALTH_WARNING:
+            self.health = health = self._health()
+            if health.status == rp.HEALTH_WARNING:
                 self.counters["health_warnings"] += 1
-            if self.health.status != rp.HEALTH_ERROR:
+            if health.status != rp.HEALTH_ERROR:
                 return
             if attempt == 0:
                 self.counters["health_resets"] += 1
                 self._send(rp.RESET)
                 time.sleep(0.02)
                 self._flush(quiet_s=0.05)  # the device prints a text banner after a reset
-        raise DeviceError(f"RPLIDAR hardware fault: health error code {self.health.error_code:#06x} after RESET")
+        raise DeviceError(f"RPLIDAR hardware fault: health error code {health.error_code:#06x} after RESET")
 
     def _conf(self, entry: int, mode: int | None = None) -> bytes:
         """One GET_LIDAR_CONF entry's value."""

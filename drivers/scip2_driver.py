@@ -14,6 +14,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -136,12 +137,12 @@ class ScipScanStream:
         rear_step = p.afrt - p.ares / 2.0
         self.first_beam_ns = int(round((ms.start - rear_step) / p.ares * self.period_ns))
         cluster = max(ms.cluster, 1)
-        self.template = dict(frame_id=self.frame_id, angle_min=float(p.step_angle(ms.start)),
-                             angle_max=float(p.step_angle(ms.start + (ms.beams - 1) * cluster)),
-                             angle_increment=2.0 * np.pi * cluster / p.ares,
-                             time_increment=cluster * p.scan_period_s / p.ares,
-                             scan_time=p.scan_period_s * (ms.skip + 1),
-                             range_min=p.dmin / 1000.0, range_max=p.dmax / 1000.0)
+        self.scan = partial(m.LaserScan, frame_id=self.frame_id, angle_min=float(p.step_angle(ms.start)),
+                            angle_max=float(p.step_angle(ms.start + (ms.beams - 1) * cluster)),
+                            angle_increment=2.0 * np.pi * cluster / p.ares,
+                            time_increment=cluster * p.scan_period_s / p.ares,
+                            scan_time=p.scan_period_s * (ms.skip + 1),
+                            range_min=p.dmin / 1000.0, range_max=p.dmax / 1000.0)
         self._last_ts: int | None = None
         self._unreadable = 0
 
@@ -205,7 +206,7 @@ class ScipScanStream:
         self.counters["scans"] += 1
         stamp = self.clock.host_ns(timing.unwrapped) + self.first_beam_ns
         intensities = intensity.astype(np.float32) if intensity is not None else np.zeros(0, np.float32)
-        return m.LaserScan(stamp, ranges=self.ranges(distances), intensities=intensities, **self.template), timing
+        return self.scan(stamp, ranges=self.ranges(distances), intensities=intensities), timing
 
     def _timestamp(self, reply: Reply, host_rx_ns: int) -> Timing | None:
         """Read the timestamp line, feed the clock, account for scans that never came."""

@@ -113,7 +113,7 @@ class SerialLink:
                 quiet_since = time.monotonic()
         return dropped
 
-    def close(self, farewell: Callable[[serial.SerialBase], None] | None = None) -> None:
+    def close(self, farewell: Callable[[serial.SerialBase], object] | None = None) -> None:
         """Let ``farewell`` write to the port if it is still open, then close; never raises."""
         try:
             if farewell is not None and self.port.is_open:

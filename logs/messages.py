@@ -400,7 +400,7 @@ class LandmarkObservation(Message):
     range: float
     bearing: float
     covariance: np.ndarray
-    translation: np.ndarray | None = None
+    translation: np.ndarray = None  # type: ignore[assignment]  # None: the range-bearing point (__post_init__)
     rotation: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
     yaw_variance: float = 0.0
 

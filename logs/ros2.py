@@ -311,7 +311,6 @@ def _landmark_entry_to(o: m.LandmarkObservation) -> Any:
     planar = np.linalg.eigvalsh(o.position_covariance())
     sigma = float(np.sqrt(max(planar.max(), 0.0)))
     qx, qy, qz, qw = (float(v) for v in o.rotation)
-    assert o.translation is not None  # set by __post_init__
     tx, ty, tz = (float(v) for v in o.translation)
     pose = _Pose(position=_Point(x=tx, y=ty, z=tz), orientation=_Quaternion(x=qx, y=qy, z=qz, w=qw))
     return _T["trundle_msgs/msg/LandmarkEntry"](

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -70,7 +71,7 @@ def match_features(
 
 
 def match_images(image1: np.ndarray, image2: np.ndarray, method: str = "sift", descriptor: str | None = None,
-                 max_keypoints: int | None = None, detector_params: dict | None = None, **options: float) -> PairMatch:
+                 max_keypoints: int | None = None, detector_params: dict | None = None, **options: Any) -> PairMatch:
     """Detect, describe, match and fit between two images (grey or BGR uint8).
 
     `method`/`descriptor`/`max_keypoints`/`detector_params` as `features.detect_and_describe`;

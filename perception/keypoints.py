@@ -42,8 +42,8 @@ def make_keypoints(xy: np.ndarray, size: np.ndarray | float, angle: np.ndarray |
     def column(value: np.ndarray | float, dtype: type) -> np.ndarray:
         return np.ascontiguousarray(np.broadcast_to(np.asarray(value, dtype=dtype), (n,)))
 
-    angle = np.mod(column(angle, np.float64), 2 * math.pi)
-    return Keypoints(xy, column(size, np.float64), angle, column(response, np.float64), column(octave, np.int64))
+    angles = np.mod(column(angle, np.float64), 2 * math.pi)
+    return Keypoints(xy, column(size, np.float64), angles, column(response, np.float64), column(octave, np.int64))
 
 
 def concatenate(parts: list[Keypoints]) -> Keypoints:

@@ -178,7 +178,7 @@ def find_regions(mask: np.ndarray, min_area: int = 1, max_area: int | None = Non
         keep &= areas <= max_area
     keep[0] = False                                               # background
     kept = np.flatnonzero(keep)
-    boxes = [tuple(int(v) for v in stats[label, :4]) for label in kept]
+    boxes = [(int(x), int(y), int(w), int(h)) for x, y, w, h in (stats[label, :4] for label in kept)]
     crops = [labels[y:y + h, x:x + w] == label for label, (x, y, w, h) in zip(kept, boxes, strict=True)]
     regions = _regions(crops, [int(label) for label in kept], boxes)
     if max_aspect is not None:

@@ -284,7 +284,8 @@ def absolute_trajectory_error(estimate: Trajectory, reference: Trajectory, toler
     heading = np.degrees(wrap_angle(aligned[:, 2] - truth[:, 2]))
     return AbsoluteError(int(found.sum()), float(np.sqrt(np.mean(error ** 2))), float(error.mean()),
                          float(np.median(error)), float(error.std()), float(error.max()),
-                         float(np.sqrt(np.mean(np.square(heading)))), tuple(float(v) for v in alignment))
+                         float(np.sqrt(np.mean(np.square(heading)))),
+                         (float(alignment[0]), float(alignment[1]), float(alignment[2])))
 
 
 @dataclass(frozen=True)

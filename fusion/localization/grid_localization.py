@@ -86,10 +86,10 @@ def coarse_map(grid: LogOddsGrid, resolution_m: float = 0.2, sigma_m: float | No
     rows, cols = -(-height // factor), -(-width // factor)
     pad = ((0, rows * factor - height), (0, cols * factor - width))
     distance = np.pad(distance, pad, constant_values=4.0 * sigma).reshape(rows, factor, cols, factor).min(axis=(1, 3))
-    free = np.pad(free, pad).reshape(rows, factor, cols, factor).any(axis=(1, 3))
+    coarse_free = np.pad(free, pad).reshape(rows, factor, cols, factor).any(axis=(1, 3))
     likelihood = np.exp(-0.5 * (distance / sigma) ** 2).astype(np.float32)
     likelihood[distance >= 4.0 * sigma] = 0.0
-    return CoarseMap(likelihood, free, grid.origin.copy(), factor * grid.resolution)
+    return CoarseMap(likelihood, np.asarray(coarse_free), grid.origin.copy(), factor * grid.resolution)
 
 
 def correlate_headings(coarse: CoarseMap, points_xy: np.ndarray, headings: np.ndarray) -> np.ndarray:
@@ -140,7 +140,7 @@ def global_search(grid: LogOddsGrid, points_xy: np.ndarray, *, coarse: CoarseMap
     near = points[np.hypot(points[:, 0], points[:, 1]) <= max_range_m]
     if len(near) < 3:
         return []
-    headings = wrap_angle(np.arange(0.0, 2.0 * math.pi, angular_step_rad))
+    headings = np.asarray(wrap_angle(np.arange(0.0, 2.0 * math.pi, angular_step_rad)))
     scores = correlate_headings(coarse, near, headings)
     scores[:, ~coarse.free] = 0.0
     # local maxima over (heading, row, col), heading axis circular
@@ -337,7 +337,7 @@ class Localizer:
 
     def _same_place(self, a: np.ndarray, b: np.ndarray) -> bool:
         return bool(np.hypot(*(a[:2] - b[:2])) < self.config.merge_m
-                    and abs(wrap_angle(a[2] - b[2])) < self.config.merge_rad)
+                    and abs(float(wrap_angle(a[2] - b[2]))) < self.config.merge_rad)
 
     # --- searching ---------------------------------------------------------------------------
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -122,8 +123,9 @@ def read_trajectory_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.nd
 
 
 def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajectories: list[np.ndarray],
-                    colours: list[tuple[int, int, int]] | None = None, loops: list[tuple[np.ndarray, np.ndarray]] = (),
-                    min_size: int = 1000, highlights: list[np.ndarray] = (),
+                    colours: list[tuple[int, int, int]] | None = None,
+                    loops: Sequence[tuple[np.ndarray, np.ndarray]] = (), min_size: int = 1000,
+                    highlights: Sequence[np.ndarray] = (),
                     landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Path:
     """PNG of the map with trajectories (each (N, 3), map frame) drawn over it, scaled up to ``min_size`` px.
 

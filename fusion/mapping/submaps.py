@@ -11,6 +11,7 @@ the map follows from the optimised pose of the submap's anchor keyframe.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -56,7 +57,7 @@ class SubmapStack:
     ``grid_options`` go to each :class:`LogOddsGrid` (inverse sensor model, clamps).
     """
 
-    def __init__(self, resolution: float = 0.05, scans_per_submap: int = 30, **grid_options: float | bool) -> None:
+    def __init__(self, resolution: float = 0.05, scans_per_submap: int = 30, **grid_options: Any) -> None:
         if scans_per_submap < 1:
             raise ValueError("scans_per_submap must be at least 1")
         self.resolution = resolution

@@ -36,14 +36,14 @@ def _dsinc(u: np.ndarray) -> np.ndarray:
     return np.where(small, -u / 3.0 + u**3 / 30.0, closed)
 
 
-def integrate_path(pose: tuple[float, float, float] | np.ndarray, d_left_m: np.ndarray, d_right_m: np.ndarray,
-                   track_m: float) -> np.ndarray:
+def integrate_path(pose: tuple[float, float, float] | np.ndarray, d_left_m: float | np.ndarray,
+                   d_right_m: float | np.ndarray, track_m: float) -> np.ndarray:
     """Poses (N, 3) after each of N wheel steps, starting from ``pose`` (x, y, theta).
 
     Parameters
     ----------
     pose : start (x m, y m, theta rad); theta is not wrapped, so headings stay continuous.
-    d_left_m, d_right_m : (N,) distance each wheel rolled in each step (m, forward positive).
+    d_left_m, d_right_m : (N,) distance each wheel rolled in each step (m, forward positive; a scalar: one step).
     track_m : distance between the wheel contact points (m).
     """
     d_left = np.atleast_1d(np.asarray(d_left_m, dtype=np.float64))
@@ -195,7 +195,7 @@ class DiffDriveOdometry:
                     result = self._advance(stamps[start:b], left[start:b], right[start:b])
                 self._mark_stale(int(stamps[b]))
                 result = None
-                start = b + 1
+                start = int(b) + 1
             if start < stamps.size:
                 result = self._advance(stamps[start:], left[start:], right[start:])
             return result

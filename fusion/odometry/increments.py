@@ -103,7 +103,7 @@ class IncrementAccumulator:
         self._s = [nxx + vxy, nxy, nxt, nyy + vxy, nyt, tt + vth]
         self._x += c * bx - s * by
         self._y += s * bx + c * by
-        self._theta = wrap_angle(self._theta + bt)
+        self._theta = float(wrap_angle(self._theta + bt))
         self.distance_m += distance
         self.turn_rad += turn
         self.duration_s += dt

@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 def clip(tmp_path_factory):
     path = tmp_path_factory.mktemp("clip") / "corridor.avi"
     renderer = CameraRenderer(load_world())
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 20, (640, 480))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 20, (640, 480))
     for i in range(20):
         writer.write(renderer.render(CameraPose(8.0 + 0.1 * i, 5.25, 0.45, 0.0)))
     writer.release()

@@ -74,7 +74,10 @@ def main() -> None:
     frames = {"synthetic_4x4": ("DICT_4X4_50", synthetic_frame())}
     for name in PHOTOS:
         if (DATA / name).exists():
-            frames[name.removesuffix(".jpg")] = ("DICT_6X6_250", cv2.imread(str(DATA / name)))
+            photo = cv2.imread(str(DATA / name))
+            if photo is None:
+                raise SystemExit(f"{DATA / name}: not an image")
+            frames[name.removesuffix(".jpg")] = ("DICT_6X6_250", photo)
     figures: dict[str, float] = {}
     for name, (dictionary, image) in frames.items():
         ours, bare = MarkerDetector(dictionary), bare_detector(dictionary)

@@ -114,7 +114,7 @@ def _measure(rate: float, duration_s: float, open_reader) -> dict:
     while time.monotonic() < deadline:
         payloads = read(0.2)
         if not payloads:
-            if first is not None and time.monotonic() - last > 1.0:
+            if last is not None and time.monotonic() - last > 1.0:
                 break
             continue
         now_us = (time.monotonic_ns() // 1000) & 0xFFFFFFFF
@@ -234,15 +234,17 @@ def decode_costs(number: int) -> dict:
     vesc = DbcWheels(dbc, ["VESC_Status5_id9.Tachometer", "VESC_Status5_id10.Tachometer"], (0, 1), units_per_rev=42)
     vesc_msg = can.Message(arbitration_id=0x1B09, data=bytes.fromhex("0000002A01F40000"), is_extended_id=True)
     db = cantools.database.load_file(str(dbc))
+    assert isinstance(db, cantools.database.Database)
     status5 = db.get_message_by_frame_id(0x1B09)
+    vesc_data = bytes(vesc_msg.data)
     cases = {
         "odrive_codec": lambda: odrive.decode_encoder_estimates(data),
         "odrive_handle": lambda: odrive_protocol.handle(odrive_msg, 0),
         "cia406_codec": lambda: layout.decode(tpdo),
-        "dbc_cantools_decode": lambda: status5.decode(vesc_msg.data, decode_choices=False, scaling=False),
+        "dbc_cantools_decode": lambda: status5.decode(vesc_data, decode_choices=False, scaling=False),
         "dbc_handle": lambda: vesc.handle(vesc_msg, 0),
     }
-    out = {"struct_unpack_ns": baseline}
+    out: dict[str, object] = {"struct_unpack_ns": baseline}
     for name, fn in cases.items():
         ns = _per_frame_ns(fn, number)
         out[name] = {"ns_per_frame": ns, "ratio_to_struct_unpack": ns / baseline}

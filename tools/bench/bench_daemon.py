@@ -49,7 +49,7 @@ def cpu_seconds(pid: int) -> float:
 def render_clip(sim: RobotSim, path: Path, seconds: float = 4.0) -> Path:
     """An MJPEG clip of what the camera sees along the route (the emulator serves its packets)."""
     renderer = CameraRenderer(sim.world, sim.camera.scaled(WIDTH, HEIGHT))
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (WIDTH, HEIGHT))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), FPS, (WIDTH, HEIGHT))
     for i in range(int(seconds * FPS)):
         writer.write(renderer.render(sim.camera_pose_at(10.0 + i / FPS)))
     writer.release()

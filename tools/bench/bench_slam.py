@@ -48,7 +48,13 @@ from trundle.fusion.geometry import scan_to_points, transform_points, voxel_filt
 from trundle.fusion.mapping.map_io import plot_trajectory
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.matching.icp import LineReference, icp
-from trundle.fusion.matching.scan_matching import angular_step, correlative_search, match_scan, refine_pose
+from trundle.fusion.matching.scan_matching import (
+    MatchResult,
+    angular_step,
+    correlative_search,
+    match_scan,
+    refine_pose,
+)
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.fusion.slam.grid_slam import Slam, SlamConfig
@@ -128,7 +134,7 @@ def time_matches(log: carmen.CarmenLog, first: int, count: int) -> dict[str, flo
             start = time.process_time()
             result = run()
             times[name].append(time.process_time() - start)
-            if name == "match" and result is not None:
+            if name == "match" and isinstance(result, MatchResult):  # else None: no match
                 errors.append(float(np.hypot(*(result.pose[:2] - reference[k][:2]))))
     median = {name: float(np.median(values)) * 1e3 for name, values in times.items()}
     base = median["search"]

@@ -46,7 +46,7 @@ def reference(text: str) -> Path | float:
 
 def beam(text: str) -> int | str:
     """``--beam``: ``all`` or a beam index >= 0."""
-    return text if text == "all" else non_negative_int(text)
+    return text if text == "all" else int(non_negative_int(text))
 
 
 def run(args: argparse.Namespace) -> int:

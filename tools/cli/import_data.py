@@ -18,6 +18,8 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from trundle.fusion.mapping.map_io import write_landmarks_csv, write_trajectory_csv
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.logs.errors import UserError
@@ -108,13 +110,14 @@ def run_mrclam(args: argparse.Namespace) -> int:
             new_file(path, option)
     counts, run, dropped = import_mrclam(args.input, args.robot, args.output)
     if args.reference:
-        if run.groundtruth is None:
+        if run.groundtruth is None or run.groundtruth_ns is None:
             raise UserError(f"--reference: no Robot{args.robot}_Groundtruth.dat in {args.input}")
         write_trajectory_csv(args.reference, run.groundtruth_ns, run.groundtruth)
     if args.landmarks_reference:
         surveyed = sorted(s for s in run.landmarks if s not in ROBOT_SUBJECTS)
         write_landmarks_csv(args.landmarks_reference, [str(s) for s in surveyed],
-                            [run.landmarks[s][:2] for s in surveyed], [run.landmarks[s][2:] for s in surveyed])
+                            np.array([run.landmarks[s][:2] for s in surveyed]),
+                            np.array([run.landmarks[s][2:] for s in surveyed]))
     _summary(counts, args.output)
     print(f"dropped {dropped['robot_sightings']} sightings of other robots and {dropped['unknown_barcodes']} of "
           f"barcodes not in Barcodes.dat")

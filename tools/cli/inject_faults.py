@@ -81,9 +81,9 @@ def faults_from_args(args: argparse.Namespace, span_s: float) -> list[OdometryFa
 
 def run(args: argparse.Namespace) -> int:
     info = LogReader(args.log).info()
-    odometry = [t for t in info.topics.values()
-                if t.ros_type in ("nav_msgs/msg/Odometry", "sensor_msgs/msg/JointState") and t.first_ns is not None]
-    span_s = max(((t.last_ns - t.first_ns) * 1e-9 for t in odometry), default=0.0)
+    span_s = max(((t.last_ns - t.first_ns) * 1e-9 for t in info.topics.values()
+                  if t.ros_type in ("nav_msgs/msg/Odometry", "sensor_msgs/msg/JointState")
+                  and t.first_ns is not None and t.last_ns is not None), default=0.0)
     report = inject_faults(args.log, args.output, faults_from_args(args, span_s), load_config(args.config))
     if args.json:
         print(json.dumps(report, indent=2))

@@ -66,7 +66,7 @@ def draw(image1: np.ndarray, image2: np.ndarray, result: PairMatch) -> np.ndarra
     matches = [cv2.DMatch(int(i), int(j), 0.0) for i, j in result.matches.pairs]
     inliers = result.fit.inliers.astype(np.uint8).tolist()
     outliers = (1 - result.fit.inliers.astype(np.uint8)).tolist()
-    canvas = cv2.drawMatches(image1, kp1, image2, kp2, matches, None, matchColor=(0, 0, 255),
+    canvas = cv2.drawMatches(image1, kp1, image2, kp2, matches, None, matchColor=(0, 0, 255),  # type: ignore[call-overload]  # outImg None: allocated
                              singlePointColor=(160, 160, 160), matchesMask=outliers)
     return cv2.drawMatches(image1, kp1, image2, kp2, matches, canvas, matchColor=(0, 200, 0),
                            matchesMask=inliers, flags=cv2.DrawMatchesFlags_DRAW_OVER_OUTIMG

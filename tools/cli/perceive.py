@@ -81,7 +81,7 @@ def _triple(text: str | None, name: str) -> tuple[float, float, float] | None:
         values = ()
     if len(values) != 3:
         raise UserError(f"{name} needs three comma-separated numbers, got {text!r}")
-    return values  # type: ignore[return-value]
+    return values[0], values[1], values[2]
 
 
 def _value(text: str) -> Any:

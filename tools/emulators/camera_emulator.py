@@ -154,7 +154,7 @@ class CameraEmulator:
             frame = self._file.read()
             assert frame is not None
             if frame.jpeg:
-                return bytes(frame.data)  # type: ignore[arg-type]
+                return bytes(frame.data)
             image = frame.data  # type: ignore[assignment]
         ok, buffer = cv2.imencode(".jpg", image, (cv2.IMWRITE_JPEG_QUALITY, self.quality))
         if not ok:

@@ -55,7 +55,7 @@ class ScipModel:
     @property
     def angles(self) -> np.ndarray:
         """Angles (rad, laser frame) of steps AMIN..AMAX: the beams a range source must cover."""
-        return self.params.step_angle(self.steps)
+        return np.asarray(self.params.step_angle(self.steps))
 
 
 def _version(product: str, firmware: str, serial: str) -> dict[str, str]:
@@ -408,7 +408,8 @@ class ScipDevice:
 
     def _lines(self, raw: bytes) -> list[tuple[int, int]]:
         """(start, end) of every line after the echo, end at its LF."""
-        spans, start = [], raw.index(b"\n") + 1
+        spans: list[tuple[int, int]] = []
+        start = raw.index(b"\n") + 1
         while True:
             end = raw.index(b"\n", start)
             if end == start:

@@ -103,11 +103,12 @@ def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[
                     for ref in finished:
                         i = refs[ref]
                         result = cluster.result(ref, retries)
-                        rows[i] = result if isinstance(result, dict) else \
+                        row = result if isinstance(result, dict) else \
                             {"log": sources[i], "name": names[i], "status": "failed", "error": result}
+                        rows[i] = row
                         run.rows = [r for r in rows if r is not None]
                         if on_row is not None:
-                            on_row(rows[i], run)
+                            on_row(row, run)
                     total, busy = cluster.cpus()
                     run.cpus = total
                     done = len(sources) - len(pending)

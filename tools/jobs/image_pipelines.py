@@ -96,8 +96,9 @@ class ColorPipeline(Pipeline):
                 self.template = template_histograms(_read_image(template, cv2.IMREAD_COLOR), mask, bins)
             except ValueError as error:
                 raise UserError(f"template: {error}") from None
-        self.options = dict(lower=lower, upper=upper, weights=weights, blur_sigma=blur_sigma, level=level,
-                            min_area=min_area, max_area=max_area, max_aspect=max_aspect, min_extent=min_extent)
+        self.options: dict[str, Any] = dict(lower=lower, upper=upper, weights=weights, blur_sigma=blur_sigma,
+                                            level=level, min_area=min_area, max_area=max_area, max_aspect=max_aspect,
+                                            min_extent=min_extent)
         self.regions = 0
 
     def process(self, topic: str, msg: m.CompressedImage | m.Image, image: np.ndarray,

@@ -116,7 +116,7 @@ class RayHits(NamedTuple):
     along: np.ndarray
 
 
-def cast_rays(segments: np.ndarray, origins: np.ndarray, angles: np.ndarray,
+def cast_rays(segments: np.ndarray, origins: np.ndarray | tuple[float, float], angles: np.ndarray,
               max_range: float = np.inf) -> RayHits:
     """Intersect rays with segments, all rays x all segments at once.
 

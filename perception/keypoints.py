@@ -9,6 +9,7 @@ towards +y (clockwise on screen, as OpenCV's degrees), NaN where a detector give
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -54,7 +55,7 @@ def concatenate(parts: list[Keypoints]) -> Keypoints:
                        for name in ("xy", "size", "angle", "response", "octave")))
 
 
-def from_cv(keypoints: list[cv2.KeyPoint] | tuple[cv2.KeyPoint, ...]) -> Keypoints:
+def from_cv(keypoints: Sequence[cv2.KeyPoint]) -> Keypoints:
     """Convert OpenCV keypoints (angle in degrees, -1 for none)."""
     if not keypoints:
         return make_keypoints(np.empty((0, 2)), 0.0)

@@ -10,7 +10,7 @@ import math
 import os
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -56,6 +56,8 @@ def driver_diagnostics(log: Path) -> dict[str, dict[str, Any]]:
     last: dict[str, m.DiagnosticStatus] = {}
     with LogReader(log) as reader:
         for item in reader.messages(topics=["/diagnostics"]):
+            if not isinstance(item.msg, m.DiagnosticArray):
+                continue
             for status in item.msg.status:
                 last[status.name] = status
     levels = {m.OK: "OK", m.WARN: "WARN", m.ERROR: "ERROR", m.STALE: "STALE"}
@@ -318,6 +320,8 @@ def plot_run(grid: m.OccupancyGrid, path: Path, truth: np.ndarray, estimate: np.
     plot_trajectory(grid, path, [truth, odometry, estimate], colours=[TRUTH_BGR, ODOMETRY_BGR, SLAM_BGR], loops=loops,
                     landmarks=landmarks)
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise UserError(f"cannot read back {path}")
     scale = max(1.0, image.shape[1] / 1000.0)
     entries = [("ground truth (simulator)", TRUTH_BGR), ("wheel odometry", ODOMETRY_BGR), ("SLAM estimate", SLAM_BGR),
                ("loop closure", (0, 200, 0))] + ([("marker (landmark, 3 sigma)", (200, 0, 200))] if landmarks else [])
@@ -340,7 +344,8 @@ def draw_detections(log: Path, score: MarkerScore, frames: Trajectory, world: Wo
         return None
     camera = camera_from_info(score.camera_info)
     with LogReader(log) as reader:
-        msg = next(i.msg for i in reader.messages(topics=[IMAGE_TOPIC]) if i.msg.stamp_ns == score.best_stamp_ns)
+        images = (cast(m.CompressedImage | m.Image, i.msg) for i in reader.messages(topics=[IMAGE_TOPIC]))
+        msg = next(image for image in images if image.stamp_ns == score.best_stamp_ns)
     image = decode_image(msg)
     image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
     base, _ = poses_at(frames, np.array([msg.stamp_ns]), tolerance_ns=0)

@@ -208,8 +208,10 @@ def score_markers(log: Path, frames: Trajectory, world: World, mount: Mount,
                 score.camera_info = msg
                 renderer = CameraRenderer(world, camera_from_info(msg))
                 continue
+            if not isinstance(msg, (m.CompressedImage, m.Image)):
+                continue
             base, found = poses_at(frames, np.array([msg.stamp_ns]), tolerance_ns=0)
-            if renderer is None or not found[0]:
+            if renderer is None or score.camera_info is None or not found[0]:
                 score.unmatched += 1
                 continue
             score.frames += 1

@@ -10,7 +10,7 @@ import csv
 import io
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -20,6 +20,8 @@ from trundle.logs.paths import output_folder, read_text
 from trundle.logs.reader import LogReader
 from trundle.tools.jobs.sensor_figures import characterize_camera, characterize_encoders, characterize_laser
 from trundle.tools.jobs.sensor_report import markdown, write_plots
+
+Characterized = m.LaserScan | m.JointState | m.CompressedImage | m.Image  # the sensors characterize knows
 
 
 def read_reference(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -76,19 +78,21 @@ def characterize_log(log: str | Path, topic: str, output: Path | None = None, re
     info = reader.info()
     if topic not in info.topics:
         raise UserError(f"topic {topic} is not in {log} (topics: {', '.join(sorted(info.topics))})")
-    msgs = [x.msg for x in reader.messages([topic])]
+    # a topic carries one message type, the first one's; other types are refused below
+    msgs = cast(list[Characterized], [x.msg for x in reader.messages([topic])])
     if len(msgs) < 3:
         raise UserError(f"topic {topic} has {len(msgs)} decodable messages; at least 3 are needed")
+    truth: tuple[np.ndarray, np.ndarray] | None
     if isinstance(reference, (int, float)):
         truth = constant_reference(np.array([x.stamp_ns for x in msgs], np.int64), reference)
     else:
         truth = read_reference(reference) if reference else None
     first = msgs[0]
     if isinstance(first, m.LaserScan):
-        figures, plots = characterize_laser(msgs, reader, truth, stated_min, stated_max, bits,  # type: ignore[arg-type]
-                                            min_still_s, beam)
+        figures, plots = characterize_laser(cast(list[m.LaserScan], msgs), reader, truth, stated_min, stated_max,
+                                            bits, min_still_s, beam)
     elif isinstance(first, m.JointState):
-        figures, plots = characterize_encoders(msgs)  # type: ignore[arg-type]
+        figures, plots = characterize_encoders(cast(list[m.JointState], msgs))
     elif isinstance(first, (m.CompressedImage, m.Image)):
         figures, plots = characterize_camera(np.array([x.stamp_ns for x in msgs], np.int64))
     else:

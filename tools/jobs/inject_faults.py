@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -42,7 +42,8 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
     if not topics:
         raise UserError(f"{log} has no odometry (nav_msgs/Odometry or sensor_msgs/JointState topic)")
     raw = [r for r in reader.raw_messages(topics=topics) if r.data]
-    decoded = [(r, ros2.decode(r.ros_type, r.data)) for r in raw]
+    # the two types asked for: nav_msgs/Odometry and sensor_msgs/JointState
+    decoded = [(r, cast(m.Odometry | m.JointState, ros2.decode(r.ros_type, r.data))) for r in raw]
     start_ns = min(msg.stamp_ns for _, msg in decoded)
     wheels = make_odometry(info, config) if JOINT_STATE_TYPE in topics.values() else None
     replacements: dict[Key, bytes | None] = {}
@@ -50,12 +51,14 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
     for topic, ros_type in sorted(topics.items()):
         items = [(r, msg) for r, msg in decoded if r.topic == topic]
         times = np.array([(msg.stamp_ns - start_ns) * 1e-9 for _, msg in items])
+        new: list[m.Odometry] | list[m.JointState]
         if ros_type == ODOMETRY_TYPE:
-            new = _odometry(items, times, faults)
+            new = _odometry([(r, msg) for r, msg in items if isinstance(msg, m.Odometry)], times, faults)
         else:
             assert wheels is not None
-            new = _joint_states(items, times, faults, wheels.left, wheels.right,
-                                0.5 * (wheels.left_radius_m + wheels.right_radius_m), wheels.track_m)
+            new = _joint_states([(r, msg) for r, msg in items if isinstance(msg, m.JointState)], times, faults,
+                                wheels.left, wheels.right, 0.5 * (wheels.left_radius_m + wheels.right_radius_m),
+                                wheels.track_m)
         lost = dropped(times, faults)
         for (r, _), msg, gone in zip(items, new, lost, strict=True):
             replacements[(topic, r.log_time_ns, r.data)] = None if gone else ros2.encode(msg)[1]

@@ -82,7 +82,8 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
     wanted = {camera_info_topic(t) for t in topics} | ({camera_info} if camera_info else set())
     info_topics = sorted(t for t in wanted if t in info.topics and info.topics[t].ros_type == CAMERA_INFO_TYPE)
     cameras: dict[str, m.CameraInfo] = {}
-    frames, corrupt, per_frame = 0, collections.Counter(), []
+    frames, per_frame = 0, []
+    corrupt: collections.Counter[str] = collections.Counter()
     bar = progress("perceive", sum(info.topics[t].count for t in topics))
     metadata = {"perceive": json.dumps(dict(provenance or {}), default=str)}
     with Logger(output, salvage=False, metadata=metadata) as logger:
@@ -104,6 +105,8 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
                 if isinstance(msg, m.CameraInfo):
                     cameras[raw.topic] = msg
                     continue
+                if not isinstance(msg, (m.CompressedImage, m.Image)):
+                    raise TypeError(f"{type(msg).__name__} is not an image")
                 image = decode_image(msg)
             except Exception as error:  # a corrupt message or image is counted and skipped, never fatal
                 corrupt[f"{raw.topic}: {type(error).__name__}: {error}"[:160]] += 1

@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test soak bench install clean
+.PHONY: demo lint test soak bench install clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,7 +17,16 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/trundle demo
 
-test: $(STAMP)
+# mypy resolves `trundle.*` imports through a folder holding a `trundle` link to the repository root
+# (the root is the package; see [tool.mypy] in pyproject.toml).
+LINT_ROOT := $(VENV)/lint-root
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	mkdir -p $(LINT_ROOT) && ln -sfn ../.. $(LINT_ROOT)/trundle
+	cd $(LINT_ROOT) && ../bin/mypy --config-file ../../pyproject.toml
+
+test: lint
 	$(BIN)/python -m pytest -q -m "not slow" -n 2 --dist loadfile
 
 soak: $(STAMP)

@@ -31,9 +31,10 @@ import os
 import stat
 import threading
 import time
+from collections.abc import Callable, Mapping
 from functools import partial
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any
 
 import cv2
 import numpy as np
@@ -62,7 +63,8 @@ def static_transforms(config: CameraConfig, stamp_ns: int) -> m.TFMessage:
     """parent_frame -> frame_id from ``config.transform`` and frame_id -> optical_frame_id."""
     x, y, z, roll, pitch, yaw = config.transform
     mount = rpy_transform(stamp_ns, config.parent_frame, config.frame_id, (x, y, z), (roll, pitch, yaw))
-    optical = m.TransformStamped(stamp_ns, config.frame_id, config.optical_frame_id, (0.0, 0.0, 0.0), OPTICAL_ROTATION)
+    optical = m.TransformStamped(stamp_ns, config.frame_id, config.optical_frame_id, np.zeros(3),
+                                 np.array(OPTICAL_ROTATION))
     return m.TFMessage((mount, optical))
 
 
@@ -99,7 +101,7 @@ class CameraDriver(Driver):
         self.camera_info = camera_info or uncalibrated_camera_info(config.width, config.height,
                                                                    config.optical_frame_id, stamp)
         self._info_topic = f"{config.topic_prefix}/camera_info"
-        self._static = [(TF_STATIC_TOPIC, static_transforms(config, stamp))]
+        self._static: list[tuple[str, m.Message]] = [(TF_STATIC_TOPIC, static_transforms(config, stamp))]
         if self.camera_info.width:  # else the first frame tells the size (never a 0x0 CameraInfo)
             self._static.insert(0, (self._info_topic, self.camera_info))
         self._checker = JpegChecker(config.decode_check_every)
@@ -173,7 +175,7 @@ class CameraDriver(Driver):
         self.counters["frames"] += 1
         self._recent.append(frame.t_ns)
 
-    def _message(self, frame: Frame, stamp_ns: int) -> m.Message | None:
+    def _message(self, frame: Frame, stamp_ns: int) -> m.CompressedImage | m.Image | None:
         """The message for a frame, or None (reason in ``last_corrupt``) for a damaged one."""
         frame_id = self.config.optical_frame_id
         if frame.jpeg:
@@ -279,13 +281,16 @@ def _source_factory(config: CameraConfig, unsupported: set[str]) -> tuple[Callab
                           unsupported=unsupported, stale_timeout_s=config.stall_timeout_s)
         return factory, (config.width, config.height)
     if config.scheme == "file":
-        path = Path(config.target).expanduser()
-        if not path.exists():
-            raise UserError(f"camera file not found: {path}")
-        size = _file_size(path)
-        kind = ImageFolderSource if path.is_dir() else VideoFileSource
-        return partial(kind, path, fps=config.fps or None, pace=config.pace, loop=config.loop), size
-    return partial(MjpegStreamSource, config.target, timeout_s=2 * config.stall_timeout_s), (config.width, config.height)
+        file = Path(config.target).expanduser()
+        if not file.exists():
+            raise UserError(f"camera file not found: {file}")
+        size = _file_size(file)
+        kind = ImageFolderSource if file.is_dir() else VideoFileSource
+        return partial(kind, file, fps=config.fps or None, pace=config.pace, loop=config.loop), size
+    return partial(MjpegStreamSource, config.target, timeout_s=2 * config.stall_timeout_s), (
+        config.width,
+        config.height,
+    )
 
 
 def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any] | None = None) -> CameraDriver:

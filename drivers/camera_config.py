@@ -12,7 +12,8 @@ option is the user's mistake: ``ConfigError`` with one line naming it.
 from __future__ import annotations
 
 import urllib.parse
-from typing import Annotated, Any, Literal, Mapping
+from collections.abc import Mapping
+from typing import Annotated, Any, Literal
 
 from pydantic import BeforeValidator, Field, field_validator, model_validator
 

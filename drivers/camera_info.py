@@ -17,7 +17,8 @@ ROS ``camera_info_manager`` does, so viewers still learn the image size.
 from __future__ import annotations
 
 import os
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 from ruamel.yaml import YAML, YAMLError
@@ -47,7 +48,9 @@ def _matrix(data: Mapping[str, Any], key: str, rows: int, cols: int | None, wher
     return array.reshape(rows, -1)
 
 
-def camera_info_from_calibration(data: Any, frame_id: str, stamp_ns: int = 0, where: str = "calibration") -> m.CameraInfo:
+def camera_info_from_calibration(
+    data: Any, frame_id: str, stamp_ns: int = 0, where: str = "calibration"
+) -> m.CameraInfo:
     """CameraInfo from the parsed YAML mapping; ``UserError`` naming the bad entry otherwise."""
     if not isinstance(data, Mapping):
         raise UserError(f"{where}: not a camera_calibration YAML mapping")
@@ -57,7 +60,11 @@ def camera_info_from_calibration(data: Any, frame_id: str, stamp_ns: int = 0, wh
     k = _matrix(data, "camera_matrix", 3, 3, where)
     d = _matrix(data, "distortion_coefficients", 1, None, where).reshape(-1)
     r = _matrix(data, "rectification_matrix", 3, 3, where) if "rectification_matrix" in data else np.eye(3)
-    p = _matrix(data, "projection_matrix", 3, 4, where) if "projection_matrix" in data else np.hstack([k, np.zeros((3, 1))])
+    p = (
+        _matrix(data, "projection_matrix", 3, 4, where)
+        if "projection_matrix" in data
+        else np.hstack([k, np.zeros((3, 1))])
+    )
     model = data.get("distortion_model", "plumb_bob")
     if not isinstance(model, str):
         raise UserError(f"{where}: distortion_model must be a name such as plumb_bob")

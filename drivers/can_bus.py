@@ -24,11 +24,13 @@ default for socketcan) that stamp is the frame's ``stamp_ns``; the host stamp is
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
 import can
@@ -136,7 +138,7 @@ class CanBus:
     # -- life cycle ----------------------------------------------------------------------------
     def open(self) -> None:
         spec = self.spec
-        kwargs: dict[str, object] = {}
+        kwargs: dict[str, Any] = {}
         if spec.interface == "slcan":
             kwargs.update(bitrate=spec.bitrate, sleep_after_open=float(spec.options.get("sleep_after_open", 0)))
             if "tty_baudrate" in spec.options:
@@ -147,7 +149,7 @@ class CanBus:
             kwargs["bitrate"] = spec.bitrate
         try:
             if spec.interface == "slcan" and spec.options.get("reader", "lines") == "lines":
-                self.bus = SlcanBus(spec.channel, **kwargs)  # type: ignore[arg-type]
+                self.bus = SlcanBus(spec.channel, **kwargs)
             else:
                 self.bus = can.Bus(interface=spec.interface, channel=spec.channel, **kwargs)
         except (can.CanError, OSError, ValueError) as error:
@@ -160,10 +162,9 @@ class CanBus:
         bus, self.bus = self.bus, None
         self.state = "closed"
         if bus is not None:
-            try:
+            # an unplugged slcan adapter fails its closing "C"; the port is released anyway
+            with contextlib.suppress(can.CanError, OSError, ValueError):
                 bus.shutdown()
-            except (can.CanError, OSError, ValueError):
-                pass  # an unplugged slcan adapter fails its closing "C"; the port is released anyway
 
     def host_ns(self) -> int:
         """Now on the session's clock: monotonic time mapped to wall time at open."""
@@ -232,7 +233,8 @@ class CanBus:
             self.state = "bus-off"
             self._slcan_restart()
         else:
-            self.state = "passive" if flags & SLCAN_ERROR_PASSIVE else "warning" if flags & SLCAN_ERROR_WARNING else "active"
+            self.state = ("passive" if flags & SLCAN_ERROR_PASSIVE else "warning" if flags & SLCAN_ERROR_WARNING
+                          else "active")
 
     def slcan_status(self, timeout_s: float = 0.1) -> int | None:
         """The adapter's ``F`` status flags, or None if it does not answer (or is read by

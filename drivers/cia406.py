@@ -11,6 +11,7 @@ rate-limited); its boot-up heartbeat triggers the configuration again.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import struct
@@ -39,7 +40,7 @@ _SIGNED = {INTEGER8, INTEGER16, INTEGER32, INTEGER64}
 log = logging.getLogger(__name__)
 
 
-def decode_heartbeat(data: bytes) -> int:
+def decode_heartbeat(data: bytes | bytearray) -> int:
     """NMT state of a heartbeat (0 boot-up, 4 stopped, 5 operational, 127 pre-operational);
     the toggle bit (node guarding) is masked off."""
     if len(data) < 1:
@@ -50,7 +51,7 @@ def decode_heartbeat(data: bytes) -> int:
     return state
 
 
-def decode_emcy(data: bytes) -> tuple[int, int]:
+def decode_emcy(data: bytes | bytearray) -> tuple[int, int]:
     """``(error code, error register)`` of an emergency frame."""
     if len(data) < 3:
         raise ValueError(f"CANopen EMCY needs 3 bytes, got {len(data)}")
@@ -65,7 +66,7 @@ class PositionLayout:
     size: int = 4
     signed: bool = False
 
-    def decode(self, data: bytes) -> int:
+    def decode(self, data: bytes | bytearray) -> int:
         end = self.offset + self.size
         if len(data) < end:
             raise ValueError(f"TPDO of {len(data)} bytes too short for the position at bytes {self.offset}..{end - 1}")
@@ -119,7 +120,7 @@ class Cia406Encoders(EncoderProtocol):
         self.tpdo_period_ms, self.heartbeat_ms = int(tpdo_period_ms), int(heartbeat_ms)
         self.sdo_timeout_s, self.sdo_retries = float(sdo_timeout_s), int(sdo_retries)
         self.reset_period_ns = int(reset_period_s * 1e9)
-        self.nodes = {n: _Node(n, w) for n, w in zip(node_ids, wheels)}
+        self.nodes = {n: _Node(n, w) for n, w in zip(node_ids, wheels, strict=True)}
         self._by_cob: dict[int, _Node] = {}  # heartbeat, EMCY and SDO response COB-IDs
         self._tpdo: dict[int, _Node] = {}  # position TPDO COB-IDs, known once configured
         self.heartbeats = HeartbeatWatchdog(heartbeat_timeout_factor * heartbeat_ms / 1000.0)
@@ -264,10 +265,8 @@ class Cia406Encoders(EncoderProtocol):
         pdo.event_timer = self.tpdo_period_ms
         pdo.enabled = True
         pdo.save()
-        try:
+        with contextlib.suppress(SdoAbortedError, KeyError):  # an optional object
             remote.sdo[CYCLIC_TIMER].raw = self.tpdo_period_ms
-        except (SdoAbortedError, KeyError):
-            pass  # optional object
         var = pdo.map[0]
         node.layout = PositionLayout(var.offset // 8, var.length // 8, var.od.data_type in _SIGNED)
         node.modulus = total if total > 1 else 2**32

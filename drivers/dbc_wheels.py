@@ -9,9 +9,13 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import cast
 
 import can
 import cantools
+from cantools.database.can import Database as CanDatabase
+from cantools.database.can import Message as DbcMessage
+from cantools.database.can import Signal
 from cantools.database.errors import Error as CantoolsError
 
 from trundle.drivers.can_bus import CanBus
@@ -42,20 +46,25 @@ class DbcWheels(EncoderProtocol):
         super().__init__(wheels)
         if len(signals) != len(wheels):
             raise ValueError("one position signal per wheel")
+        if velocity_signals and len(velocity_signals) != len(wheels):
+            raise ValueError("one velocity signal per wheel")
         try:
-            self.db = cantools.database.load_file(str(dbc), strict=False)
+            db = cantools.database.load_file(str(dbc), strict=False)
         except (OSError, CantoolsError, ValueError) as error:
             raise ValueError(f"cannot read {dbc}: {error}") from None
+        if not isinstance(db, CanDatabase):
+            raise ValueError(f"cannot read {dbc}: a diagnostics database, not a CAN one")
+        self.db = db
         n = len(wheels)
         units = per_wheel(units_per_rev, n, "units_per_rev")
         vscale = per_wheel(velocity_scale, n, "velocity_scale")
         if any(u <= 0 for u in units):
             raise ValueError("units_per_rev must be positive")
         # frame id -> (message, [(wheel, signal, is position)])
-        self._routes: dict[tuple[int, bool], tuple[object, list[tuple[int, object, bool]]]] = {}
+        self._routes: dict[tuple[int, bool], tuple[DbcMessage, list[tuple[int, Signal, bool]]]] = {}
         self._modulus: dict[int, int | None] = {}
         self._scale: dict[int, float] = {}
-        for wheel, name, unit in zip(wheels, signals, units):
+        for wheel, name, unit in zip(wheels, signals, units, strict=True):
             message, signal = self._add_route(name, wheel, True)
             if signal.is_float:
                 self._modulus[wheel], self._scale[wheel] = None, 1.0
@@ -63,13 +72,13 @@ class DbcWheels(EncoderProtocol):
             else:
                 self._modulus[wheel], self._scale[wheel] = 2**signal.length, float(signal.scale)
                 self.counts_per_rev[wheel] = unit / float(signal.scale)
-        self._velocity_scale = dict(zip(wheels, vscale))
-        for wheel, name in zip(wheels, velocity_signals or []):
+        self._velocity_scale = dict(zip(wheels, vscale, strict=True))
+        for wheel, name in zip(wheels, velocity_signals or [], strict=False):  # none: no speed routes
             self._add_route(name, wheel, False)
         self.data = HeartbeatWatchdog(data_timeout_s)
         self._velocity: dict[int, float] = {}
 
-    def _add_route(self, qualified: str, wheel: int, is_position: bool):
+    def _add_route(self, qualified: str, wheel: int, is_position: bool) -> tuple[DbcMessage, Signal]:
         message_name, dot, signal_name = str(qualified).rpartition(".")
         if not dot:
             raise ValueError(f"signal {qualified!r} must be written Message.Signal")
@@ -96,7 +105,8 @@ class DbcWheels(EncoderProtocol):
             return []
         message, targets = route
         try:
-            raw = message.decode(bytes(msg.data), decode_choices=False, scaling=False)
+            # neither choices nor scaling: every value is the signal's raw number
+            raw = cast(dict[str, int | float], message.decode(bytes(msg.data), decode_choices=False, scaling=False))
         except (CantoolsError, ValueError, KeyError, IndexError) as error:
             raise ValueError(f"{message.name}: {error}") from None
         readings = []

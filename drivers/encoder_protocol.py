@@ -11,7 +11,8 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from collections import Counter
-from typing import Hashable, NamedTuple
+from collections.abc import Hashable
+from typing import Any, NamedTuple
 
 import can
 
@@ -31,7 +32,7 @@ class WheelReading(NamedTuple):
 
 def per_wheel(value: object, n: int, what: str) -> list[float]:
     """A per-wheel setting given as one number or one number per wheel; ``ValueError`` if not."""
-    values = list(value) if isinstance(value, (list, tuple)) else [value] * n
+    values: list[Any] = list(value) if isinstance(value, (list, tuple)) else [value] * n  # float() checks each
     if len(values) != n:
         raise ValueError(f"{what} has {len(values)} values for {n} wheels")
     try:
@@ -106,10 +107,10 @@ class EncoderProtocol(ABC):
     def healthy_wheels(self, now_ns: int) -> set[int]:
         """Wheels whose node is alive and whose positions can be trusted now."""
 
-    def poll(self, now_ns: int) -> None:
+    def poll(self, now_ns: int) -> None:  # noqa: B027  an optional hook: protocols without periodic work keep it
         """Periodic work (requests, watchdog recovery); called often by the driver."""
 
-    def stop(self) -> None:
+    def stop(self) -> None:  # noqa: B027  an optional hook: protocols without a worker keep it
         """Stop any worker; the bus is closed by the driver."""
 
     def silence_hint(self, seen_ids: set[int]) -> str:

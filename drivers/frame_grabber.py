@@ -13,8 +13,8 @@ from __future__ import annotations
 import collections
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
-from typing import Callable
 
 from trundle.drivers.frame_source import EndOfStream, Frame, FrameSource
 

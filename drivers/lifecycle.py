@@ -24,7 +24,8 @@ import threading
 import time
 from abc import ABC, abstractmethod
 from collections import Counter
-from typing import Callable, Protocol
+from collections.abc import Callable
+from typing import Protocol
 
 from trundle.logs import messages as m
 from trundle.logs.errors import DeviceError

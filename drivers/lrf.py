@@ -13,7 +13,8 @@ in diagnostics, default ``lrf``). Use a stable path such as
 
 from __future__ import annotations
 
-from typing import Any, Mapping, TypeVar
+from collections.abc import Mapping
+from typing import Any, TypeVar
 from urllib.parse import parse_qsl, urlsplit
 
 from trundle.drivers.lifecycle import Driver, Sink

@@ -9,13 +9,13 @@ and read time-outs bound every call, so a silent server cannot hang the reader.
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import cv2
 
 from trundle.drivers.frame_source import CaptureSource, Frame
-from trundle.logs.errors import DeviceError
 from trundle.drivers.video_file import fourcc_text, open_ffmpeg, read_ffmpeg
+from trundle.logs.errors import DeviceError
 
 
 class MjpegStreamSource(CaptureSource):

@@ -66,7 +66,7 @@ class Heartbeat:
         return self.axis_error == 0
 
 
-def decode_heartbeat(data: bytes, firmware: str = "0.5") -> Heartbeat:
+def decode_heartbeat(data: bytes | bytearray, firmware: str = "0.5") -> Heartbeat:
     """Decode a heartbeat payload (5..8 bytes; missing flag bytes read as 0)."""
     if firmware not in FIRMWARES:
         raise ValueError(f"unknown ODrive firmware line {firmware!r} (use one of {', '.join(FIRMWARES)})")
@@ -100,7 +100,7 @@ class Version:
         return "0.5" if self.firmware[:2] <= (0, 5) else "0.6"
 
 
-def decode_version(data: bytes) -> Version:
+def decode_version(data: bytes | bytearray) -> Version:
     """Get_Version payload: u8 protocol, hw major, minor, variant, fw major, minor, revision, unreleased."""
     if len(data) < 8:
         raise ValueError(f"ODrive Get_Version needs 8 bytes, got {len(data)}")
@@ -112,7 +112,7 @@ def encode_version(version: Version) -> bytes:
     return bytes((version.protocol, *version.hardware, *version.firmware, int(version.unreleased)))
 
 
-def decode_encoder_estimates(data: bytes) -> tuple[float, float]:
+def decode_encoder_estimates(data: bytes | bytearray) -> tuple[float, float]:
     """``(position turns, velocity turns/s)`` from Get_Encoder_Estimates (0x009).
 
     Raises ``ValueError`` for a short frame or a non-finite value (a corrupt frame, never data).
@@ -129,7 +129,7 @@ def encode_encoder_estimates(pos_turns: float, vel_turns_s: float) -> bytes:
     return _TWO_F32.pack(pos_turns, vel_turns_s)
 
 
-def decode_encoder_count(data: bytes) -> tuple[int, int]:
+def decode_encoder_count(data: bytes | bytearray) -> tuple[int, int]:
     """``(shadow count, count in CPR)`` from Get_Encoder_Count (0x00A), signed 32-bit counts."""
     if len(data) < 8:
         raise ValueError(f"ODrive encoder count needs 8 bytes, got {len(data)}")
@@ -145,7 +145,7 @@ def encode_axis_state(state: int) -> bytes:
     return struct.pack("<I", state)
 
 
-def decode_axis_state(data: bytes) -> int:
+def decode_axis_state(data: bytes | bytearray) -> int:
     if len(data) < 4:
         raise ValueError(f"ODrive axis state request needs 4 bytes, got {len(data)}")
     return struct.unpack_from("<I", data)[0]
@@ -156,7 +156,7 @@ def encode_input_vel(vel_turns_s: float, torque_ff: float = 0.0) -> bytes:
     return _TWO_F32.pack(vel_turns_s, torque_ff)
 
 
-def decode_input_vel(data: bytes) -> tuple[float, float]:
+def decode_input_vel(data: bytes | bytearray) -> tuple[float, float]:
     if len(data) < 8:
         raise ValueError(f"ODrive input velocity needs 8 bytes, got {len(data)}")
     return _TWO_F32.unpack_from(data)

@@ -60,7 +60,7 @@ class OdriveEncoders(EncoderProtocol):
         self.node_ids = tuple(node_ids)
         self.firmware, self.source = firmware, source
         self.poll_period_ns = int(1e9 / poll_hz) if poll_hz > 0 else 0
-        self._wheel_of = dict(zip(self.node_ids, wheels))
+        self._wheel_of = dict(zip(self.node_ids, wheels, strict=True))
         cpr = 1.0 if source == "estimates" else float(counts_per_rev)  # type: ignore[arg-type]
         self.counts_per_rev = {w: cpr for w in wheels}
         self._cmd = odrive.GET_ENCODER_ESTIMATES if source == "estimates" else odrive.GET_ENCODER_COUNT

@@ -300,7 +300,7 @@ class Nodes:
     angle_q6: np.ndarray
     distance_q2: np.ndarray
     broken: np.ndarray
-    encoder_q6: np.ndarray | None = None
+    encoder_q6: np.ndarray = None  # type: ignore[assignment]  # None stands for angle_q6 (see __post_init__)
     lost: int = 0
 
     def __post_init__(self) -> None:
@@ -323,9 +323,10 @@ class Nodes:
             return empty
         if len(parts) == 1 and not lost:
             return parts[0]
-        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                     ("start", "quality", "angle_q6", "distance_q2", "broken", "encoder_q6")),
-                   lost + sum(p.lost for p in parts))
+        start, quality, angle, distance, broken, encoder = (
+            np.concatenate([getattr(p, f) for p in parts])
+            for f in ("start", "quality", "angle_q6", "distance_q2", "broken", "encoder_q6"))
+        return cls(start, quality, angle, distance, broken, encoder, lost + sum(p.lost for p in parts))
 
     def slice(self, a: int, b: int) -> Nodes:
         """Samples ``a`` to ``b - 1`` (no lost count)."""

@@ -20,15 +20,17 @@ from __future__ import annotations
 
 import struct
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
+from itertools import pairwise
 
 import numpy as np
 
 from trundle.drivers import rplidar as rp
 
 FULL_Q8 = 360 << 8
-UNPACK = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+Decoded = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # a decoder's four node arrays
+UNPACK = Callable[[np.ndarray, np.ndarray], Decoded]
 
 # Ultra capsules (handler_capsules.cpp): a 12-bit "major" distance in a variable bit scale,
 # the scaled value at which each scale starts, its first distance (mm) and its step (2^level).
@@ -116,7 +118,7 @@ def _wrap_q6(angle: np.ndarray) -> np.ndarray:
     return np.mod(angle, rp.FULL_CIRCLE_Q6)
 
 
-def _express(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
+def _express(rows: np.ndarray, nxt: np.ndarray) -> Decoded:
     """Express: per cabin two u16 ``distance_angle`` words (distance in bits 15..2, high bits of
     the angle offset in 1..0) and a byte of two 4-bit low offsets, Q3 degrees subtracted."""
     raw = _raw_q16(rows, nxt, 2, 32)
@@ -143,7 +145,7 @@ def ultra_offset_q6(distance_q2: np.ndarray, raw_q16: np.ndarray) -> np.ndarray:
     return _wrap_q6((raw_q16 - np.trunc(offset * 180 / 3.14159265).astype(np.int64)) >> 10)
 
 
-def _ultra(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
+def _ultra(rows: np.ndarray, nxt: np.ndarray) -> Decoded:
     """Ultra: per cabin a u32 of a 12-bit major distance and two signed 10-bit predictions; the
     first sample is the major, the second predicts from it, the third from the next cabin's."""
     n = len(rows)
@@ -163,7 +165,7 @@ def _ultra(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
     return ultra_offset_q6(dist, raw), _wrap_q6(raw >> 10), dist, np.zeros_like(dist)
 
 
-def _dense(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
+def _dense(rows: np.ndarray, nxt: np.ndarray) -> Decoded:
     """Dense: 40 u16 distances (mm) at equally spaced angles, no per-sample offset."""
     raw = _raw_q16(rows, nxt, 2, 40)
     dist = np.ascontiguousarray(rows[:, 4:]).view("<u2").astype(np.int64) << 2
@@ -171,7 +173,7 @@ def _dense(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
     return encoder, encoder, dist, np.zeros_like(dist)
 
 
-def _ultra_dense(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
+def _ultra_dense(rows: np.ndarray, nxt: np.ndarray) -> Decoded:
     """Ultra-dense: after a u32 timestamp and u16 status, 32 cabins of two u16 and a byte of two
     nibbles; each sample's 20 bits hold a 2-bit scale, the distance and an 8-bit quality."""
     n = len(rows)
@@ -181,13 +183,13 @@ def _ultra_dense(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
                   cab[..., 2] | (cab[..., 3] << 8) | ((cab[..., 4] >> 4) << 16)), axis=-1).reshape(n, 64)
     scale = v & 3
     field_ = [(v & 0xFFC) * 2, (v & 0x1FFC) * 3, (v & 0x3FFC) * 4, (v & 0x7FFC) * 5]
-    dist = np.choose(scale, [f + (b << 2) for f, b in zip(field_, ULTRA_DENSE_BASE_MM)])
+    dist = np.choose(scale, [f + (b << 2) for f, b in zip(field_, ULTRA_DENSE_BASE_MM, strict=True)])
     quality = np.choose(scale, [v >> 12, (v >> 13) << 1, (v >> 14) << 2, (v >> 15) << 3])
     encoder = _wrap_q6(raw >> 10)
     return encoder, encoder, dist, quality >> 2
 
 
-def _hq(rows: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, ...]:
+def _hq(rows: np.ndarray, nxt: np.ndarray) -> Decoded:
     """HQ: 96 nodes of u16 angle (Q14 of 90 deg), u32 distance (Q2 mm), quality and flag bytes."""
     nodes = np.ascontiguousarray(rows[:, 9:9 + 96 * 8]).reshape(len(rows), 96, 8)
     q14 = nodes[..., 0:2].copy().view("<u2")[..., 0].astype(np.int64)
@@ -294,7 +296,7 @@ class CapsuleNodeDecoder:
         parts: list[rp.Nodes] = []
         cuts = np.flatnonzero(broken).tolist()
         bounds = sorted({0, *cuts, len(rows)})
-        for a, b in zip(bounds[:-1], bounds[1:]):
+        for a, b in pairwise(bounds):
             if broken[a]:
                 lost += fmt.samples * len(self._held)
                 self._held = self._held[:0]
@@ -331,7 +333,9 @@ def _start(start_angle_q6: int, new_scan: bool) -> bytes:
     return struct.pack("<H", (start_angle_q6 & 0x7FFF) | (0x8000 if new_scan else 0))
 
 
-def encode_capsule(start_angle_q6: int, distance_q2: np.ndarray, dtheta_q3: np.ndarray, new_scan: bool = False) -> bytes:
+def encode_capsule(
+    start_angle_q6: int, distance_q2: np.ndarray, dtheta_q3: np.ndarray, new_scan: bool = False
+) -> bytes:
     """An express capsule: 32 distances (1/4 mm, multiples of 4) with their angle offsets (1/8
     deg, 0..63), after a start angle in 1/64 deg."""
     dist = np.asarray(distance_q2, np.int64).reshape(16, 2)

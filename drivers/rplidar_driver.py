@@ -18,8 +18,9 @@ import math
 import struct
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Annotated, Callable
+from typing import Annotated
 
 import numpy as np
 import serial
@@ -32,8 +33,8 @@ from trundle.drivers.lifecycle import Backoff, Driver, Sink, wall_ns
 from trundle.drivers.serial_link import STREAM_BATCH_S, SerialLink, set_modem_line
 from trundle.logs import messages as m
 from trundle.logs.errors import DeviceError
-from trundle.logs.topics import SCAN_TOPIC, TF_STATIC_TOPIC
 from trundle.logs.schema import Name, Schema
+from trundle.logs.topics import SCAN_TOPIC, TF_STATIC_TOPIC
 
 
 @dataclass(frozen=True)
@@ -397,17 +398,17 @@ class RplidarDriver(Driver):
 
     def _check_health(self) -> None:
         for attempt in range(2):
-            self.health = self._health()
-            if self.health.status == rp.HEALTH_WARNING:
+            self.health = health = self._health()
+            if health.status == rp.HEALTH_WARNING:
                 self.counters["health_warnings"] += 1
-            if self.health.status != rp.HEALTH_ERROR:
+            if health.status != rp.HEALTH_ERROR:
                 return
             if attempt == 0:
                 self.counters["health_resets"] += 1
                 self._send(rp.RESET)
                 time.sleep(0.02)
                 self._flush(quiet_s=0.05)  # the device prints a text banner after a reset
-        raise DeviceError(f"RPLIDAR hardware fault: health error code {self.health.error_code:#06x} after RESET")
+        raise DeviceError(f"RPLIDAR hardware fault: health error code {health.error_code:#06x} after RESET")
 
     def _conf(self, entry: int, mode: int | None = None) -> bytes:
         """One GET_LIDAR_CONF entry's value."""
@@ -576,7 +577,7 @@ class RplidarDriver(Driver):
         before = self._decoder_stats()
         bad_before = self.counters["corrupt_revolutions"] + self.counters["incomplete_revolutions"]
         nodes = decoder.feed(data)
-        bad, resyncs, skipped = (a - b for a, b in zip(self._decoder_stats(), before))
+        bad, resyncs, skipped = (a - b for a, b in zip(self._decoder_stats(), before, strict=True))
         self.counters["bad_capsules" if isinstance(decoder, rc.CapsuleNodeDecoder) else "bad_nodes"] += bad
         self.counters["resyncs"] += resyncs
         self.counters["skipped_bytes"] += skipped

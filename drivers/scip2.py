@@ -9,8 +9,8 @@ stripped of their sums before the payload is decoded (Hokuyo SCIP 2.0 specificat
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -415,7 +415,7 @@ class ScipFramer:
 
     def _find(self, prefix: bytes, start: int) -> tuple[int, bytes]:
         best, which = -1, b""
-        for echo, head in zip(self._echoes, self._heads[prefix]):
+        for echo, head in zip(self._echoes, self._heads[prefix], strict=True):
             pos = self._buf.find(head, start)
             if pos >= 0 and (best < 0 or pos < best):
                 best, which = pos, echo

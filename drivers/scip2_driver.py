@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Annotated, Callable
+from functools import partial
+from typing import Annotated
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -26,8 +28,8 @@ from trundle.drivers.sensor_clock import SensorClock
 from trundle.drivers.serial_link import STREAM_BATCH_S, SerialLink
 from trundle.logs import messages as m
 from trundle.logs.errors import DeviceError
-from trundle.logs.topics import SCAN_TIMING_TOPIC, SCAN_TOPIC, TF_STATIC_TOPIC
 from trundle.logs.schema import Name, Schema
+from trundle.logs.topics import SCAN_TIMING_TOPIC, SCAN_TOPIC, TF_STATIC_TOPIC
 
 ABNORMAL = {"0L"} | {f"{n:02d}" for n in range(21, 98)}  # stop, reboot with RB (notes 1.6.5)
 RESUMED = "98"
@@ -136,12 +138,12 @@ class ScipScanStream:
         rear_step = p.afrt - p.ares / 2.0
         self.first_beam_ns = int(round((ms.start - rear_step) / p.ares * self.period_ns))
         cluster = max(ms.cluster, 1)
-        self.template = dict(frame_id=self.frame_id, angle_min=float(p.step_angle(ms.start)),
-                             angle_max=float(p.step_angle(ms.start + (ms.beams - 1) * cluster)),
-                             angle_increment=2.0 * np.pi * cluster / p.ares,
-                             time_increment=cluster * p.scan_period_s / p.ares,
-                             scan_time=p.scan_period_s * (ms.skip + 1),
-                             range_min=p.dmin / 1000.0, range_max=p.dmax / 1000.0)
+        self.scan = partial(m.LaserScan, frame_id=self.frame_id, angle_min=float(p.step_angle(ms.start)),
+                            angle_max=float(p.step_angle(ms.start + (ms.beams - 1) * cluster)),
+                            angle_increment=2.0 * np.pi * cluster / p.ares,
+                            time_increment=cluster * p.scan_period_s / p.ares,
+                            scan_time=p.scan_period_s * (ms.skip + 1),
+                            range_min=p.dmin / 1000.0, range_max=p.dmax / 1000.0)
         self._last_ts: int | None = None
         self._unreadable = 0
 
@@ -205,7 +207,7 @@ class ScipScanStream:
         self.counters["scans"] += 1
         stamp = self.clock.host_ns(timing.unwrapped) + self.first_beam_ns
         intensities = intensity.astype(np.float32) if intensity is not None else np.zeros(0, np.float32)
-        return m.LaserScan(stamp, ranges=self.ranges(distances), intensities=intensities, **self.template), timing
+        return self.scan(stamp, ranges=self.ranges(distances), intensities=intensities), timing
 
     def _timestamp(self, reply: Reply, host_rx_ns: int) -> Timing | None:
         """Read the timestamp line, feed the clock, account for scans that never came."""
@@ -220,7 +222,9 @@ class ScipScanStream:
             return None
         reading = self.clock.update(raw, host_rx_ns)
         if reading.event:
-            self.counters[{"wrap": "clock_wraps", "reset": "clock_resets", "resync": "clock_resyncs"}[reading.event]] += 1
+            self.counters[
+                {"wrap": "clock_wraps", "reset": "clock_resets", "resync": "clock_resyncs"}[reading.event]
+            ] += 1
         if reading.event == "reset" and self.hold_after_reset:
             self.unsynced = True
         if self._last_ts is not None and reading.event != "reset":
@@ -365,7 +369,9 @@ class ScipDriver(Driver):
         first = self._status(self._request(b"RB\n"))
         second = self._status(self._request(b"RB\n"))
         self.counters["reboots"] += 1
-        raise DeviceError(f"sensor in abnormal state (status {status}); rebooted it with RB (replies {first}, {second})")
+        raise DeviceError(
+            f"sensor in abnormal state (status {status}); rebooted it with RB (replies {first}, {second})"
+        )
 
     def _sync_clock(self) -> None:
         """TM0, N x TM1 round trips (median offset), TM2; without TM, anchor on the first scan."""

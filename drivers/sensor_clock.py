@@ -10,8 +10,8 @@ the slope of receive latency against device time (urg_stamped models 50 ppm).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -107,7 +107,7 @@ class SensorClock:
         for _, raw, _ in samples[1:]:
             unwrapped.append(unwrapped[-1] + (((raw & self.mask) - unwrapped[-1]) & self.mask))
         mids = np.array([(req + rep) / 2.0 - u * self.tick_ns - self.tick_ns / 2.0
-                         for (req, _, rep), u in zip(samples, unwrapped)])
+                         for (req, _, rep), u in zip(samples, unwrapped, strict=True)])
         rtt = np.array([rep - req for req, _, rep in samples])
         mids = mids[rtt <= np.median(rtt)]
         self._restart(samples[-1][1] & self.mask, samples[-1][2])

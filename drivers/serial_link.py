@@ -12,12 +12,13 @@ sends last words (stop streaming, stop the motor) and never raises.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import select
 import termios
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import serial
 
@@ -112,7 +113,7 @@ class SerialLink:
                 quiet_since = time.monotonic()
         return dropped
 
-    def close(self, farewell: Callable[[serial.SerialBase], None] | None = None) -> None:
+    def close(self, farewell: Callable[[serial.SerialBase], object] | None = None) -> None:
         """Let ``farewell`` write to the port if it is still open, then close; never raises."""
         try:
             if farewell is not None and self.port.is_open:
@@ -120,10 +121,8 @@ class SerialLink:
                 self.port.flush()
         except (OSError, serial.SerialException, ValueError, termios.error):  # tcdrain on a line that died: EIO
             pass
-        try:
+        with contextlib.suppress(OSError, serial.SerialException, termios.error):
             self.port.close()
-        except (OSError, serial.SerialException, termios.error):
-            pass
 
 
 def set_modem_line(port: serial.SerialBase, name: str, value: bool) -> bool:

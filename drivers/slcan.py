@@ -39,7 +39,8 @@ def format_frame(msg: can.Message, stamp_ms: int | None = None) -> bytes:
     """The SLCAN line (with CR) for ``msg``: what a host transmits, or with ``stamp_ms`` (ms) what
     an adapter with time stamps on sends for a received frame."""
     if msg.is_remote_frame:
-        line = (f"R{msg.arbitration_id:08X}{msg.dlc:d}" if msg.is_extended_id else f"r{msg.arbitration_id:03X}{msg.dlc:d}")
+        line = (f"R{msg.arbitration_id:08X}{msg.dlc:d}" if msg.is_extended_id
+                else f"r{msg.arbitration_id:03X}{msg.dlc:d}")
     else:
         head = f"T{msg.arbitration_id:08X}" if msg.is_extended_id else f"t{msg.arbitration_id:03X}"
         line = f"{head}{len(msg.data):d}{bytes(msg.data).hex().upper()}"
@@ -128,7 +129,7 @@ class SlcanBus(can.BusABC):
     def read_line(self, timeout_s: float | None) -> bytes | None:
         """The next line the adapter sent (without its CR or BEL), or None once ``timeout_s`` (s;
         None waits for ever) passed. Reads every byte the port holds at once."""
-        deadline = serial.Timeout(timeout_s)
+        deadline = serial.Timeout(timeout_s)  # type: ignore[arg-type]  # pyserial's Timeout takes None: no deadline
         while not self._lines:
             try:
                 chunk = self.port.read(self.port.in_waiting or 1)
@@ -145,7 +146,7 @@ class SlcanBus(can.BusABC):
 
     # -- python-can's bus interface ------------------------------------------------------------
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        deadline = serial.Timeout(timeout)
+        deadline = serial.Timeout(timeout)  # type: ignore[arg-type]  # pyserial's Timeout takes None: no deadline
         while True:
             line = self.read_line(deadline.time_left())
             if line is None:

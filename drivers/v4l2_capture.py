@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from typing import Callable, Mapping
+from collections.abc import Callable, Mapping
 
 import cv2
 import numpy as np
@@ -135,7 +135,9 @@ class V4L2Source(CaptureSource):
             raise DeviceError(f"{self.path}: {error}") from None
         if not cap.isOpened():
             cap.release()
-            raise DeviceError(f"{self.path}: cannot open as a V4L2 camera (busy, no permission or not a capture device)")
+            raise DeviceError(
+                f"{self.path}: cannot open as a V4L2 camera (busy, no permission or not a capture device)"
+            )
         try:
             self._configure(cap)
         except cv2.error as error:
@@ -147,7 +149,7 @@ class V4L2Source(CaptureSource):
 
     def _configure(self, cap: cv2.VideoCapture) -> None:
         if self.fourcc:
-            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*self.fourcc))
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*self.fourcc))
         if self.width and self.height:  # the size is applied once both are set
             cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
             cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
@@ -157,10 +159,14 @@ class V4L2Source(CaptureSource):
         fourcc = fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
         self._raw = fourcc in JPEG_FOURCCS and bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0))
         self._settings = {
-            "device": os.path.realpath(self.path), "fourcc": fourcc,
-            "width": str(int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))), "height": str(int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))),
-            "fps": f"{cap.get(cv2.CAP_PROP_FPS):g}", "buffers": str(int(cap.get(cv2.CAP_PROP_BUFFERSIZE))),
-            "pass_through": str(self._raw).lower()}
+            "device": os.path.realpath(self.path),
+            "fourcc": fourcc,
+            "width": str(int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))),
+            "height": str(int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))),
+            "fps": f"{cap.get(cv2.CAP_PROP_FPS):g}",
+            "buffers": str(int(cap.get(cv2.CAP_PROP_BUFFERSIZE))),
+            "pass_through": str(self._raw).lower(),
+        }
         if self.fourcc and fourcc != self.fourcc:
             log.warning("%s: asked for %s, the device delivers %s", self.path, self.fourcc, fourcc or "?")
         for name, value in apply_controls(cap, self.controls, self.unsupported).items():

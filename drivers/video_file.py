@@ -16,9 +16,9 @@ while streaming is a lost device (``DeviceError``), as an unplugged camera is.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -154,10 +154,14 @@ class VideoFileSource(CaptureSource, _PacedFile):
         cap = self._cap
         native_fps = cap.get(cv2.CAP_PROP_FPS)
         self._settings = {
-            "width": str(int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))), "height": str(int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))),
-            "fps": f"{self.fps or native_fps:g}", "file_fps": f"{native_fps:g}",
-            "fourcc": fourcc_text(cap.get(cv2.CAP_PROP_FOURCC)), "pass_through": str(self._raw).lower(),
-            "frames": str(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)))}
+            "width": str(int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))),
+            "height": str(int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))),
+            "fps": f"{self.fps or native_fps:g}",
+            "file_fps": f"{native_fps:g}",
+            "fourcc": fourcc_text(cap.get(cv2.CAP_PROP_FOURCC)),
+            "pass_through": str(self._raw).lower(),
+            "frames": str(int(cap.get(cv2.CAP_PROP_FRAME_COUNT))),
+        }
 
     def read(self) -> Frame:
         self._check_present()

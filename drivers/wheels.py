@@ -264,7 +264,7 @@ class WheelsDriver(Driver):
         if np.isfinite(positions).all():
             self.counters["wheel_readings"] += 1
         self._emit(m.JointState(stamp_ns, "base_link", self.names, positions,
-                                velocities if np.isfinite(velocities).any() else ()), log_ns)
+                                velocities if np.isfinite(velocities).any() else np.empty(0)), log_ns)
 
     def _publish_stale(self, lost: set[int], now_ns: int) -> None:
         positions = self._position.copy()
@@ -354,7 +354,8 @@ def driver_from_url(url: str, sink: Sink, config: Mapping[str, Any]) -> WheelsDr
     gear = _per_wheel(options.gear_ratio, "gear_ratio", n)
     if any(g <= 0 for g in gear):
         raise ConfigError(f"can.gear_ratio = {options.gear_ratio!r}: expected numbers > 0")
-    counts = _per_wheel(options.counts_per_rev, "counts_per_rev", n) if options.counts_per_rev is not None else [0.0] * n
+    counts = ([0.0] * n if options.counts_per_rev is None
+              else _per_wheel(options.counts_per_rev, "counts_per_rev", n))
     if any(c < 0 for c in counts):
         raise ConfigError(f"can.counts_per_rev = {options.counts_per_rev!r}: expected numbers >= 0 (0: the device's)")
     return WheelsDriver(CanBus(spec), protocols, sink, names=names, direction=direction, gear_ratio=gear,

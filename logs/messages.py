@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -43,7 +43,7 @@ def _eq(a: object, b: object) -> bool:
             return bool(np.array_equal(a, b, equal_nan=True))
         return bool(np.array_equal(a, b))
     if isinstance(a, tuple) and isinstance(b, tuple):
-        return len(a) == len(b) and all(_eq(x, y) for x, y in zip(a, b))
+        return len(a) == len(b) and all(_eq(x, y) for x, y in zip(a, b, strict=True))
     return a == b
 
 
@@ -51,6 +51,7 @@ class Message:
     """Base of every message: value equality over fields, arrays compared by value."""
 
     __slots__ = ()
+    __dataclass_fields__: ClassVar[dict[str, Any]]  # every message is a dataclass
 
     def __eq__(self, other: object) -> bool:
         if type(self) is not type(other):
@@ -87,7 +88,7 @@ class LaserScan(Message):
     def __post_init__(self) -> None:
         scalars = np.array([self.angle_min, self.angle_max, self.angle_increment, self.time_increment,
                             self.scan_time, self.range_min, self.range_max], np.float32).tolist()
-        for name, value in zip(_SCAN_SCALARS, scalars):
+        for name, value in zip(_SCAN_SCALARS, scalars, strict=True):
             object.__setattr__(self, name, value)
         object.__setattr__(self, "ranges", _frozen_array(_f32(self.ranges)))
         object.__setattr__(self, "intensities", _frozen_array(_f32(self.intensities)))
@@ -137,7 +138,11 @@ class Image(Message):
         """The pixels as H x W (x channels) uint8 for 8-bit encodings."""
         channels = self.step // max(self.width, 1)
         shape = (self.height, self.width) if channels == 1 else (self.height, self.width, channels)
-        return self.data[: self.height * self.step].reshape(self.height, self.step)[:, : self.width * channels].reshape(shape)
+        return (
+            self.data[: self.height * self.step]
+            .reshape(self.height, self.step)[:, : self.width * channels]
+            .reshape(shape)
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -255,8 +260,8 @@ class TransformStamped(Message):
     def planar(cls, stamp_ns: int, frame_id: str, child_frame_id: str, x: float, y: float, yaw: float,
                z: float = 0.0) -> TransformStamped:
         """A transform in the plane: translation (x, y, z) and a rotation of ``yaw`` about z."""
-        return cls(stamp_ns, frame_id, child_frame_id, (x, y, z),
-                   (0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0)))
+        return cls(stamp_ns, frame_id, child_frame_id, np.array((x, y, z)),
+                   np.array((0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))))
 
     @property
     def yaw(self) -> float:
@@ -395,7 +400,7 @@ class LandmarkObservation(Message):
     range: float
     bearing: float
     covariance: np.ndarray
-    translation: np.ndarray | None = None
+    translation: np.ndarray = None  # type: ignore[assignment]  # None: the range-bearing point (__post_init__)
     rotation: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
     yaw_variance: float = 0.0
 
@@ -407,7 +412,7 @@ class LandmarkObservation(Message):
         object.__setattr__(self, "covariance", _frozen_array(_f64(self.covariance, (2, 2))))
         translation = self.translation
         if translation is None:
-            translation = (self.range * math.cos(self.bearing), self.range * math.sin(self.bearing), 0.0)
+            translation = np.array((self.range * math.cos(self.bearing), self.range * math.sin(self.bearing), 0.0))
         object.__setattr__(self, "translation", _frozen_array(_f64(translation, (3,))))
         object.__setattr__(self, "rotation", _frozen_array(_f64(self.rotation, (4,))))
 
@@ -427,7 +432,7 @@ class LandmarkObservation(Message):
         jac = np.array([[x / r, y / r], [-y / q, x / q]])
         covariance = jac @ np.asarray(covariance_xy, np.float64).reshape(2, 2) @ jac.T
         return cls(landmark_id, r, math.atan2(y, x), 0.5 * (covariance + covariance.T),
-                   (x, y, 0.0) if translation is None else translation, rotation, yaw_variance)
+                   np.array((x, y, 0.0)) if translation is None else translation, rotation, yaw_variance)
 
     def position_covariance(self) -> np.ndarray:
         """The 2x2 covariance (m^2) of the range-bearing point in the tracking frame (first order)."""

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import heapq
 import os
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO, Iterable, Iterator
+from typing import TYPE_CHECKING, BinaryIO
 
-from mcap.records import Attachment, Channel, Chunk, Header, Message, Metadata, Schema, Statistics
 from mcap.reader import SeekingReader
+from mcap.records import Channel, Chunk, Header, Message, Metadata, Schema, Statistics
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from trundle.logs.errors import DataError

@@ -8,9 +8,9 @@ bad CRC is skipped and counted, a torn tail ends the copy.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
@@ -105,9 +105,10 @@ def _copy(reader: LogReader, tmp: Path, replace: Replace | None,
                 data = record.data
                 if replace is not None and channel is not None:
                     schema = schemas.get(channel.schema_id)
-                    data = replace(channel.topic, schema.name if schema else "", record.log_time, record.data)
-                    if data is None:
+                    replaced = replace(channel.topic, schema.name if schema else "", record.log_time, record.data)
+                    if replaced is None:
                         continue
+                    data = replaced
                 writer.add_message(new_id, record.log_time, data, record.publish_time, record.sequence)
                 count += 1
             elif isinstance(record, Metadata):
@@ -127,5 +128,7 @@ def _register(writer: Writer, channel: Channel, schemas: dict[int, Schema], sche
         schema_id = schema_ids.get(channel.schema_id, 0)
         schema = schemas.get(channel.schema_id)
         if not schema_id and schema is not None:
-            schema_id = schema_ids[channel.schema_id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            schema_id = schema_ids[channel.schema_id] = writer.register_schema(
+                schema.name, schema.encoding, schema.data
+            )
     return writer.register_channel(channel.topic, channel.message_encoding, schema_id, dict(channel.metadata))

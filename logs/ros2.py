@@ -8,9 +8,10 @@ bytes are exactly what a ROS 2 node would publish, and the schema text handed to
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from functools import lru_cache
-from typing import Any, Callable
+from functools import cache
+from typing import Any
 
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -231,7 +232,7 @@ def _transform_to(msg: m.TransformStamped) -> Any:
 def _transform_from(r: Any) -> m.TransformStamped:
     t, q = r.transform.translation, r.transform.rotation
     return m.TransformStamped(stamp_ns(r), r.header.frame_id, r.child_frame_id,
-                              (t.x, t.y, t.z), (q.x, q.y, q.z, q.w))
+                              np.array((t.x, t.y, t.z)), np.array((q.x, q.y, q.z, q.w)))
 
 
 def _tf_to(msg: m.TFMessage) -> Any:
@@ -260,7 +261,7 @@ def _grid_from(r: Any) -> m.OccupancyGrid:
 
 def _path_to(msg: m.Path) -> Any:
     poses = [_T["geometry_msgs/msg/PoseStamped"](header=header(int(t), msg.frame_id), pose=_pose(*p))
-             for t, p in zip(msg.stamps_ns, msg.poses)]
+             for t, p in zip(msg.stamps_ns, msg.poses, strict=True)]
     return _T["nav_msgs/msg/Path"](header=header(msg.stamp_ns, msg.frame_id), poses=poses)
 
 
@@ -328,7 +329,7 @@ def _landmarks_from(r: Any) -> m.LandmarkList:
     def entry(e: Any) -> m.LandmarkObservation:
         p, q = e.tracking_from_landmark_transform.position, e.tracking_from_landmark_transform.orientation
         return m.LandmarkObservation(e.id, float(e.range), float(e.bearing), e.range_bearing_covariance,
-                                     (p.x, p.y, p.z), (q.x, q.y, q.z, q.w), float(e.yaw_variance))
+                                     np.array((p.x, p.y, p.z)), np.array((q.x, q.y, q.z, q.w)), float(e.yaw_variance))
     return m.LandmarkList(stamp_ns(r), r.header.frame_id, tuple(entry(e) for e in r.landmarks))
 
 
@@ -350,9 +351,21 @@ def _scene_markers_to(msg: m.SceneMarkers) -> Any:
 def _scene_markers_from(r: Any) -> m.SceneMarkers:
     def marker(k: Any) -> m.SceneMarker:
         c = k.color
-        return m.SceneMarker(stamp_ns(k), k.header.frame_id, k.ns, int(k.id), int(k.type), float(k.pose.position.x),
-                             float(k.pose.position.y), float(k.pose.position.z), _yaw(k.pose.orientation),
-                             (k.scale.x, k.scale.y, k.scale.z), (float(c.r), float(c.g), float(c.b), float(c.a)), k.text)
+        return m.SceneMarker(
+            stamp_ns(k),
+            k.header.frame_id,
+            k.ns,
+            int(k.id),
+            int(k.type),
+            float(k.pose.position.x),
+            float(k.pose.position.y),
+            float(k.pose.position.z),
+            _yaw(k.pose.orientation),
+            np.array((k.scale.x, k.scale.y, k.scale.z)),
+            (float(c.r), float(c.g), float(c.b), float(c.a)),
+            k.text,
+        )
+
     return m.SceneMarkers(tuple(marker(k) for k in r.markers))
 
 
@@ -421,7 +434,7 @@ def decode(ros_type_name: str, data: bytes | memoryview) -> m.Message:
     return mp.from_ros(TYPESTORE.deserialize_cdr(data, ros_type_name))
 
 
-@lru_cache(maxsize=None)
+@cache
 def schema_text(ros_type_name: str) -> str:
     """Full ``ros2msg`` definition: the type's text, then every dependency after a ``MSG:`` separator."""
     return TYPESTORE.generate_msgdef(ros_type_name, ros_version=2)[0]

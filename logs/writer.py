@@ -20,9 +20,10 @@ import platform
 import struct
 import threading
 import time
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Iterable, Mapping, NamedTuple
+from typing import IO, NamedTuple
 
 from mcap.writer import CompressionType, Writer
 
@@ -135,7 +136,9 @@ class Logger:
         self.queue_size = queue_size
         self.batch_s = batch_s
         self._urgent_at = max(1, min(queue_size // 4, 256))  # a batch this long is written at once
-        self.metadata = log_metadata.encode({"trundle_version": __version__, "host": platform.node(), **(metadata or {})})
+        self.metadata = log_metadata.encode(
+            {"trundle_version": __version__, "host": platform.node(), **(metadata or {})}
+        )
         self.latched_topics = frozenset(latched_topics)
         self.stats: dict[str, TopicStats] = collections.defaultdict(TopicStats)
         self.files: list[Path] = []
@@ -319,7 +322,9 @@ class Logger:
             return True
         # the file as it would be finished with this message in it: split before it would pass the limit
         extra = MESSAGE_RECORD_BYTES + MESSAGE_INDEX_ENTRY_BYTES + len(item.data)
-        return bool(self.split_bytes) and file.finished_size(extra) > self.split_bytes
+        if not self.split_bytes:
+            return False
+        return file.finished_size(extra) > self.split_bytes
 
     def _add(self, file: _OpenFile, item: _Item) -> None:
         channel = file.channels.get(item.topic)
@@ -366,7 +371,8 @@ class Logger:
             path = self.base_path
         self._split_index += 1
         active = path.with_name(path.name + ACTIVE_SUFFIX)
-        stream = open(active, "xb")  # exclusive: never truncates another writer's file
+        # exclusive: never truncates another writer's file; closed by _finish_file, not here
+        stream = open(active, "xb")  # noqa: SIM115  the file outlives this method
         fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # marks the file live for salvage_folder
         writer = Writer(stream, chunk_size=self.chunk_size, compression=COMPRESSION[self.compression])
         writer.start(profile="ros2", library=f"trundle/{__version__}")

@@ -96,15 +96,15 @@ class HsvTemplate:
 def template_histograms(bgr: np.ndarray, mask: np.ndarray | None = None,
                         bins: int | tuple[int, int, int] = 32) -> HsvTemplate:
     """Template HSV histograms of a BGR image (``mask`` != 0 selects the template pixels)."""
-    bins = (bins, bins, bins) if isinstance(bins, int) else tuple(bins)
-    if any(not 1 <= n <= size for n, size in zip(bins, HSV8_RANGES)):
-        raise ValueError(f"bins must be 1..{HSV8_RANGES} per channel, got {bins}")
+    counts = (bins, bins, bins) if isinstance(bins, int) else tuple(bins)
+    if len(counts) != len(HSV8_RANGES) or any(not 1 <= n <= size for n, size in zip(counts, HSV8_RANGES, strict=True)):
+        raise ValueError(f"bins must be 1..{HSV8_RANGES} per channel, got {counts}")
     hsv8 = to_hsv8(bgr)
     selected = hsv8.reshape(-1, 3) if mask is None else hsv8[np.asarray(mask) != 0]
     if selected.shape[0] == 0:
         raise ValueError("template has no pixels")
     hists = []
-    for c, (n, size) in enumerate(zip(bins, HSV8_RANGES)):
+    for c, (n, size) in enumerate(zip(counts, HSV8_RANGES, strict=True)):
         hist = np.bincount(selected[:, c].astype(np.int64) * n // size, minlength=n).astype(np.float64)
         hists.append(hist / hist.max())
     return HsvTemplate(*hists)
@@ -122,7 +122,7 @@ def back_project(hsv8: np.ndarray, template: HsvTemplate,
     if total <= 0 or min(weights) < 0:
         raise ValueError("weights must be non-negative and not all zero")
     planes = [cv2.calcBackProject([hsv8], [c], hist, [0, size], 1)
-              for c, (hist, size) in enumerate(zip(template.scaled(), HSV8_RANGES))]
+              for c, (hist, size) in enumerate(zip(template.scaled(), HSV8_RANGES, strict=True))]
     merged = cv2.addWeighted(planes[0], weights[0] / total, planes[1], weights[1] / total, 0)
     return cv2.addWeighted(merged, 1.0, planes[2], weights[2] / total, 0)
 

@@ -50,6 +50,7 @@ def repeatability(kp1: Keypoints, kp2: Keypoints, h: np.ndarray, shape1: tuple[i
     p2 = kp2.xy[in2]
     d12, j = cKDTree(p2).query(p1)
     _, i = cKDTree(p1).query(p2)
+    i = np.asarray(i)  # (N,) for the (N, 2) query
     mutual = (i[j] == np.arange(len(p1))) & (d12 < threshold)
     count = int(mutual.sum())
     return count / denominator, count

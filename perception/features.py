@@ -18,6 +18,8 @@ import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from itertools import pairwise
+from typing import Any
 
 import cv2
 import numpy as np
@@ -58,7 +60,7 @@ def available(method: str) -> bool:
     return method not in _OPENCV or opencv_factory(_OPENCV[method]) is not None
 
 
-def _create(method: str, params: dict) -> object:
+def _create(method: str, params: dict[str, Any]) -> Any:  # the OpenCV Feature2D subclass of the method
     factory = opencv_factory(_OPENCV[method])
     if factory is None:
         raise UserError(f"{method} is not in this OpenCV build (cv2 {cv2.__version__})")
@@ -103,7 +105,7 @@ def _oriented(gray: np.ndarray, kp: Keypoints) -> Keypoints:
 
 
 def _opencv_detector(method: str) -> Callable[..., Keypoints]:
-    def run(gray: np.ndarray, mask: np.ndarray | None, **params: float) -> Keypoints:
+    def run(gray: np.ndarray, mask: np.ndarray | None, **params: Any) -> Keypoints:
         detector = _create(method, params)
         kp = from_cv(detector.detect(gray, mask))
         return kp if not np.isnan(kp.angle).any() else _oriented(gray, kp)
@@ -119,7 +121,7 @@ def _gftt(harris: bool) -> Callable[..., Keypoints]:
     return run
 
 
-def _mser(gray: np.ndarray, mask: np.ndarray | None, **params: float) -> Keypoints:
+def _mser(gray: np.ndarray, mask: np.ndarray | None, **params: Any) -> Keypoints:
     """MSER regions (both polarities) as keypoints: centroid, equal-area diameter, ellipse axis."""
     regions, _ = _create("mser", params).detectRegions(gray)
     if not regions:
@@ -156,9 +158,9 @@ def _blobs(kind: str) -> Callable[..., Keypoints]:
         sigmas = min_sigma * k ** np.arange(count + (1 if kind == "dog" else 0))
         blurred = [cv2.GaussianBlur(image, (0, 0), float(s)) for s in sigmas]
         if kind == "log":
-            layers = [float(s * s) * np.abs(cv2.Laplacian(b, cv2.CV_32F)) for s, b in zip(sigmas, blurred)]
+            layers = [float(s * s) * np.abs(cv2.Laplacian(b, cv2.CV_32F)) for s, b in zip(sigmas, blurred, strict=True)]
         else:   # (G(k s) - G(s)) ~ (k - 1) s^2 LoG: divide by (k - 1) for LoG's scale
-            layers = [np.abs(b1 - b0) / np.float32(k - 1) for b0, b1 in zip(blurred[:-1], blurred[1:])]
+            layers = [np.abs(b1 - b0) / np.float32(k - 1) for b0, b1 in pairwise(blurred)]
             sigmas = sigmas[:-1]
         stack = np.stack(layers)
         spread = np.stack([cv2.dilate(layer, np.ones((3, 3), np.uint8)) for layer in layers])
@@ -185,6 +187,8 @@ def edge_map(image: np.ndarray, method: str = "canny", threshold: float | None =
     2x2 block's centre. `threshold` None: Otsu's level of the magnitude histogram.
     """
     gray = to_gray(image)
+    gx: np.ndarray
+    gy: np.ndarray
     if method == "roberts":
         g = gray.astype(np.float32)
         d1 = g[1:, 1:] - g[:-1, :-1]
@@ -208,18 +212,23 @@ def edge_map(image: np.ndarray, method: str = "canny", threshold: float | None =
                 float(magnitude.max()), 1e-9) / 255.0
         edges = magnitude > threshold
     y, x = np.nonzero(edges)
-    return x + offset, y + offset, magnitude[y, x].astype(np.float64), np.mod(np.arctan2(gy[y, x], gx[y, x]), 2 * math.pi)
+    return (
+        x + offset,
+        y + offset,
+        magnitude[y, x].astype(np.float64),
+        np.mod(np.arctan2(gy[y, x], gx[y, x]), 2 * math.pi),
+    )
 
 
 def _edges(method: str) -> Callable[..., Keypoints]:
-    def run(gray: np.ndarray, mask: np.ndarray | None, **params: float) -> Keypoints:
+    def run(gray: np.ndarray, mask: np.ndarray | None, **params: Any) -> Keypoints:
         x, y, magnitude, direction = edge_map(gray, method, **params)
         kp = make_keypoints(np.column_stack([x, y]), 2.0 if method == "roberts" else 3.0, direction, magnitude)
         return _inside_mask(kp, mask)
     return run
 
 
-def _surf(gray: np.ndarray, mask: np.ndarray | None, **params: float) -> Keypoints:
+def _surf(gray: np.ndarray, mask: np.ndarray | None, **params: Any) -> Keypoints:
     kp = surf_module.detect_surf(gray, mask=mask, **params)
     angle = surf_module.surf_orientation(gray, kp)
     return make_keypoints(kp.xy, kp.size, angle, kp.response, kp.octave)
@@ -235,7 +244,7 @@ METHODS: dict[str, Callable[..., Keypoints]] = {
 
 
 def detect(image: np.ndarray, method: str, max_keypoints: int | None = None, mask: np.ndarray | None = None,
-           **params: float) -> Keypoints:
+           **params: Any) -> Keypoints:
     """Keypoints of `image` (grey or BGR uint8) by `method` (a key of METHODS).
 
     `params` go to the detector (OpenCV's parameter names for OpenCV detectors, e.g.
@@ -252,7 +261,7 @@ def detect(image: np.ndarray, method: str, max_keypoints: int | None = None, mas
 # --- descriptors ---------------------------------------------------------------------------------
 
 
-def describe(image: np.ndarray, keypoints: Keypoints, method: str, **params: float) -> tuple[Keypoints, np.ndarray]:
+def describe(image: np.ndarray, keypoints: Keypoints, method: str, **params: Any) -> tuple[Keypoints, np.ndarray]:
     """Descriptors of `keypoints` by `method` (a key of DESCRIPTORS); returns the keypoints kept
     (extractors drop some near the border) and their descriptors, row for row."""
     if method not in DESCRIPTORS:
@@ -292,7 +301,7 @@ def _rows(descriptors: np.ndarray | None, method: str) -> np.ndarray:
 
 def detect_and_describe(image: np.ndarray, method: str, descriptor: str | None = None,
                         max_keypoints: int | None = None, mask: np.ndarray | None = None,
-                        **params: float) -> Features:
+                        **params: Any) -> Features:
     """Detect by `method` and describe by `descriptor` (default: the method's own descriptor,
     SIFT's for detectors that have none). `params` go to the detector."""
     descriptor = descriptor or (method if method in DESCRIPTORS else "sift")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -40,9 +41,18 @@ class PairMatch:
         return out
 
 
-def match_features(f1: Features, f2: Features, model: str = "homography", cross_check: bool = True,
-                   max_ratio: float = 0.8, min_difference: float = 0.0, max_distance: float = math.inf,
-                   flann: bool = False, threshold: float = 3.0, rng: np.random.Generator | int | None = None) -> PairMatch:
+def match_features(
+    f1: Features,
+    f2: Features,
+    model: str = "homography",
+    cross_check: bool = True,
+    max_ratio: float = 0.8,
+    min_difference: float = 0.0,
+    max_distance: float = math.inf,
+    flann: bool = False,
+    threshold: float = 3.0,
+    rng: np.random.Generator | int | None = None,
+) -> PairMatch:
     """Match two feature sets and fit `model` ("homography": x2 ~ H x1, inlier band `threshold`
     px of transfer error; "fundamental": x2^T F x1 = 0, band `threshold` px Sampson distance)."""
     if f1.metric != f2.metric:
@@ -61,7 +71,7 @@ def match_features(f1: Features, f2: Features, model: str = "homography", cross_
 
 
 def match_images(image1: np.ndarray, image2: np.ndarray, method: str = "sift", descriptor: str | None = None,
-                 max_keypoints: int | None = None, detector_params: dict | None = None, **options: float) -> PairMatch:
+                 max_keypoints: int | None = None, detector_params: dict | None = None, **options: Any) -> PairMatch:
     """Detect, describe, match and fit between two images (grey or BGR uint8).
 
     `method`/`descriptor`/`max_keypoints`/`detector_params` as `features.detect_and_describe`;

@@ -9,6 +9,7 @@ towards +y (clockwise on screen, as OpenCV's degrees), NaN where a detector give
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -42,8 +43,8 @@ def make_keypoints(xy: np.ndarray, size: np.ndarray | float, angle: np.ndarray |
     def column(value: np.ndarray | float, dtype: type) -> np.ndarray:
         return np.ascontiguousarray(np.broadcast_to(np.asarray(value, dtype=dtype), (n,)))
 
-    angle = np.mod(column(angle, np.float64), 2 * math.pi)
-    return Keypoints(xy, column(size, np.float64), angle, column(response, np.float64), column(octave, np.int64))
+    angles = np.mod(column(angle, np.float64), 2 * math.pi)
+    return Keypoints(xy, column(size, np.float64), angles, column(response, np.float64), column(octave, np.int64))
 
 
 def concatenate(parts: list[Keypoints]) -> Keypoints:
@@ -54,7 +55,7 @@ def concatenate(parts: list[Keypoints]) -> Keypoints:
                        for name in ("xy", "size", "angle", "response", "octave")))
 
 
-def from_cv(keypoints: list[cv2.KeyPoint] | tuple[cv2.KeyPoint, ...]) -> Keypoints:
+def from_cv(keypoints: Sequence[cv2.KeyPoint]) -> Keypoints:
     """Convert OpenCV keypoints (angle in degrees, -1 for none)."""
     if not keypoints:
         return make_keypoints(np.empty((0, 2)), 0.0)
@@ -70,7 +71,7 @@ def to_cv(keypoints: Keypoints) -> list[cv2.KeyPoint]:
     degrees = np.where(np.isnan(keypoints.angle), -1.0, np.degrees(keypoints.angle))
     return [cv2.KeyPoint(float(x), float(y), float(s), float(a), float(r), int(o))
             for (x, y), s, a, r, o in zip(keypoints.xy, keypoints.size, degrees, keypoints.response,
-                                          keypoints.octave)]
+                                          keypoints.octave, strict=True)]
 
 
 def strongest(keypoints: Keypoints, limit: int | None) -> np.ndarray:

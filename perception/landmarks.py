@@ -54,8 +54,15 @@ def pose_covariance(marker: Marker, pose: MarkerPose, camera: CameraInfo, size: 
     return corner_sigma(pose, pixel_sigma) ** 2 * np.linalg.inv(j.T @ j)
 
 
-def marker_observation(marker: Marker, pose: MarkerPose, camera: CameraInfo, size: float, camera_in_base: np.ndarray,
-                       pixel_sigma: float = PIXEL_SIGMA, min_side_px: float = MIN_SIDE_PX) -> LandmarkObservation | None:
+def marker_observation(
+    marker: Marker,
+    pose: MarkerPose,
+    camera: CameraInfo,
+    size: float,
+    camera_in_base: np.ndarray,
+    pixel_sigma: float = PIXEL_SIGMA,
+    min_side_px: float = MIN_SIDE_PX,
+) -> LandmarkObservation | None:
     """The marker as a landmark seen from the robot: id, planar position, range, bearing and their
     covariance, its full pose and the variance of the yaw it faces, all in the frame of
     ``camera_in_base`` (4x4 pose of the image's optical frame in the robot frame). None when the

@@ -160,7 +160,10 @@ class MarkerDetector:
         corners, ids, _ = self._detector.detectMarkers(image)
         if ids is None:
             return []
-        found = [Marker(int(i), np.asarray(c, dtype=np.float64).reshape(4, 2)) for i, c in zip(ids.ravel(), corners)]
+        found = [
+            Marker(int(i), np.asarray(c, dtype=np.float64).reshape(4, 2))
+            for i, c in zip(ids.ravel(), corners, strict=True)
+        ]
         if self.refinement == "edges":
             grey = (image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)).astype(np.float32)
             found = [Marker(f.id, refine_on_edges(grey, f.corners, self._bits)) for f in found]
@@ -205,7 +208,7 @@ def marker_pose(marker: Marker, camera: CameraInfo, size: float) -> MarkerPose:
 
     count, rvecs, tvecs, _ = cv2.solvePnPGeneric(points, marker.corners, camera.k, camera.d,
                                                  flags=cv2.SOLVEPNP_IPPE_SQUARE)
-    scored = refined(list(zip(rvecs, tvecs))) if count else []
+    scored = refined(list(zip(rvecs, tvecs, strict=True))) if count else []
     if not scored or min(c[0] for c in scored) > FALLBACK_PX:
         ok, rvec, tvec = cv2.solvePnP(points, marker.corners, camera.k, camera.d, flags=cv2.SOLVEPNP_SQPNP)
         scored += refined([(rvec, tvec)]) if ok else []

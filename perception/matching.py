@@ -65,6 +65,7 @@ def nearest_neighbours(d1: np.ndarray, d2: np.ndarray, metric: str, k: int = 2,
         dist, idx = cv2.batchDistance(d1, d2, dtype, normType=NORMS[metric], K=kk)
         index[:, :kk], distance[:, :kk] = idx, dist
         return index, distance
+    params: dict[str, bool | int | float | str]
     if metric == "hamming":
         params = dict(algorithm=6, table_number=6, key_size=12, multi_probe_level=1)  # FLANN_INDEX_LSH
     elif metric == "l2":

@@ -135,14 +135,14 @@ def _regions(masks: list[np.ndarray], labels: list[int], boxes: list[tuple[int, 
     """Regions of cropped boolean masks whose boxes (x, y, w, h) place them in the image."""
     if not masks:
         return []
-    raw = np.stack([raw_moments(mask, ORDER, (x, y)) for mask, (x, y, _, _) in zip(masks, boxes)])
+    raw = np.stack([raw_moments(mask, ORDER, (x, y)) for mask, (x, y, _, _) in zip(masks, boxes, strict=True)])
     mu = central_moments(raw)
     a, b, theta = ellipse(mu)
     hu = hu_moments(mu)
     cx, cy = raw[:, 1, 0] / raw[:, 0, 0], raw[:, 0, 1] / raw[:, 0, 0]
     return [Region(label, int(round(raw[i, 0, 0])), box, (float(cx[i]), float(cy[i])), raw[i], mu[i],
                    float(a[i]), float(b[i]), float(theta[i]), hu[i])
-            for i, (label, box) in enumerate(zip(labels, boxes))]
+            for i, (label, box) in enumerate(zip(labels, boxes, strict=True))]
 
 
 def region_of(mask: np.ndarray, label: int = 1) -> Region:
@@ -178,8 +178,8 @@ def find_regions(mask: np.ndarray, min_area: int = 1, max_area: int | None = Non
         keep &= areas <= max_area
     keep[0] = False                                               # background
     kept = np.flatnonzero(keep)
-    boxes = [tuple(int(v) for v in stats[label, :4]) for label in kept]
-    crops = [labels[y:y + h, x:x + w] == label for label, (x, y, w, h) in zip(kept, boxes)]
+    boxes = [(int(x), int(y), int(w), int(h)) for x, y, w, h in (stats[label, :4] for label in kept)]
+    crops = [labels[y:y + h, x:x + w] == label for label, (x, y, w, h) in zip(kept, boxes, strict=True)]
     regions = _regions(crops, [int(label) for label in kept], boxes)
     if max_aspect is not None:
         regions = [r for r in regions if r.a <= max_aspect * r.b]

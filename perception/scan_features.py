@@ -14,6 +14,7 @@ Observations are returned in the robot frame, for a laser mounted at ``mount`` (
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 
 import numpy as np
 
@@ -38,7 +39,7 @@ def corners(scan: LaserScan, segments: list[LineSegment] | None = None, max_gap:
     points, beams = scan_points(scan)
     index = {int(b): k for k, b in enumerate(beams)}
     found = []
-    for a, b in zip(segments[:-1], segments[1:]):
+    for a, b in pairwise(segments):
         angle = abs(math.remainder(a.alpha - b.alpha, math.pi))
         if not min_angle_rad <= angle <= math.pi - min_angle_rad:
             continue

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -56,7 +57,7 @@ def _breaks(points: np.ndarray, max_gap: float) -> list[tuple[int, int]]:
         return []
     gaps = np.flatnonzero(np.hypot(*np.diff(points, axis=0).T) > max_gap) + 1
     edges = np.concatenate([[0], gaps, [len(points)]])
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+    return [(int(a), int(b)) for a, b in pairwise(edges)]
 
 
 def _fits(points: np.ndarray, threshold: float) -> tuple[float, float] | None:

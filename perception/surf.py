@@ -295,7 +295,9 @@ class _Layout:
 def _pyramid(gray: np.ndarray, finest: int, coarsest: int) -> list[np.ndarray]:
     """Images with pixels 2^k wide for k = finest (-1: doubled, or 0) .. coarsest (pyrDown)."""
     base = gray.astype(np.float32)
-    levels = [cv2.resize(base, None, fx=2, fy=2, interpolation=cv2.INTER_LINEAR), base] if finest < 0 else [base]
+    levels: list[np.ndarray] = [base]
+    if finest < 0:
+        levels.insert(0, cv2.resize(base, None, fx=2, fy=2, interpolation=cv2.INTER_LINEAR))
     while finest + len(levels) <= coarsest and min(levels[-1].shape) >= 2:
         levels.append(cv2.pyrDown(levels[-1]))
     return levels

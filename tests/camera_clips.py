@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import struct
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -23,7 +23,7 @@ def scene(index: int, width: int = 320, height: int = 240) -> np.ndarray:
 def write_clip(path: Path, count: int = 30, fps: float = 30.0, size: tuple[int, int] = (320, 240),
                fourcc: str = "MJPG") -> list[np.ndarray]:
     """Write ``count`` frames with cv2.VideoWriter; returns the frames written."""
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), fps, size)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*fourcc), fps, size)
     assert writer.isOpened(), f"OpenCV cannot write {fourcc}"
     frames = [scene(i, *size) for i in range(count)]
     for frame in frames:

@@ -6,10 +6,12 @@ from __future__ import annotations
 import math
 import time
 import uuid
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import can
 import numpy as np
@@ -18,8 +20,15 @@ from trundle.drivers.dbc_wheels import VESC_DBC
 from trundle.drivers.wheels import WheelsDriver, driver_from_url
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry, OdometrySink, odometry_from_config
 from trundle.logs import messages as m
-from trundle.tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes,
-                                               odrive_nodes, vesc_nodes)
+from trundle.tools.emulators.can_nodes import (
+    CanNodeRunner,
+    EmulatedNode,
+    VelocityScript,
+    WheelMotion,
+    cia406_nodes,
+    odrive_nodes,
+    vesc_nodes,
+)
 from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
 RADIUS, TRACK = 0.1, 0.5
@@ -140,7 +149,7 @@ def assert_no_jump(rig: Rig, speed_m_s: float) -> int:
     cumulative wheel positions say (the motion across the gap is kept). Returns how many stale
     periods were crossed."""
     odoms = rig.topic("/odom")
-    for a, b in zip(odoms, odoms[1:]):
+    for a, b in pairwise(odoms):
         step = math.hypot(b.x - a.x, b.y - a.y)
         assert step <= speed_m_s * max((b.stamp_ns - a.stamp_ns) * 1e-9, 0.5) + 0.005, (step, a, b)
     before, stale, crossed = None, False, 0

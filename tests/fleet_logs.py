@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from trundle.logs import messages as m
-from trundle.logs.importers import write_log
 from tests.planar_world import ROOM, scan
 from tests.test_slam import loop_path
+from trundle.logs import messages as m
+from trundle.logs.importers import write_log
 
 START_NS = 1_780_000_000 * 10**9   # 2026-05-28 UTC: robots' logs are in epoch time
 

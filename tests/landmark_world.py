@@ -62,7 +62,9 @@ def simulate(rng: np.random.Generator, landmarks: np.ndarray, *, laps: float = 1
         truth.append(pose.copy())
         messages.append(("/odom", m.Odometry(stamp, "odom", "base_link", *odom, vx=speed, wz=speed / radius)))
         if k % sight_every == 0:
-            local = relative(np.broadcast_to(pose, (len(landmarks), 3)), np.column_stack([landmarks, np.zeros(len(landmarks))]))
+            local = relative(
+                np.broadcast_to(pose, (len(landmarks), 3)), np.column_stack([landmarks, np.zeros(len(landmarks))])
+            )
             seen, which = [], []
             for j in np.flatnonzero(np.hypot(local[:, 0], local[:, 1]) <= max_range):
                 which.append(int(j))

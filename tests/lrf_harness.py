@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Callable, Iterator
 
 from camera_clips import wait_for
+
 from trundle.drivers.lifecycle import Driver
 from trundle.logs import messages as m
 from trundle.tools.emulators.device_server import DeviceServer

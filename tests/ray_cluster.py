@@ -11,6 +11,7 @@ processes), then every process left in the namespace is killed by pid, whatever 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 import shutil
@@ -62,8 +63,12 @@ class LoopbackCluster:
                                            ["{pid}", "-U", "-n", "--preserve-credentials"])
         unshare = ["unshare", "-n"] if privileged else ["unshare", "-U", "-r", "-n"]
         try:
-            self.holder = subprocess.Popen(unshare + ["sh", "-c", "ip link set lo up && echo up && exec sleep infinity"],
-                                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            self.holder = subprocess.Popen(
+                unshare + ["sh", "-c", "ip link set lo up && echo up && exec sleep infinity"],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
         except FileNotFoundError as error:
             raise NamespaceUnavailable(f"unshare not found: {error}") from None
         if self.holder.stdout.readline().strip() != "up":
@@ -83,10 +88,27 @@ class LoopbackCluster:
     def _start(self, ip: str, args: list[str]) -> Node:
         log = self.folder / f"node-{ip}.log"
         with open(log, "w") as out:
-            process = subprocess.Popen(self.command([RAY, "start", "--block", "--node-ip-address", ip, "--num-cpus", "1",
-                                                     "--object-store-memory", str(100 * 2**20),
-                                                     "--disable-usage-stats", *args]),
-                                       stdout=out, stderr=subprocess.STDOUT, env=ENV, start_new_session=True)
+            process = subprocess.Popen(
+                self.command(
+                    [
+                        RAY,
+                        "start",
+                        "--block",
+                        "--node-ip-address",
+                        ip,
+                        "--num-cpus",
+                        "1",
+                        "--object-store-memory",
+                        str(100 * 2**20),
+                        "--disable-usage-stats",
+                        *args,
+                    ]
+                ),
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                env=ENV,
+                start_new_session=True,
+            )
         node = Node(ip, process, log)
         self.nodes.append(node)
         deadline = time.monotonic() + START_TIMEOUT_S
@@ -145,10 +167,8 @@ class LoopbackCluster:
                 node.process.kill()
                 node.process.wait()
         for pid in self.processes():
-            try:
+            with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
         self.holder.kill()
         self.holder.wait()
         self.holder.stdout.close()

@@ -40,18 +40,32 @@ def images(draw):
 
 @st.composite
 def camera_infos(draw):
-    return m.CameraInfo(draw(stamps), draw(names), draw(st.integers(0, 4096)), draw(st.integers(0, 4096)),
-                        draw(st.sampled_from(["plumb_bob", "equidistant"])), draw(arrays(np.float64, draw(small), finite)),
-                        draw(f64_matrix((3, 3))), draw(f64_matrix((3, 3))), draw(f64_matrix((3, 4))),
-                        draw(st.integers(0, 8)), draw(st.integers(0, 8)))
+    return m.CameraInfo(
+        draw(stamps),
+        draw(names),
+        draw(st.integers(0, 4096)),
+        draw(st.integers(0, 4096)),
+        draw(st.sampled_from(["plumb_bob", "equidistant"])),
+        draw(arrays(np.float64, draw(small), finite)),
+        draw(f64_matrix((3, 3))),
+        draw(f64_matrix((3, 3))),
+        draw(f64_matrix((3, 4))),
+        draw(st.integers(0, 8)),
+        draw(st.integers(0, 8)),
+    )
 
 
 @st.composite
 def joint_states(draw):
     n = draw(st.integers(0, 6))
-    return m.JointState(draw(stamps), draw(names), tuple(draw(st.lists(names, min_size=n, max_size=n))),
-                        draw(arrays(np.float64, n, finite)), draw(arrays(np.float64, draw(st.sampled_from([0, n])), finite)),
-                        draw(arrays(np.float64, draw(st.sampled_from([0, n])), finite)))
+    return m.JointState(
+        draw(stamps),
+        draw(names),
+        tuple(draw(st.lists(names, min_size=n, max_size=n))),
+        draw(arrays(np.float64, n, finite)),
+        draw(arrays(np.float64, draw(st.sampled_from([0, n])), finite)),
+        draw(arrays(np.float64, draw(st.sampled_from([0, n])), finite)),
+    )
 
 
 yaws = st.floats(min_value=-3.1, max_value=3.1)
@@ -76,8 +90,15 @@ def transforms(draw):
 @st.composite
 def grids(draw):
     h, w = draw(st.integers(1, 30)), draw(st.integers(1, 30))
-    return m.OccupancyGrid(draw(stamps), draw(names), draw(st.floats(0.0625, 10.0, width=32)), draw(finite), draw(finite),
-                           0.0, draw(arrays(np.int8, (h, w), st.integers(-1, 100))))
+    return m.OccupancyGrid(
+        draw(stamps),
+        draw(names),
+        draw(st.floats(0.0625, 10.0, width=32)),
+        draw(finite),
+        draw(finite),
+        0.0,
+        draw(arrays(np.int8, (h, w), st.integers(-1, 100))),
+    )
 
 
 @st.composite
@@ -96,9 +117,19 @@ colors = st.tuples(*(st.floats(0, 1, width=32),) * 4)
 @st.composite
 def image_markers(draw):
     n = draw(st.integers(0, 8))
-    return m.ImageMarker(draw(stamps), draw(names), draw(names), draw(st.integers(-2**31, 2**31 - 1)), draw(st.integers(0, 4)),
-                         (draw(finite), draw(finite)), draw(st.floats(0, 100, width=32)), draw(colors), draw(st.booleans()),
-                         draw(colors), draw(f64_matrix((n, 2))))
+    return m.ImageMarker(
+        draw(stamps),
+        draw(names),
+        draw(names),
+        draw(st.integers(-(2**31), 2**31 - 1)),
+        draw(st.integers(0, 4)),
+        (draw(finite), draw(finite)),
+        draw(st.floats(0, 100, width=32)),
+        draw(colors),
+        draw(st.booleans()),
+        draw(colors),
+        draw(f64_matrix((n, 2))),
+    )
 
 
 @st.composite
@@ -120,12 +151,22 @@ def scene_markers(draw):
 
 ALL_MESSAGES = {
     "LaserScan": laser_scans(),
-    "CompressedImage": st.builds(m.CompressedImage, stamps, names, st.sampled_from(["jpeg", "png"]), st.binary(max_size=300)),
+    "CompressedImage": st.builds(
+        m.CompressedImage, stamps, names, st.sampled_from(["jpeg", "png"]), st.binary(max_size=300)
+    ),
     "Image": images(),
     "CameraInfo": camera_infos(),
     "JointState": joint_states(),
-    "CanFrame": st.builds(m.CanFrame, stamps, names, st.integers(0, 2**29 - 1), st.binary(max_size=8), st.booleans(),
-                          st.booleans(), st.booleans()),
+    "CanFrame": st.builds(
+        m.CanFrame,
+        stamps,
+        names,
+        st.integers(0, 2**29 - 1),
+        st.binary(max_size=8),
+        st.booleans(),
+        st.booleans(),
+        st.booleans(),
+    ),
     "Odometry": odometries(),
     "Pose2D": pose2ds(),
     "TransformStamped": transforms(),

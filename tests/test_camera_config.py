@@ -46,8 +46,14 @@ def test_bad_urls_are_user_errors(url: str) -> None:
         parse_camera_url(url)
 
 
-option_values = st.one_of(st.text(max_size=8), st.integers(-5, 5000), st.floats(), st.booleans(),
-                          st.lists(st.floats(-10, 10), max_size=7), st.dictionaries(st.text(max_size=8), st.floats(), max_size=2))
+option_values = st.one_of(
+    st.text(max_size=8),
+    st.integers(-5, 5000),
+    st.floats(),
+    st.booleans(),
+    st.lists(st.floats(-10, 10), max_size=7),
+    st.dictionaries(st.text(max_size=8), st.floats(), max_size=2),
+)
 option_names = st.sampled_from(["width", "height", "fps", "fourcc", "buffers", "controls", "transform", "pace", "loop",
                                 "raw_output", "jpeg_quality", "decode_check_every", "stall_timeout_s", "name", "bogus"])
 

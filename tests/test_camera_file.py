@@ -6,15 +6,16 @@ from __future__ import annotations
 import math
 import shutil
 import tempfile
+from itertools import pairwise
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from camera_clips import avi_video_chunks, scene, wait_for, write_clip
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from camera_clips import avi_video_chunks, scene, wait_for, write_clip
 from trundle.drivers.camera import CameraDriver, driver_from_url
 from trundle.drivers.jpeg_check import jpeg_problem
 from trundle.logs import messages as m
@@ -139,7 +140,7 @@ def test_source_removed_and_restored_reconnects(clip: Path, tmp_path: Path) -> N
     good = {payload for _, payload in avi_video_chunks(clip)}
     assert all(msg.data in good for msg in logged)
     stamps = [msg.stamp_ns for msg in logged]
-    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert all(b > a for a, b in pairwise(stamps))
     assert "disappeared" in driver.last_error or "cannot open" in driver.last_error
 
 
@@ -270,8 +271,10 @@ def test_user_mistakes_are_one_line_errors(clip: Path, tmp_path: Path, url: str,
 
 def test_calibration_for_another_size_is_refused(clip: Path, tmp_path: Path) -> None:
     calibration = tmp_path / "cam.yaml"
-    calibration.write_text("image_width: 640\nimage_height: 480\ncamera_matrix: {rows: 3, cols: 3, data: "
-                           "[1, 0, 0, 0, 1, 0, 0, 0, 1]}\ndistortion_coefficients: {rows: 1, cols: 5, data: [0, 0, 0, 0, 0]}\n")
+    calibration.write_text(
+        "image_width: 640\nimage_height: 480\ncamera_matrix: {rows: 3, cols: 3, data: "
+        "[1, 0, 0, 0, 1, 0, 0, 0, 1]}\ndistortion_coefficients: {rows: 1, cols: 5, data: [0, 0, 0, 0, 0]}\n"
+    )
     with pytest.raises(UserError, match="640x480"):
         driver_from_url(f"file://{clip}", lambda *a: None, {"calibration": str(calibration)})
 
@@ -295,7 +298,9 @@ def test_a_camera_not_plugged_in_is_waited_for_and_said(tmp_path: Path, capsys: 
     says the cause on stderr and, having recorded no frame, ends with exit code 1."""
     driver = driver_from_url("v4l2:///dev/video-trundle-none", lambda *a: None, {})
     assert "no camera at /dev/video-trundle-none" in str(pytest.raises(DeviceError, driver.open).value)
-    assert main(["record", "--camera", "v4l2:///dev/video-none", "--duration", "3", "-o", str(tmp_path / "x.mcap")]) == 1
+    assert (
+        main(["record", "--camera", "v4l2:///dev/video-none", "--duration", "3", "-o", str(tmp_path / "x.mcap")]) == 1
+    )
     err = capsys.readouterr().err.splitlines()
     assert err[-1].startswith("trundle record: camera: recorded no frames: no camera at /dev/video-none (unplugged?")
 

@@ -86,16 +86,22 @@ def test_uncalibrated_info_has_size_only() -> None:
     assert not info.k.any() and not info.p.any()
 
 
-@pytest.mark.parametrize("text, fragment", [
-    ("image_width: [1, 2", "not valid YAML"),
-    ("- 1\n- 2\n", "not a camera_calibration"),
-    (KODAK.replace("image_width: 1440", "image_width: wide"), "image_width"),
-    (KODAK.replace("rows: 3\n  cols: 3\n  data: [559", "rows: 2\n  cols: 3\n  data: [559"), "camera_matrix must be 3x3"),
-    (KODAK.replace("[559.7772332675477, 0,", "[559.7772332675477,"), "camera_matrix must be 3x3"),
-    (KODAK.replace("-0.1710342568253523", "abc"), "distortion_coefficients.data must be a list of numbers"),
-    (KODAK.replace("559.7772332675477", ".nan"), "non-finite"),
-    (KODAK.replace("camera_matrix:", "camera_matrx:"), "camera_matrix must have rows, cols and data"),
-])
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("image_width: [1, 2", "not valid YAML"),
+        ("- 1\n- 2\n", "not a camera_calibration"),
+        (KODAK.replace("image_width: 1440", "image_width: wide"), "image_width"),
+        (
+            KODAK.replace("rows: 3\n  cols: 3\n  data: [559", "rows: 2\n  cols: 3\n  data: [559"),
+            "camera_matrix must be 3x3",
+        ),
+        (KODAK.replace("[559.7772332675477, 0,", "[559.7772332675477,"), "camera_matrix must be 3x3"),
+        (KODAK.replace("-0.1710342568253523", "abc"), "distortion_coefficients.data must be a list of numbers"),
+        (KODAK.replace("559.7772332675477", ".nan"), "non-finite"),
+        (KODAK.replace("camera_matrix:", "camera_matrx:"), "camera_matrix must have rows, cols and data"),
+    ],
+)
 def test_bad_files_are_user_errors(tmp_path: Path, text: str, fragment: str) -> None:
     path = tmp_path / "bad.yaml"
     path.write_text(text)
@@ -113,7 +119,9 @@ scalars = st.none() | st.booleans() | st.integers(-5, 5000) | st.floats() | st.t
 yaml_values = scalars | st.lists(scalars, max_size=13)
 keys = st.sampled_from(["image_width", "image_height", "camera_matrix", "distortion_coefficients",
                         "rectification_matrix", "projection_matrix", "distortion_model"])
-matrices = st.fixed_dictionaries({"rows": scalars, "cols": scalars, "data": st.lists(scalars | st.floats(-1e3, 1e3), max_size=13)})
+matrices = st.fixed_dictionaries(
+    {"rows": scalars, "cols": scalars, "data": st.lists(scalars | st.floats(-1e3, 1e3), max_size=13)}
+)
 
 
 @settings(max_examples=100, deadline=None)

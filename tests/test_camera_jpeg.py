@@ -120,11 +120,15 @@ def test_every_truncation_is_caught(data: bytes, fraction: float) -> None:
     assert jpeg_problem(data[: int(len(data) * fraction)]) is not None
 
 
-FORBIDDEN_AFTER_FF = [b for b in range(256) if b not in {0x00, 0xFF, *range(0xD0, 0xD8), 0xC4, 0xCC, 0xDA, 0xDB, 0xDD, 0xFE}]
+FORBIDDEN_AFTER_FF = [
+    b for b in range(256) if b not in {0x00, 0xFF, *range(0xD0, 0xD8), 0xC4, 0xCC, 0xDA, 0xDB, 0xDD, 0xFE}
+]
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.sampled_from(GOOD[:3] + GOOD[4:6]), st.floats(0.0, 1.0, exclude_max=True), st.sampled_from(FORBIDDEN_AFTER_FF))
+@given(
+    st.sampled_from(GOOD[:3] + GOOD[4:6]), st.floats(0.0, 1.0, exclude_max=True), st.sampled_from(FORBIDDEN_AFTER_FF)
+)
 def test_any_forbidden_marker_in_the_scan_is_caught(data: bytes, where: float, second: int) -> None:
     start = scan_start(data)
     pos = start + int((len(data) - 2 - start - 2) * where)

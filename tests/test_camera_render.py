@@ -27,7 +27,7 @@ def detect(image):
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250), params)
     corners, ids, _ = detector.detectMarkers(image)
-    return {} if ids is None else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(), corners)}
+    return {} if ids is None else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(), corners, strict=True)}
 
 
 @pytest.mark.parametrize("pose", VIEWS)
@@ -146,8 +146,14 @@ def test_corners_on_the_edges_are_where_the_marker_is_and_subpix_corners_are_ins
             found = {m.id: m for m in MarkerDetector(renderer.world.aruco_dictionary, refinement).detect(image)}
             if marker.marker_id in found and side >= 40:
                 centre = projected.mean(axis=0)
-                offsets[refinement].append(float(np.mean(np.linalg.norm(found[marker.marker_id].corners - centre, axis=1)
-                                                         - np.linalg.norm(projected - centre, axis=1))))
+                offsets[refinement].append(
+                    float(
+                        np.mean(
+                            np.linalg.norm(found[marker.marker_id].corners - centre, axis=1)
+                            - np.linalg.norm(projected - centre, axis=1)
+                        )
+                    )
+                )
     assert len(offsets["edges"]) >= 30 and len(offsets["subpix"]) == len(offsets["edges"])
     assert np.mean(offsets["subpix"]) < -0.08  # pixels inwards
     assert abs(np.mean(offsets["edges"])) < 0.02

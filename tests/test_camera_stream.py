@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import email
 import urllib.request
+from itertools import pairwise
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-
 from camera_clips import avi_video_chunks, wait_for, write_clip
+
 from trundle.drivers.camera import CameraDriver, driver_from_url
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
@@ -42,7 +43,7 @@ def test_stream_is_logged_byte_for_byte() -> None:
     assert driver.settings["pass_through"] == "true"
     assert driver.counters["corrupt"] == 0
     stamps = [msg.stamp_ns for msg in logged]
-    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert all(b > a for a, b in pairwise(stamps))
 
 
 def test_a_stream_without_a_size_gets_its_camera_info_from_the_first_frame(tmp_path: Path) -> None:

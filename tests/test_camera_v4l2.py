@@ -12,16 +12,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from camera_clips import wait_for, write_clip
+
 from trundle.drivers.camera import CameraDriver, count_dropped, driver_from_url
 from trundle.drivers.camera_config import parse_camera_url
 from trundle.drivers.frame_grabber import FrameGrabber
 from trundle.drivers.frame_source import Frame, StallError
-from trundle.logs.errors import DeviceError
 from trundle.drivers.v4l2_capture import V4L2Source, apply_controls, device_path, frame_time_ns
 from trundle.drivers.video_file import VideoFileSource
 from trundle.logs import messages as m
+from trundle.logs.errors import DeviceError
 
 S = 1_000_000_000
 
@@ -41,7 +41,9 @@ def test_missing_or_foreign_buffer_time_falls_back_to_arrival(buffer_ns: int) ->
     assert frame_time_ns(buffer_ns, 5_000 * S, 1_700_000_000 * S) == (5_000 * S, "none")
 
 
-@pytest.mark.parametrize("gap_ms, dropped", [(33.3, 0), (40.0, 0), (50.1, 1), (66.7, 1), (100.0, 2), (334.0, 9), (-5.0, 0)])
+@pytest.mark.parametrize(
+    "gap_ms, dropped", [(33.3, 0), (40.0, 0), (50.1, 1), (66.7, 1), (100.0, 2), (334.0, 9), (-5.0, 0)]
+)
 def test_drops_counted_from_timing_at_30_fps(gap_ms: float, dropped: int) -> None:
     assert count_dropped(10 * S, 10 * S + int(gap_ms * 1e6), 1e9 / 30) == dropped
 

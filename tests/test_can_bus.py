@@ -11,7 +11,7 @@ import uuid
 import can
 import pytest
 
-from trundle.drivers.can_bus import (CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_PROT, CAN_ERR_RESTARTED, CanBus, parse_url)
+from trundle.drivers.can_bus import CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_PROT, CAN_ERR_RESTARTED, CanBus, parse_url
 from trundle.logs.errors import DeviceError, UserError
 from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
@@ -201,7 +201,8 @@ def _has_socketcan(interface: str) -> str | None:
     try:
         sock.bind((interface,))
     except OSError as error:
-        return f"no {interface} interface ({error}); create it with: ip link add dev {interface} type vcan && ip link set up {interface}"
+        return (f"no {interface} interface ({error}); create it with: "
+                f"ip link add dev {interface} type vcan && ip link set up {interface}")
     finally:
         sock.close()
     return None

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.can_rig import can_rig
 from trundle.drivers import cia406
 from trundle.drivers.cia406 import PositionLayout, decode_emcy, decode_heartbeat
-from tests.can_rig import can_rig
 
 
 def test_heartbeat_states():

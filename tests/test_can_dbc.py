@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.drivers.dbc_wheels import DbcWheels
 from tests.can_rig import VESC_DBC
+from trundle.drivers.dbc_wheels import DbcWheels
 
 SIGNALS = ["VESC_Status5_id9.Tachometer", "VESC_Status5_id10.Tachometer"]
 VELOCITIES = ["VESC_Status1_id9.ERPM", "VESC_Status1_id10.ERPM"]
@@ -70,6 +70,8 @@ def test_configuration_errors():
         DbcWheels("/nonexistent.dbc", ["A.b"], (0,))
     with pytest.raises(ValueError, match="units_per_rev"):
         DbcWheels(VESC_DBC, SIGNALS, (0, 1), units_per_rev=[42])
+    with pytest.raises(ValueError, match="one velocity signal per wheel"):  # wheel 1 would have no speed
+        DbcWheels(VESC_DBC, SIGNALS, (0, 1), velocity_signals=VELOCITIES[:1])
 
 
 FUZZED = DbcWheels(VESC_DBC, SIGNALS, (0, 1), units_per_rev=42, velocity_signals=VELOCITIES)

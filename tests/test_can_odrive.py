@@ -67,7 +67,10 @@ def test_encoder_count_is_signed():
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.floats(width=32, allow_nan=False, allow_infinity=False), st.floats(width=32, allow_nan=False, allow_infinity=False))
+@given(
+    st.floats(width=32, allow_nan=False, allow_infinity=False),
+    st.floats(width=32, allow_nan=False, allow_infinity=False),
+)
 def test_estimates_agree_with_cantools(db, pos, vel):
     data = odrive.encode_encoder_estimates(pos, vel)
     ref = db.decode_message(9, data)

@@ -11,12 +11,12 @@ import can
 import numpy as np
 import pytest
 
+from tests.can_rig import RADIUS, assert_no_jump, can_rig
 from trundle.drivers.can_bus import Received
 from trundle.drivers.slcan import SlcanBus
 from trundle.drivers.wheels import driver_from_url
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-from tests.can_rig import RADIUS, assert_no_jump, can_rig
 
 # Stand still, then both wheels at 1 turn/s for 0.5 s (half a turn = pi rad), then stop.
 STRAIGHT = "0:0,0;0.3:1,1;0.8:0,0"
@@ -61,11 +61,18 @@ def test_protocol_end_to_end(tmp_path, protocol, transport):
     assert np.all(np.diff([s.stamp_ns for s in rig.topic("/wheels")]) >= 0)
 
 
-@pytest.mark.parametrize("protocol,node_options,config", [
-    ("odrive", {"count_ms": 10, "count_offset": 2**31 - 2000}, {"odrive": {"source": "counts", "counts_per_rev": 8192}}),
-    ("cia406", {"position_offset": 2**24 - 1000}, {}),
-    ("dbc", {"counter_offset": 2**31 - 10}, {}),
-])
+@pytest.mark.parametrize(
+    "protocol,node_options,config",
+    [
+        (
+            "odrive",
+            {"count_ms": 10, "count_offset": 2**31 - 2000},
+            {"odrive": {"source": "counts", "counts_per_rev": 8192}},
+        ),
+        ("cia406", {"position_offset": 2**24 - 1000}, {}),
+        ("dbc", {"counter_offset": 2**31 - 10}, {}),
+    ],
+)
 def test_counters_wrap_without_a_jump(tmp_path, protocol, node_options, config):
     with can_rig(tmp_path, protocol, "virtual", STRAIGHT, node_options=node_options, config=config) as rig:
         rig.wait_until_script_done()
@@ -222,10 +229,15 @@ def test_frames_read_in_a_burst_do_not_make_the_wheels_jump(tmp_path):
                    'BO_ 101 Right: 4 M\n SG_ Turns : 0|32@1- (1,0) [0|0] "" Vector__XXX\n'
                    'SIG_VALTYPE_ 100 Turns : 1;\nSIG_VALTYPE_ 101 Turns : 1;\n')
     states = []
-    driver = driver_from_url("virtual://unused", lambda topic, msg, t: states.append(msg) if topic == "/wheels" else None,
-                             {"encoders": f"dbc:{dbc}", "dbc": {"signals": ["Left.Turns", "Right.Turns"]}})
+    driver = driver_from_url(
+        "virtual://unused",
+        lambda topic, msg, t: states.append(msg) if topic == "/wheels" else None,
+        {"encoders": f"dbc:{dbc}", "dbc": {"signals": ["Left.Turns", "Right.Turns"]}},
+    )
     driver.protocols[0].start(driver.bus, 0)
-    frames = [(k * 10_000_000 + 5_000_000 * side, 100 + side, k * 0.01 + 0.005 * side) for k in range(60) for side in (0, 1)]
+    frames = [
+        (k * 10_000_000 + 5_000_000 * side, 100 + side, k * 0.01 + 0.005 * side) for k in range(60) for side in (0, 1)
+    ]
     burst = [i for i, f in enumerate(frames) if 200_000_000 <= f[0] <= 300_000_000]  # L20..R29, L30
     for i, (wire_ns, can_id, turns) in enumerate(frames):
         host_ns = 300_000_000 + (i - burst[0]) * 10_000 if i in burst else wire_ns  # a 100 ms stall

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from lrf_harness import Recorder, running, wait_until
 
 from trundle.drivers.lrf import driver_from_url
-from lrf_harness import Recorder, running, wait_until
 from trundle.logs.writer import Logger
 from trundle.tools.cli.main import main
 from trundle.tools.emulators.device_server import DeviceServer
@@ -57,7 +57,9 @@ class Sweep:
             return len(self.rows) >= SWEEP.size * SCANS_PER_HOLD
 
 
-def test_injected_characteristics_are_recovered_within_5_percent(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_injected_characteristics_are_recovered_within_5_percent(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     base = MODELS["utm-30lx"]
     model = dataclasses.replace(base, params=dataclasses.replace(base.params, rpm=RPM))
     sweep = Sweep(model.steps.size)
@@ -116,6 +118,7 @@ def test_real_hokuyo_log_gives_per_beam_noise_where_the_robot_stands_still(tmp_p
     """exp2.dat (a real URG-04LX with wheel encoders): standing-still stretches are found from
     the wheel angles; every beam that returned gets a noise figure, plotted."""
     from conftest import shared_file
+
     from trundle.logs.importers.breezyslam import import_breezyslam
 
     log = tmp_path / "exp2.mcap"
@@ -138,6 +141,7 @@ def test_real_hokuyo_log_gives_per_beam_noise_where_the_robot_stands_still(tmp_p
 def test_encoder_counts_per_revolution_from_real_ticks(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """exp2's wheel encoders give 2000 ticks per revolution (BreezySLAM's robot model)."""
     from conftest import shared_file
+
     from trundle.logs.importers.breezyslam import import_breezyslam
 
     log = tmp_path / "exp2.mcap"
@@ -158,8 +162,11 @@ def test_camera_rate_jitter_and_dropped_frames(tmp_path: Path, capsys: pytest.Ca
     log = tmp_path / "cam.mcap"
     with Logger(log) as logger:
         for k in frames:
-            logger.write("/camera/image_raw/compressed", m.CompressedImage(k * period, "camera", "jpeg", b"\xff\xd8\xff\xd9"),
-                         k * period)
+            logger.write(
+                "/camera/image_raw/compressed",
+                m.CompressedImage(k * period, "camera", "jpeg", b"\xff\xd8\xff\xd9"),
+                k * period,
+            )
     assert main(["characterize", str(log), "--topic", "/camera/image_raw/compressed", "--json"]) == 0
     fig = json.loads(capsys.readouterr().out)
     assert fig["class"]["energy"] == "passive"

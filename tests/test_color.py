@@ -6,8 +6,15 @@ import cv2
 import numpy as np
 import pytest
 
-from trundle.perception.color import (back_project, clean_mask, in_range, masked, segment_color, template_histograms,
-                                      to_hsv8)
+from trundle.perception.color import (
+    back_project,
+    clean_mask,
+    in_range,
+    masked,
+    segment_color,
+    template_histograms,
+    to_hsv8,
+)
 
 ORANGE = (0, 128, 255)     # BGR: H 30 deg -> 15, S 1 -> 255, V 1 -> 255 in OpenCV 8-bit units
 TEAL = (128, 128, 0)       # BGR: H 180 deg -> 90, S 255, V 128
@@ -34,6 +41,8 @@ def test_template_histograms_hand_computed() -> None:
     assert masked_t.hue[9] == 1 and masked_t.hue.sum() == 1
     with pytest.raises(ValueError):
         template_histograms(tpl, bins=0)
+    with pytest.raises(ValueError, match="per channel"):  # two bin counts for three channels
+        template_histograms(tpl, bins=(18, 8))
     with pytest.raises(ValueError):
         template_histograms(tpl, mask=np.zeros((4, 4), np.uint8))
 
@@ -60,7 +69,7 @@ def test_back_projection_agrees_with_opencv_calcbackproject() -> None:
     weights = (0.6, 0.25, 0.15)
     expected = np.zeros(img.shape[:2])
     tpl_hsv = to_hsv8(tpl)
-    for c, (bins, size, weight) in enumerate(zip((30, 32, 16), (180, 256, 256), weights)):
+    for c, (bins, size, weight) in enumerate(zip((30, 32, 16), (180, 256, 256), weights, strict=True)):
         hist = cv2.calcHist([tpl_hsv], [c], None, [bins], [0, size])
         cv2.normalize(hist, hist, 255, 0, cv2.NORM_INF)     # scale so the peak is 255
         expected += weight * cv2.calcBackProject([hsv8], [c], hist, [0, size], 1).astype(np.float64)
@@ -104,7 +113,7 @@ def _scene() -> tuple[np.ndarray, list[tuple[float, float]]]:
     rng = np.random.default_rng(11)
     img = np.clip(rng.normal((120, 110, 30), 12, (240, 320, 3)), 0, 255).astype(np.uint8)
     centres = [(60.0, 50.0), (200.0, 70.0), (120.0, 170.0), (260.0, 190.0)]
-    for (x, y), (ax, ay, angle) in zip(centres, [(25, 12, 10), (18, 18, 0), (40, 15, -35), (12, 30, 60)]):
+    for (x, y), (ax, ay, angle) in zip(centres, [(25, 12, 10), (18, 18, 0), (40, 15, -35), (12, 30, 60)], strict=True):
         cv2.ellipse(img, (int(x), int(y)), (ax, ay), angle, 0, 360, ORANGE, -1)
     img[5:9, 5:9] = ORANGE     # 16 px: below min_area
     noise = rng.normal(0, 6, img.shape)
@@ -123,7 +132,7 @@ def test_segment_color_finds_the_coloured_blobs(how: str) -> None:
         assert result.likeness is None
     found = sorted(r.centroid for r in result.regions)
     assert len(found) == len(centres)
-    for (x, y), (fx, fy) in zip(sorted(centres), found):
+    for (x, y), (fx, fy) in zip(sorted(centres), found, strict=True):
         assert abs(fx - x) < 0.5 and abs(fy - y) < 0.5
     assert result.labels.shape == img.shape[:2] and result.mask.dtype == np.uint8
 

@@ -53,7 +53,7 @@ def test_exact_on_all_colours() -> None:
 
 def test_bgr_order_swaps_red_and_blue() -> None:
     rgb = _chunk(128)[::977]
-    for got, want in zip(rgb_to_hsv(rgb[:, ::-1], order="bgr"), rgb_to_hsv(rgb)):
+    for got, want in zip(rgb_to_hsv(rgb[:, ::-1], order="bgr"), rgb_to_hsv(rgb), strict=True):
         assert np.array_equal(got, want)
 
 

@@ -94,7 +94,8 @@ def office_run():
     items = []
     for t in np.arange(0.0, SECONDS, 0.02):
         stamp = int(round(t * 1e9))
-        items.append((WHEELS_TOPIC, m.JointState(stamp, "base_link", ("left", "right"), sim.encoder_angles_at(t)), stamp))
+        wheels = m.JointState(stamp, "base_link", ("left", "right"), sim.encoder_angles_at(t))
+        items.append((WHEELS_TOPIC, wheels, stamp))
     scan_t = np.arange(0.0, SECONDS, 0.1)
     for t in scan_t:
         stamp = int(round(t * 1e9))

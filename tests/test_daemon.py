@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from trundle.drivers.lifecycle import Backoff, Driver
-from trundle.logs.errors import DeviceError
 from trundle.logs import messages as m
+from trundle.logs.errors import DeviceError
 from trundle.logs.reader import LogReader
 from trundle.tools.config.robot import parse_config
 from trundle.tools.daemon.service import Daemon

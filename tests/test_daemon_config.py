@@ -59,9 +59,11 @@ def test_example_config_parses_with_every_section():
     (lambda d: d["robot"].update(id=3), "unknown key robot.id"),
     (lambda d: d["live"].update(port=70000), "live.port = 70000"),
     (lambda d: d["slam"].update(resolutoin=0.1), "unknown key slam.resolutoin (known in [slam]: keyframes, "),
-    (lambda d: d["slam"]["submaps"].update(scans_per_submap=25.7), "slam.submaps.scans_per_submap = 25.7: expected a whole"),
+    (lambda d: d["slam"]["submaps"].update(scans_per_submap=25.7),
+     "slam.submaps.scans_per_submap = 25.7: expected a whole"),
     (lambda d: d["slam"]["submaps"].update(resolution="0.05"), "slam.submaps.resolution = '0.05': expected a number"),
-    (lambda d: d["slam"]["submaps"].update(resolution=1e300), "slam.submaps.resolution = 1e+300: expected a number <= 1"),
+    (lambda d: d["slam"]["submaps"].update(resolution=1e300),
+     "slam.submaps.resolution = 1e+300: expected a number <= 1"),
     (lambda d: d["live"].update(adress="0.0.0.0"), "unknown key live.adress"),
     (lambda d: d.update(camera=[{"url": "http://127.0.0.1:1/a", "name": "cam"},
                                 {"url": "http://127.0.0.1:1/b", "name": "cam"}]), "two devices are named 'cam'"),
@@ -74,7 +76,8 @@ def test_example_config_parses_with_every_section():
     (lambda d: d["lrf"].update(baud=9600), "unknown key lrf.baud (known in [lrf]: "),
     (lambda d: d["lrf"].update(url="foo://x"), "unknown laser URL 'foo://x'"),
     (lambda d: d["lrf"].update(url=5), "lrf.url = 5"),
-    (lambda d: d["camera"].update(url="v4l2:///dev/video0?width=abc&height=480"), "camera.width = 'abc': expected a whole number"),
+    (lambda d: d["camera"].update(url="v4l2:///dev/video0?width=abc&height=480"),
+     "camera.width = 'abc': expected a whole number"),
     (lambda d: d["can"].update(encoders="odrive:0,99"), "node id 0..63"),
     (lambda d: d["processing"].update(aruco_dictionary="DICT_7X7_5"), "unknown ArUco dictionary 'DICT_7X7_5'"),
     (lambda d: d["slam"]["submaps"].update(resolution=0), "slam.submaps.resolution = 0"),
@@ -183,9 +186,15 @@ def test_default_socket_follows_systemd_then_xdg(monkeypatch):
     assert default_socket_path() == Path("/run/user/1000/trundle/status.sock")
 
 
-values = st.one_of(st.none(), st.booleans(), st.integers(-10, 10**6), st.floats(allow_nan=True),
-                   st.text(max_size=4), st.lists(st.integers(-2, 2), max_size=4), st.dictionaries(st.text(max_size=3),
-                                                                                                   st.integers(), max_size=2))
+values = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-10, 10**6),
+    st.floats(allow_nan=True),
+    st.text(max_size=4),
+    st.lists(st.integers(-2, 2), max_size=4),
+    st.dictionaries(st.text(max_size=3), st.integers(), max_size=2),
+)
 
 
 @settings(max_examples=200, deadline=None)

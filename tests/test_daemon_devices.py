@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 from trundle.logs.reader import LogReader
-from trundle.tools.sim.camera_render import project
 from trundle.tools.config.toml_text import format_config
 from trundle.tools.daemon.status import query_status
-from trundle.tools.sim.robot import RobotSim
 from trundle.tools.emulators.sim_devices import SimDevices
+from trundle.tools.sim.camera_render import project
+from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
 
 REPO = Path(__file__).resolve().parents[1]
@@ -125,7 +125,7 @@ def test_daemon_logs_every_emulated_device_consistently_with_ground_truth(tmp_pa
     in_world = {decal.marker_id for decal in sim.world.markers}
     for msg in images:
         corners, ids, _ = detector.detectMarkers(cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE))
-        for marker_id, found in zip([] if ids is None else ids.ravel(), corners):
+        for marker_id, found in zip([] if ids is None else ids.ravel(), corners, strict=True):
             if int(marker_id) not in in_world:  # ArUco decodes a rare false id from noise and JPEG blocks
                 spurious += 1
                 continue

@@ -11,9 +11,9 @@ import time
 
 from websockets.sync import client as websockets_client
 
+from tests.test_daemon import Running, config, wait_for
 from trundle.logs import messages as m
 from trundle.logs import ros2
-from tests.test_daemon import Running, config, wait_for
 
 
 def free_port() -> int:
@@ -26,8 +26,9 @@ def test_foxglove_client_receives_logged_topics(tmp_path):
     port = free_port()
     with Running(config(tmp_path, live={"enabled": True, "port": port})) as run:
         wait_for(lambda: run.drivers["lrf"].counters["scans"] > 5)
-        with websockets_client.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
-                                       open_timeout=10) as ws:
+        with websockets_client.connect(
+            f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"], open_timeout=10
+        ) as ws:
             channels: dict[str, dict] = {}
             deadline = time.monotonic() + 10
             while not {"/scan", "/tf_static"} <= set(channels):
@@ -37,9 +38,20 @@ def test_foxglove_client_receives_logged_topics(tmp_path):
                     channels.update({c["topic"]: c for c in json.loads(message)["channels"]})
             scan = channels["/scan"]
             assert scan["encoding"] == "cdr" and scan["schemaName"] == "sensor_msgs/msg/LaserScan"
-            assert scan["schemaEncoding"] == "ros2msg" and scan["schema"] == ros2.schema_text("sensor_msgs/msg/LaserScan")
-            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": scan["id"]},
-                                                                     {"id": 8, "channelId": channels["/tf_static"]["id"]}]}))
+            assert scan["schemaEncoding"] == "ros2msg" and scan["schema"] == ros2.schema_text(
+                "sensor_msgs/msg/LaserScan"
+            )
+            ws.send(
+                json.dumps(
+                    {
+                        "op": "subscribe",
+                        "subscriptions": [
+                            {"id": 7, "channelId": scan["id"]},
+                            {"id": 8, "channelId": channels["/tf_static"]["id"]},
+                        ],
+                    }
+                )
+            )
             got: dict[int, m.Message] = {}
             while len(got) < 2:
                 assert time.monotonic() < deadline + 10

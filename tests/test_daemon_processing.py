@@ -16,9 +16,9 @@ from trundle.drivers.lifecycle import Driver
 from trundle.fusion.geometry import compose, inverse
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
-from trundle.tools.sim.camera_render import optical_rotation
 from trundle.tools.config.robot import parse_config
 from trundle.tools.daemon.service import Daemon
+from trundle.tools.sim.camera_render import optical_rotation
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
 
@@ -61,7 +61,9 @@ class SimRobotDriver(Driver):
         if t >= self.next_image:
             self.next_image = t + 0.2
             ok, jpeg = cv2.imencode(".jpg", self.sim.frame_at(t), (cv2.IMWRITE_JPEG_QUALITY, 90))
-            self.publish("/camera/image_raw/compressed", m.CompressedImage(now, "camera_optical", "jpeg", jpeg.tobytes()))
+            self.publish(
+                "/camera/image_raw/compressed", m.CompressedImage(now, "camera_optical", "jpeg", jpeg.tobytes())
+            )
 
     def close(self) -> None:
         pass

@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 def clip(tmp_path_factory):
     path = tmp_path_factory.mktemp("clip") / "corridor.avi"
     renderer = CameraRenderer(load_world())
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 20, (640, 480))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 20, (640, 480))
     for i in range(20):
         writer.write(renderer.render(CameraPose(8.0 + 0.1 * i, 5.25, 0.45, 0.0)))
     writer.release()
@@ -78,7 +78,7 @@ class Notify:
         while not self.closed.is_set():
             try:
                 self.messages.append(self.sock.recv(4096).decode())
-            except (socket.timeout, OSError):
+            except (TimeoutError, OSError):
                 continue
 
     def wait_for(self, prefix: str, timeout_s: float = 90.0) -> str:
@@ -101,8 +101,14 @@ class Notify:
 def start(tmp_path: Path, config: Path, notify: Notify) -> subprocess.Popen:
     env = {**os.environ, "NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": "200000",
            "WATCHDOG_PID": "", "PYTHONPATH": str(REPO)}
-    return subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "daemon", "--config", str(config)], cwd=tmp_path,
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "trundle.tools.cli", "daemon", "--config", str(config)],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def trundle(capsys, *args: str) -> tuple[int, str, str]:

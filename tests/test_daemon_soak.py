@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -22,8 +23,8 @@ from trundle.logs.reader import LogReader
 from trundle.tools.config.toml_text import format_config
 from trundle.tools.daemon.status import query_status
 from trundle.tools.emulators.faults import FaultPlan
-from trundle.tools.sim.robot import RobotSim
 from trundle.tools.emulators.sim_devices import SimDevices
+from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
 
 REPO = Path(__file__).resolve().parents[1]
@@ -47,7 +48,9 @@ def all_streaming(path: Path) -> bool:
 def summary(path: Path) -> list:
     """Each device's state, rates, errors and last error (for failure messages)."""
     status = status_or_none(path)
-    return status and [(d["name"], d["state"], d["rates_hz"], d["reconnects"], d["last_error"]) for d in status["devices"]]
+    return status and [
+        (d["name"], d["state"], d["rates_hz"], d["reconnects"], d["last_error"]) for d in status["devices"]
+    ]
 
 
 def soak(tmp_path: Path, duration_s: float, period_s: float, away_s: float) -> None:
@@ -121,10 +124,19 @@ def soak(tmp_path: Path, duration_s: float, period_s: float, away_s: float) -> N
             inside = produced[name][(produced[name] > begin) & (produced[name] < end)]
             starved = np.diff(np.concatenate(([begin], inside, [end]))).max() > 0.5e9
             t00 = windows["lrf"][0][0]
-            assert away or starved, (name, (begin - t00) / 1e9, (end - begin) / 1e9, "lost while the emulator was producing",
-                                     {n: [(a - t00) / 1e9 for a, _ in w] for n, w in windows.items()}, devices_status[name]["counters"],
-                                     np.diff(inside).max() / 1e9 if inside.size > 1 else None,
-                                     {t: [((a - t00) / 1e9, (b - a) / 1e9) for a, b in zip(np.sort(v)[:-1], np.sort(v)[1:]) if b - a > 0.3e9] for t, v in times.items()})
+            assert away or starved, (
+                name,
+                (begin - t00) / 1e9,
+                (end - begin) / 1e9,
+                "lost while the emulator was producing",
+                {n: [(a - t00) / 1e9 for a, _ in w] for n, w in windows.items()},
+                devices_status[name]["counters"],
+                np.diff(inside).max() / 1e9 if inside.size > 1 else None,
+                {
+                    t: [((a - t00) / 1e9, (b - a) / 1e9) for a, b in pairwise(np.sort(v)) if b - a > 0.3e9]
+                    for t, v in times.items()
+                },
+            )
 
 
 # Real processes on emulated ptys, sharing 2 cores with the rest of the suite: seen failing

@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 from trundle.fusion.mapping.map_io import load_map, read_trajectory_csv
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
-from trundle.tools.cli.main import main
 from trundle.tools.cli.demo import camera_size
+from trundle.tools.cli.main import main
 from trundle.tools.demo.report import ATE_LIMIT_M, MARKER_MAP_LIMIT_M
 from trundle.tools.sim.world import load_world
 
@@ -85,7 +85,9 @@ def test_report_numbers_are_computed_from_the_log_and_the_ground_truth(demo):
     # the markers the daemon saw are SLAM landmarks: each mapped one is a world marker, its error the
     # distance from the world file's position with the map placed by the trajectory's alignment
     mapped = report["marker_map"]
-    assert mapped["mapped"] >= 1 and not mapped["not_in_world"] and set(mapped["errors_m"]) <= {str(i) for i in world_ids}
+    assert (
+        mapped["mapped"] >= 1 and not mapped["not_in_world"] and set(mapped["errors_m"]) <= {str(i) for i in world_ids}
+    )
     assert mapped["max_error_m"] == max(mapped["errors_m"].values())
     assert mapped["max_error_m"] < 0.10 or report["starved"]
     assert report["log"]["topics"]["/landmarks"] >= 1

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from landmark_world import in_map_frame, ring_of_landmarks, simulate
 from scipy.stats import chi2
 
-from landmark_world import in_map_frame, ring_of_landmarks, simulate
+from trundle.fusion.geometry import wrap_angle
+from trundle.fusion.odometry.increments import MotionNoise
 from trundle.fusion.slam.data_association import UNPAIRED, individual_d2, jcbb, joint_d2, nearest_neighbour
 from trundle.fusion.slam.ekf_slam import EkfSlam, EkfSlamConfig
-from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.slam.landmark_slam import EkfLandmarkSlam
-from trundle.fusion.odometry.increments import MotionNoise
 from trundle.logs import messages as m
 
 THREE_SIGMA_2DOF = float(chi2.ppf(0.9973, 2))
@@ -58,7 +58,7 @@ def test_known_ids_map_every_landmark_within_three_sigma():
         slam.process(topic, msg)
     ids, positions, covariances = slam.ekf.landmarks()
     assert sorted(ids, key=int) == [str(k) for k in range(12)]
-    for name, p, c in zip(ids, positions, covariances):
+    for name, p, c in zip(ids, positions, covariances, strict=True):
         e = p - points[int(name)]
         assert e @ np.linalg.solve(c, e) <= THREE_SIGMA_2DOF
     assert slam.ekf.stats.added == 12 and slam.ekf.stats.outliers == 0
@@ -143,7 +143,9 @@ def test_jcbb_hypothesis_is_jointly_compatible_and_at_least_as_large_as_any_othe
         assert all(d2[i, j] <= 9.21 for i, j in enumerate(pairs) if j != UNPAIRED)
     near = nearest_neighbour(nu, c, r, gate_chi2=9.21)
     nn_used = near.pairs[near.pairs != UNPAIRED]
-    if len(set(nn_used.tolist())) == len(nn_used) and joint_d2(near.pairs, nu, c, r) <= chi2.ppf(0.99, 2 * max(len(nn_used), 1)):
+    if len(set(nn_used.tolist())) == len(nn_used) and joint_d2(near.pairs, nu, c, r) <= chi2.ppf(
+        0.99, 2 * max(len(nn_used), 1)
+    ):
         assert found.paired >= near.paired   # a jointly compatible NN answer cannot beat the optimum
 
 
@@ -173,7 +175,7 @@ def _anonymous_run(seed: int, association: str) -> tuple[int, float]:
             continue
         slam._advance(msg.stamp_ns)
         report = slam.ekf.update(msg.landmarks)
-        for true, j, new in zip(run.seen[msg.stamp_ns], report.landmark, report.added):
+        for true, j, new in zip(run.seen[msg.stamp_ns], report.landmark, report.added, strict=True):
             if j >= 0 and new:
                 origin[int(j)] = true
             elif j >= 0 and origin[int(j)] != true:
@@ -181,7 +183,7 @@ def _anonymous_run(seed: int, association: str) -> tuple[int, float]:
     _, points = in_map_frame(run)
     _, positions, covariances = slam.ekf.landmarks()
     worst = max(float((p - points[origin[k]]) @ np.linalg.solve(c, p - points[origin[k]]))
-                for k, (p, c) in enumerate(zip(positions, covariances)))
+                for k, (p, c) in enumerate(zip(positions, covariances, strict=True)))
     return wrong, worst
 
 

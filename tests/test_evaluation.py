@@ -11,9 +11,19 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.fusion.evaluation.trajectory_errors import (Relations, Trajectory, absolute_trajectory_error, align_se2, read_reference,
-                                       read_relations, relation_error, relative_pose_error, revisit_relations,
-                                       seconds_to_ns, trajectory_relations)
+from trundle.fusion.evaluation.trajectory_errors import (
+    Relations,
+    Trajectory,
+    absolute_trajectory_error,
+    align_se2,
+    read_reference,
+    read_relations,
+    relation_error,
+    relative_pose_error,
+    revisit_relations,
+    seconds_to_ns,
+    trajectory_relations,
+)
 from trundle.fusion.geometry import compose
 from trundle.fusion.mapping.map_io import write_trajectory_csv
 from trundle.logs.errors import DataError, UserError
@@ -184,7 +194,7 @@ def test_revisits_hand_computed():
     xs = np.concatenate([np.arange(0.0, 20.0), np.arange(20.0, -1.0, -1.0)])  # 0..19 out, 20..0 back: 41 poses
     reference = Trajectory(np.arange(len(xs)) * SECOND, np.column_stack([xs, np.zeros_like(xs), np.zeros_like(xs)]))
     relations = revisit_relations(reference, max_distance_m=1.0, min_gap_s=30.0)
-    pairs = {(int(a // SECOND), int(b // SECOND)) for a, b in zip(relations.t1_ns, relations.t2_ns)}
+    pairs = {(int(a // SECOND), int(b // SECOND)) for a, b in zip(relations.t1_ns, relations.t2_ns, strict=True)}
     assert pairs == {(a, b) for a in range(41) for b in range(a + 31, 41) if abs(xs[a] - xs[b]) <= 1.0}
     assert pairs and all(b - a > 30 for a, b in pairs)
     back = reference.poses.copy()
@@ -233,7 +243,9 @@ def test_slam_eval_command(tmp_path, capsys):
     assert "ate" not in report
 
 
-@pytest.mark.parametrize("args", [["absent.csv", "ref.csv"], ["traj.csv", "bad.relations"], ["traj.csv", "ref.csv", "--step", "0"]])
+@pytest.mark.parametrize(
+    "args", [["absent.csv", "ref.csv"], ["traj.csv", "bad.relations"], ["traj.csv", "ref.csv", "--step", "0"]]
+)
 def test_slam_eval_user_errors_are_one_line(tmp_path, capsys, monkeypatch, args):
     from trundle.tools.cli.main import main
 

@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from trundle.fusion.optimization.factor_graph import BETWEEN, POINT_PRIOR, POSITION, RANGE_BEARING, FactorGraph
 from trundle.fusion.geometry import relative
+from trundle.fusion.optimization.factor_graph import BETWEEN, POINT_PRIOR, POSITION, RANGE_BEARING, FactorGraph
 from trundle.fusion.optimization.pose_graph import PoseGraph
 
 
@@ -97,10 +97,10 @@ def test_marginals_equal_the_dense_inverse():
     jac = g._system(g.poses, g.points, {}, columns)[0].toarray()
     inverse = np.linalg.inv(jac.T @ jac)
     poses, points = g.marginal_covariances(poses=[1, 3], points=[0, 2])
-    for k, block in zip([1, 3], poses):
+    for k, block in zip([1, 3], poses, strict=True):
         c = pose_col[k]
         np.testing.assert_allclose(block, inverse[c:c + 3, c:c + 3], rtol=1e-8, atol=1e-12)
-    for k, block in zip([0, 2], points):
+    for k, block in zip([0, 2], points, strict=True):
         c = point_col[k]
         np.testing.assert_allclose(block, inverse[c:c + 2, c:c + 2], rtol=1e-8, atol=1e-12)
     assert np.all(g.marginal_covariances(poses=[0])[0] == 0)   # pose 0 is fixed
@@ -109,7 +109,9 @@ def test_marginals_equal_the_dense_inverse():
 def test_pose_only_graph_agrees_with_the_pose_graph():
     """A noisy loop: the factor graph built from a PoseGraph reaches the pose graph's optimum."""
     rng = np.random.default_rng(2)
-    truth = np.array([[2 * math.cos(a), 2 * math.sin(a), a + math.pi / 2] for a in np.linspace(0, 2 * math.pi, 13)[:-1]])
+    truth = np.array(
+        [[2 * math.cos(a), 2 * math.sin(a), a + math.pi / 2] for a in np.linspace(0, 2 * math.pi, 13)[:-1]]
+    )
     pg = PoseGraph()
     drift = truth.copy()
     drift[:, :2] += rng.normal(0, 0.2, (len(truth), 2))
@@ -128,7 +130,9 @@ def test_pose_only_graph_agrees_with_the_pose_graph():
 
 
 def test_robust_kernel_bounds_an_outlier():
-    """Ten agreeing sightings and one 5 m off: without a kernel the outlier drags the point, with Cauchy it barely moves."""
+    """Ten agreeing sightings and one 5 m off: without a kernel the outlier drags the point,
+    with Cauchy it barely moves."""
+
     def solved(kernels):
         g = FactorGraph()
         g.add_pose([0.0, 0.0, 0.0])

@@ -7,11 +7,20 @@ import math
 import cv2
 import numpy as np
 import pytest
-
 from feature_scenes import scene
+
 from trundle.logs.errors import UserError
-from trundle.perception.features import (DESCRIPTORS, METHODS, available, describe, detect, detect_and_describe,
-                                         edge_map, intensity_centroid_angle, sift_octave)
+from trundle.perception.features import (
+    DESCRIPTORS,
+    METHODS,
+    available,
+    describe,
+    detect,
+    detect_and_describe,
+    edge_map,
+    intensity_centroid_angle,
+    sift_octave,
+)
 from trundle.perception.keypoints import from_cv, make_keypoints, to_cv
 
 

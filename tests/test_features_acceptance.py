@@ -16,8 +16,8 @@ import functools
 import cv2
 import numpy as np
 import pytest
-
 from conftest import shared_file
+
 from trundle.perception.feature_eval import corner_error, matching_score, repeatability
 from trundle.perception.features import Features, available, detect_and_describe
 from trundle.perception.image_matching import match_features

@@ -17,6 +17,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from tests.fleet_logs import START_NS, corrupt_log, robot_log
 from trundle import __version__
 from trundle.logs.errors import UserError
 from trundle.tools.cli.main import main
@@ -27,7 +28,6 @@ from trundle.tools.fleet.results import write_csv, write_parquet
 from trundle.tools.fleet.rows import COLUMNS, flatten
 from trundle.tools.fleet.summary import failed_checks, headline, markdown
 from trundle.tools.fleet.task import Task, process_log, read_marker
-from tests.fleet_logs import START_NS, corrupt_log, robot_log
 
 TRUNDLE = str(Path(sys.executable).with_name("trundle"))
 HOUR_NS = 3600 * 10**9
@@ -59,13 +59,15 @@ def test_job_options_are_converted_by_the_job_functions_type_hints(tmp_path) -> 
 
 
 @pytest.mark.parametrize("job, items, message", [
-    ("slam", ["loops=1"], "slam has no option 'loops' (options: config=None (config), local_only=False (bool), estimator=None (text))"),
+    ("slam", ["loops=1"],
+     "slam has no option 'loops' (options: config=None (config), local_only=False (bool), estimator=None (text))"),
     ("characterize", [], "characterize needs topic=... in --job-options"),
     ("localize", ["config={}"], "localize needs map_path=..."),
     ("slam", ["local_only=maybe"], "slam option local_only: needs true or false, got 'maybe'"),
     ("characterize", ["topic=/scan", "bits=1.5"], "characterize option bits = '1.5': expected a whole number"),
     ("characterize", ["topic=/scan", "min_still_s=x"], "characterize option min_still_s = 'x': expected a number"),
-    ("characterize", ["topic=/scan", "min_still_s=nan"], "characterize option min_still_s = 'nan': expected a finite number"),
+    ("characterize", ["topic=/scan", "min_still_s=nan"],
+     "characterize option min_still_s = 'nan': expected a finite number"),
     ("slam", ["local_only=1", "local_only=0"], "slam option local_only given twice"),
     ("slam", ["local_only"], "--job-options needs KEY=VALUE, got 'local_only'"),
     ("localize", ["map_path=/no/such/map"], "localize option map_path: no such file or folder: /no/such/map"),
@@ -113,8 +115,9 @@ def test_the_options_key_follows_options_files_and_version(tmp_path, monkeypatch
 
 
 def test_output_folders_are_the_log_names_with_parents_only_where_names_collide() -> None:
-    assert folder_names(["/d/robot1/run.mcap", "/d/robot2/run.mcap", "/d/robot1/x.mcap.active", "s3://b/robot1/y.mcap"]) \
-        == ["robot1__run", "robot2__run", "x", "y"]
+    assert folder_names(
+        ["/d/robot1/run.mcap", "/d/robot2/run.mcap", "/d/robot1/x.mcap.active", "s3://b/robot1/y.mcap"]
+    ) == ["robot1__run", "robot2__run", "x", "y"]
     assert folder_names(["/a/r/run.mcap", "/b/r/run.mcap"]) == ["a__r__run", "b__r__run"]
 
 
@@ -125,7 +128,7 @@ def test_output_folder_names_are_distinct_and_plain_stems_when_the_stem_is_uniqu
     names = folder_names(sources)
     assert len(set(names)) == len(names) and all("/" not in n for n in names)
     stems = [p[-1] for p in paths]
-    for name, stem in zip(names, stems):
+    for name, stem in zip(names, stems, strict=True):
         assert name.endswith(stem)
         if stems.count(stem) == 1:
             assert name == stem
@@ -204,7 +207,10 @@ def test_a_failing_log_fails_its_row_alone_and_keeps_the_last_complete_result(tm
     before = sorted(p.name for p in (out / "run1").iterdir())
     corrupt_log(log, log)
     row = process_log(task(log, out))
-    assert row["status"] == "failed" and row["error"] == f"{log} has no topic /scan (sensor_msgs/msg/LaserScan; topics: none)"
+    assert (
+        row["status"] == "failed"
+        and row["error"] == f"{log} has no topic /scan (sensor_msgs/msg/LaserScan; topics: none)"
+    )
     assert sorted(p.name for p in (out / "run1").iterdir()) == before       # the old result is still whole
     assert f"{log}\n" in (out / ".fleet" / "errors" / "run1.txt").read_text()
 
@@ -277,7 +283,11 @@ def test_results_csv_and_parquet_hold_every_row_and_column(tmp_path) -> None:
     assert parquet.column_names == header
     types = {name: str(parquet.schema.field(name).type) for name in header}
     assert types["scans"] == "int64" and types["seconds"] == "double" and types["consistent"] == "bool"
-    assert parquet.column("seconds").to_pylist() == [1.5, 2.0, 0.1] and parquet.column("scans").to_pylist() == [10, 12, None]
+    assert parquet.column("seconds").to_pylist() == [1.5, 2.0, 0.1] and parquet.column("scans").to_pylist() == [
+        10,
+        12,
+        None,
+    ]
 
 
 def test_without_pyarrow_there_is_no_parquet_file(tmp_path, monkeypatch) -> None:
@@ -304,8 +314,12 @@ def test_folders_globs_and_urls_name_logs_once_and_never_the_output(tmp_path) ->
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / name).write_bytes(b"x")
     out = tmp_path / "out"
-    assert expand([str(tmp_path)], exclude=out) == [str(tmp_path / p) for p in ("r1/a.mcap", "r1/b.mcap", "r2/deep/c.mcap")]
-    assert expand([str(tmp_path / "**" / "c.mcap"), str(tmp_path / "r2")], exclude=out) == [str(tmp_path / "r2/deep/c.mcap")]
+    assert expand([str(tmp_path)], exclude=out) == [
+        str(tmp_path / p) for p in ("r1/a.mcap", "r1/b.mcap", "r2/deep/c.mcap")
+    ]
+    assert expand([str(tmp_path / "**" / "c.mcap"), str(tmp_path / "r2")], exclude=out) == [
+        str(tmp_path / "r2/deep/c.mcap")
+    ]
     assert expand([f"file://{tmp_path}/r1/*.mcap"]) == [f"file://{tmp_path}/r1/a.mcap", f"file://{tmp_path}/r1/b.mcap"]
     with pytest.raises(UserError, match="no log matches .*nothing"):
         expand([str(tmp_path / "nothing*.mcap")])
@@ -333,7 +347,10 @@ def test_command_errors_are_one_line(tmp_path, capsys, monkeypatch, log) -> None
     assert main(["fleet", "characterize", str(log), "-o", str(tmp_path / "o")]) == 2
     assert capsys.readouterr().err.startswith("trundle fleet: characterize needs topic=... in --job-options")
     assert main(["fleet", "info", str(log), "-o", str(tmp_path / "o"), "--retries", "-1"]) == 2
-    assert capsys.readouterr().err == "trundle fleet: argument --retries: -1 must be at least 0 (see trundle fleet --help)\n"
+    assert (
+        capsys.readouterr().err
+        == "trundle fleet: argument --retries: -1 must be at least 0 (see trundle fleet --help)\n"
+    )
     import socket
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -386,7 +403,9 @@ def test_characterize_over_two_robots_on_a_local_ray_gives_per_robot_noise(tmp_p
     assert [r["name"] for r in table] == ["r1__still0", "r1__still1", "r2__still0", "r2__still1"]
     assert table[3]["log"] == url and table[3]["node"] == "127.0.0.1"
     noise = {r["name"]: float(r["static.beam_noise_std_median"]) for r in table}
-    assert all(abs(noise[f"r1__still{i}"] - 0.01) < 0.002 and abs(noise[f"r2__still{i}"] - 0.03) < 0.005 for i in range(2))
+    assert all(
+        abs(noise[f"r1__still{i}"] - 0.01) < 0.002 and abs(noise[f"r2__still{i}"] - 0.03) < 0.005 for i in range(2)
+    )
     for r in table:
         assert json.loads((out / r["name"] / "report.json").read_text())["sensor"] == "laser"
         assert (out / r["name"] / "report.md").is_file()

@@ -14,9 +14,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trundle.logs import messages as m
+from trundle.logs import topics
 from trundle.logs.errors import DataError
 from trundle.logs.frames import FrameTree, planar, quaternion_from_rpy, rotation_matrix
-from trundle.logs import topics
 from trundle.logs.topics import TF_STATIC_TOPIC, TF_TOPIC
 
 S = 1_000_000_000  # ns in a second
@@ -68,11 +68,13 @@ def test_static_edges_hold_at_any_time_and_dynamic_ones_are_interpolated() -> No
     tree.add(TF_TOPIC, planar_tf("odom", "base_link", 2.0, 0.0, math.pi / 2, stamp_ns=3 * S))
     # halfway: base_link at (1, 0) heading 45 deg; the laser 0.2 m ahead of it
     half = math.pi / 4
-    np.testing.assert_allclose(tree.mount("laser", "odom", 2 * S), [1 + 0.2 * math.cos(half), 0.2 * math.sin(half), half],
+    np.testing.assert_allclose(tree.mount("laser", "odom", 2 * S),
+                               [1 + 0.2 * math.cos(half), 0.2 * math.sin(half), half],
                                atol=1e-12)
     np.testing.assert_allclose(tree.mount("laser", "base_link", 100 * S), [0.2, 0.0, 0.0])  # static: any time
     np.testing.assert_allclose(tree.mount("base_link", "odom"), [2.0, 0.0, math.pi / 2], atol=1e-12)  # latest
-    with pytest.raises(DataError, match=r"no transform odom -> base_link at 5.000 s: /tf has it from 1.000 s to 3.000 s"):
+    expected = r"no transform odom -> base_link at 5.000 s: /tf has it from 1.000 s to 3.000 s"
+    with pytest.raises(DataError, match=expected):
         tree.mount("laser", "odom", 5 * S)
     nearest = FrameTree(extrapolate_s=2.5)
     nearest.add(TF_TOPIC, planar_tf("odom", "base_link", 0.0, 0.0, 0.0, stamp_ns=1 * S))

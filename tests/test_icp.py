@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from tests.planar_world import CORRIDOR, ROOM, scan
 from trundle.fusion.geometry import inverse, relative, scan_to_points, transform_points, wrap_angle
 from trundle.fusion.matching.icp import LineReference, icp
-from tests.planar_world import CORRIDOR, ROOM, scan
 
 
 def test_exact_copy_is_recovered_exactly() -> None:

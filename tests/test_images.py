@@ -9,9 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from tests.conftest import shared_file
 from trundle.logs.messages import CompressedImage, Image
 from trundle.perception.images import decode_image, histogram, otsu_level, otsu_threshold, threshold, to_gray
-from tests.conftest import shared_file
 
 
 def _bgr(height: int = 6, width: int = 8) -> np.ndarray:

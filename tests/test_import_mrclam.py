@@ -14,8 +14,14 @@ from hypothesis import strategies as st
 from tests.conftest import shared_file
 from trundle.fusion.mapping.map_io import read_landmarks_csv, read_trajectory_csv
 from trundle.logs.errors import DataError, UserError
-from trundle.logs.importers.mrclam import (BEARING_SIGMA_RAD, import_mrclam, integrate, read_mrclam, seconds_ns,
-                                           sighting_covariance)
+from trundle.logs.importers.mrclam import (
+    BEARING_SIGMA_RAD,
+    import_mrclam,
+    integrate,
+    read_mrclam,
+    seconds_ns,
+    sighting_covariance,
+)
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
 

@@ -9,12 +9,12 @@ import math
 import numpy as np
 import pytest
 
+from tests.planar_world import ROOM, scan
 from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.logs import messages as m
 from trundle.logs.importers import write_log
 from trundle.logs.reader import LogReader
-from tests.planar_world import ROOM, scan
 from trundle.tools.cli.main import main
 
 
@@ -66,7 +66,7 @@ def test_heading_glitch_on_odometry_poses(odometry_log, tmp_path, capsys) -> Non
     after = [msg.msg for msg in LogReader(out).messages(topics=["/odom"])]
     assert len(before) == len(after) == 201
     t = np.array([(o.stamp_ns - before[0].stamp_ns) * 1e-9 for o in before])
-    turn = np.array([wrap_angle(a.theta - b.theta) for a, b in zip(after, before)])
+    turn = np.array([wrap_angle(a.theta - b.theta) for a, b in zip(after, before, strict=True)])
     assert np.all(turn[t <= 5.0] == 0.0) and np.allclose(turn[t >= 5.6 - 1e-9], math.radians(20.0), atol=1e-9)
     # from the glitch on, the path runs off at 20 degrees: 0.5 m/s for the 14.4 s after the window
     last = after[-1]

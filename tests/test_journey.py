@@ -16,8 +16,8 @@ import pytest
 
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
-from trundle.tools.emulators.can_nodes import CanNodeRunner, VelocityScript, WheelMotion, odrive_nodes
 from trundle.tools.emulators.camera_emulator import CameraEmulator
+from trundle.tools.emulators.can_nodes import CanNodeRunner, VelocityScript, WheelMotion, odrive_nodes
 from trundle.tools.emulators.device_server import DeviceServer
 from trundle.tools.emulators.scene import load_scene
 from trundle.tools.emulators.scip2_emulator import MODELS, ScipDevice
@@ -141,7 +141,9 @@ def test_a_carmen_log_without_odom_lines_goes_through_the_journey(tmp_path, caps
     for k in range(40):  # a robot driving 4 m straight down a corridor 2 m wide (walls at y = +-1)
         x = 0.1 * k
         ranges = [min(1.0 / max(abs(math.sin(math.radians(a - 90))), 1e-3), 20.0) for a in range(180)]
-        lines.append(f"FLASER 180 {' '.join(f'{r:.3f}' for r in ranges)} {x} 0 0 {x} 0 0 {k * 0.2:.1f} host {k * 0.2:.1f}")
+        lines.append(
+            f"FLASER 180 {' '.join(f'{r:.3f}' for r in ranges)} {x} 0 0 {x} 0 0 {k * 0.2:.1f} host {k * 0.2:.1f}"
+        )
     carmen.write_text("\n".join(lines) + "\n")
     imported = tmp_path / "run.mcap"
     said = trundle(capsys, "import", "carmen", carmen, "-o", imported)
@@ -149,7 +151,10 @@ def test_a_carmen_log_without_odom_lines_goes_through_the_journey(tmp_path, caps
     assert LogReader(imported).info().topics["/odom"].count == 40
     trundle(capsys, "slam", imported, "-o", tmp_path / "slam")
     report = json.loads((tmp_path / "slam" / "report.json").read_text())
-    assert report["odometry_source"] == "odometry messages (/odom): no ODOM lines: the FLASER lines' odometry fields (40 poses)"
+    assert (
+        report["odometry_source"]
+        == "odometry messages (/odom): no ODOM lines: the FLASER lines' odometry fields (40 poses)"
+    )
     shutil.rmtree(tmp_path / "slam")
     bare = tmp_path / "bare.mcap"
     trundle(capsys, "import", "carmen", carmen, "-o", bare, "--odometry", "none")

@@ -12,9 +12,9 @@ from tests.planar_world import ROOM, scan
 from tests.test_slam import loop_path
 from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error, landmark_error
 from trundle.fusion.geometry import compose, relative
-from trundle.fusion.slam.estimators import EstimatorInputs, make_estimator
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.fusion.slam.config import SlamConfig
+from trundle.fusion.slam.estimators import EstimatorInputs, make_estimator
 from trundle.fusion.slam.grid_slam import Slam
 from trundle.logs import messages as m
 
@@ -22,6 +22,7 @@ from trundle.logs import messages as m
 MARKERS = np.array([[5.0, 1.5, math.pi], [-5.0, 0.5, 0.0], [2.0, 4.0, -math.pi / 2], [-2.5, -3.0, math.pi / 2],
                     [3.5, -3.0, math.pi / 2], [-1.0, 4.0, -math.pi / 2]]) + [0.0123, 0.0271, 0.0]
 SIGMA_XY, SIGMA_YAW, TAU_S = 0.03, math.radians(3.0), 3.0
+NO_LOOPS = SlamConfig.from_mapping({"loop_closure": {"enabled": False}})
 
 
 class _Camera:
@@ -87,7 +88,7 @@ def test_markers_seen_again_hold_the_map_together():
     error = landmark_error(mapped.ids, mapped.positions, [f"aruco_{k}" for k in range(len(MARKERS))], MARKERS[:, :2],
                            with_markers.alignment_xyt)
     assert error.count == len(MARKERS) and error.max_m < 0.10 and error.mean_m < 0.05, error
-    for name, yaw in zip(mapped.ids, mapped.yaw):
+    for name, yaw in zip(mapped.ids, mapped.yaw, strict=True):
         facing = MARKERS[int(name.split("_")[1]), 2]
         assert abs(math.remainder(yaw + with_markers.alignment_xyt[2] - facing, 2 * math.pi)) < math.radians(5)
     assert np.all(np.linalg.eigvalsh(mapped.covariances) > 0)
@@ -95,10 +96,12 @@ def test_markers_seen_again_hold_the_map_together():
 
 def test_anonymous_and_early_sightings_are_counted_not_used():
     slam = make_estimator("grid-landmarks")
-    slam.process("/landmarks", m.LandmarkList(0, "base_link", (m.LandmarkObservation("7", 1.0, 0.0, np.eye(2) * 0.01),)))
+    seen = m.LandmarkObservation("7", 1.0, 0.0, np.eye(2) * 0.01)
+    slam.process("/landmarks", m.LandmarkList(0, "base_link", (seen,)))
     slam.process("/scan", scan(ROOM, np.zeros(3), beams=271, fov=math.radians(270.0), stamp_ns=1))
     slam.process("/landmarks", m.LandmarkList(2, "base_link", (m.LandmarkObservation("", 1.0, 0.0, np.eye(2) * 0.01),)))
-    assert (slam.landmark_constraints.stats.before_first_scan, slam.landmark_constraints.stats.anonymous, slam.landmark_constraints.stats.sightings) == (1, 1, 0)
+    stats = slam.landmark_constraints.stats
+    assert (stats.before_first_scan, stats.anonymous, stats.sightings) == (1, 1, 0)
     slam.finish()
     assert slam.landmarks().ids == []
 
@@ -109,7 +112,9 @@ def _pnp_sighting(rng: np.random.Generator, name: str, local: np.ndarray) -> m.L
     distance = math.hypot(*local)
     along = local / distance
     across = np.array([-along[1], along[0]])
-    covariance = np.outer(along, along) * (0.006 * distance ** 2) ** 2 + np.outer(across, across) * (0.001 * distance) ** 2
+    covariance = (
+        np.outer(along, along) * (0.006 * distance**2) ** 2 + np.outer(across, across) * (0.001 * distance) ** 2
+    )
     return m.LandmarkObservation.from_position(name, rng.multivariate_normal(local, covariance), covariance)
 
 
@@ -125,7 +130,7 @@ def test_a_marker_seen_on_one_approach_is_placed_by_its_range_not_by_the_turns_b
     xs = np.arange(-3.0, 3.4, 0.1)
     truth = np.column_stack([xs + 0.0123, np.full_like(xs, -0.2), np.zeros_like(xs)])
     rng = np.random.default_rng(5)
-    slam = make_estimator("grid-landmarks", EstimatorInputs(SlamConfig.from_mapping({"loop_closure": {"enabled": False}})))
+    slam = make_estimator("grid-landmarks", EstimatorInputs(NO_LOOPS))
     for k, pose in enumerate(truth):
         stamp = 1_000_000_000 + k * 100_000_000
         sway = np.array([0.0, 0.0, math.radians(0.4) * math.sin(2 * math.pi * k / 60)])
@@ -158,7 +163,7 @@ def test_a_camera_that_stamps_late_is_found_out_while_the_robot_turns(lag_s):
         return np.array([-0.5 + 1.2 * math.sin(heading), 0.3 - 1.2 * math.cos(heading), heading])
 
     rng = np.random.default_rng(3)
-    slam = make_estimator("grid-landmarks", EstimatorInputs(SlamConfig.from_mapping({"loop_closure": {"enabled": False}})))
+    slam = make_estimator("grid-landmarks", EstimatorInputs(NO_LOOPS))
     for k in range(251):
         t = 0.1 * k
         stamp = 1_000_000_000 + k * 100_000_000
@@ -176,7 +181,8 @@ def test_a_camera_that_stamps_late_is_found_out_while_the_robot_turns(lag_s):
                 seen.append(_pnp_sighting(rng, f"aruco_{j}", local[:2]))
         slam.process("/landmarks", m.LandmarkList(stamp + 50_000_000, "base_link", tuple(seen)))
     slam.finish()
-    assert abs(slam.landmark_constraints.stats.time_offset_s + lag_s) <= 0.01 if lag_s else slam.landmark_constraints.stats.time_offset_s == 0.0
+    offset_s = slam.landmark_constraints.stats.time_offset_s
+    assert abs(offset_s + lag_s) <= 0.01 if lag_s else offset_s == 0.0
     stamps, poses = slam.trajectory()
     truth = np.array([pose_at(0.1 * k) for k in range(251)])
     ate = absolute_trajectory_error(Trajectory(stamps, poses), Trajectory(stamps, truth))

@@ -10,12 +10,14 @@ import pytest
 
 from tests.planar_world import scan
 from trundle.fusion.geometry import compose, relative, scan_to_points, voxel_filter
-from trundle.fusion.localization.landmark_localization import LandmarkFixer, solve_pose
 from trundle.fusion.localization.grid_localization import TRACKING, Localizer
+from trundle.fusion.localization.landmark_localization import LandmarkFixer, solve_pose
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.logs import messages as m
 
-SQUARE = np.array([[-3.0, -3.0, 3.0, -3.0], [3.0, -3.0, 3.0, 3.0], [3.0, 3.0, -3.0, 3.0], [-3.0, 3.0, -3.0, -3.0]]) + 0.0123
+SQUARE = (
+    np.array([[-3.0, -3.0, 3.0, -3.0], [3.0, -3.0, 3.0, 3.0], [3.0, 3.0, -3.0, 3.0], [-3.0, 3.0, -3.0, -3.0]]) + 0.0123
+)
 MARKERS = {"5": np.array([2.9, 1.0]), "8": np.array([-1.5, 2.9]), "9": np.array([-2.9, -2.0])}
 
 
@@ -93,7 +95,7 @@ def test_a_square_room_needs_the_landmarks_to_localise(square_map):
     fixer = LandmarkFixer(list(MARKERS), np.array(list(MARKERS.values())), np.full((3, 2), 0.01))
     updates = _drive(localizer, poses, fixer, rng)
     assert localizer.stats.converged_at == [1] and localizer.status == TRACKING   # the fix after the first scan
-    for pose, update in zip(poses[1:], updates[1:]):
+    for pose, update in zip(poses[1:], updates[1:], strict=True):
         assert np.hypot(*(update.pose[:2] - pose[:2])) < 0.05
         assert abs(math.remainder(update.pose[2] - pose[2], 2 * math.pi)) < math.radians(2)
 

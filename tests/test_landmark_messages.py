@@ -57,12 +57,22 @@ def test_foxglove_encoder_makes_our_bytes():
     ros_type, ours = ros2.encode(msg)
     weights = [(1.0 / math.sqrt(np.linalg.eigvalsh(_xy_covariance(o)).max()), 1.0 / math.sqrt(o.yaw_variance)
                 if o.yaw_variance else 0.0) for o in msg.landmarks]
-    entries = [{"id": o.id, "tracking_from_landmark_transform": {
-                    "position": dict(zip("xyz", map(float, o.translation))),
-                    "orientation": dict(zip("xyzw", map(float, o.rotation)))},
-                "translation_weight": w[0], "rotation_weight": w[1], "range": o.range, "bearing": o.bearing,
-                "range_bearing_covariance": [float(v) for v in o.covariance.reshape(-1)], "yaw_variance": o.yaw_variance}
-               for o, w in zip(msg.landmarks, weights)]
+    entries = [
+        {
+            "id": o.id,
+            "tracking_from_landmark_transform": {
+                "position": dict(zip("xyz", map(float, o.translation), strict=True)),
+                "orientation": dict(zip("xyzw", map(float, o.rotation), strict=True)),
+            },
+            "translation_weight": w[0],
+            "rotation_weight": w[1],
+            "range": o.range,
+            "bearing": o.bearing,
+            "range_bearing_covariance": [float(v) for v in o.covariance.reshape(-1)],
+            "yaw_variance": o.yaw_variance,
+        }
+        for o, w in zip(msg.landmarks, weights, strict=True)
+    ]
     encoder = serialize_dynamic(ros_type, ros2.schema_text(ros_type))[ros_type]
     theirs = encoder({"header": {"stamp": {"sec": 5, "nanosec": 1}, "frame_id": "base_link"}, "landmarks": entries})
     assert bytes(theirs) == ours
@@ -85,5 +95,11 @@ def test_landmark_map_markers_decode_in_foxglove(tmp_path):
         (schema, _, _, msg), = make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()
     assert schema.name == "visualization_msgs/msg/MarkerArray"
     first, second = msg.markers
-    assert (first.type, first.id, first.ns, first.pose.position.x, first.pose.position.y) == (3, 12, "landmarks", 1.5, -2.0)
+    assert (first.type, first.id, first.ns, first.pose.position.x, first.pose.position.y) == (
+        3,
+        12,
+        "landmarks",
+        1.5,
+        -2.0,
+    )
     assert (second.type, second.text, first.action) == (9, "12", 0)

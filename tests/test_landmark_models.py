@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.fusion.optimization.error_correlation import ar1_weights, correlation_time, previous_gaps
 from trundle.fusion.geometry import compose
-from trundle.fusion.odometry.increments import IncrementAccumulator, MotionNoise, OdometryIncrements, compose_jacobians
 from trundle.fusion.observation_models import point_from_range_bearing, range_bearing, relative_position
+from trundle.fusion.odometry.increments import IncrementAccumulator, MotionNoise, OdometryIncrements, compose_jacobians
+from trundle.fusion.optimization.error_correlation import ar1_weights, correlation_time, previous_gaps
 from trundle.logs import messages as m
 
 coordinates = st.floats(-20, 20)
@@ -62,7 +62,9 @@ def test_inverse_model_round_trip_and_jacobians(x, y, theta, r, b):
     local, lp, ll = relative_position(pose[None], point)
     np.testing.assert_allclose(local[0], [r * math.cos(b), r * math.sin(b)], atol=1e-9)
     np.testing.assert_allclose(lp[0], _numeric(lambda p: relative_position(p[None], point)[0][0], pose), atol=1e-4)
-    np.testing.assert_allclose(ll[0], _numeric(lambda q: relative_position(pose[None], q[None])[0][0], point[0]), atol=1e-4)
+    np.testing.assert_allclose(
+        ll[0], _numeric(lambda q: relative_position(pose[None], q[None])[0][0], point[0]), atol=1e-4
+    )
 
 
 def test_position_to_range_bearing_covariance():

@@ -13,17 +13,16 @@ import pytest
 import scipy.linalg
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
-
 from planar_world import ROOM, scan
-from trundle.drivers.camera import OPTICAL_ROTATION
-from trundle.logs import messages as m
+from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
+from trundle.drivers.camera import OPTICAL_ROTATION
+from trundle.logs import messages as m
+from trundle.logs.frames import FrameTree
 from trundle.perception.landmarks import marker_observation, viewing_cosine
 from trundle.perception.markers import Marker, marker_object_points, marker_pose
 from trundle.perception.scan_features import corner_observations, corners
-from trundle.logs.frames import FrameTree
 
 CAMERA = m.CameraInfo(0, "camera_optical", 480, 640, "plumb_bob", np.zeros(5),
                       [[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
@@ -50,7 +49,9 @@ def _marker_in_camera(distance: float, facing_deg: float) -> tuple[np.ndarray, n
 
 def _detected(rotation: np.ndarray, translation: np.ndarray, noise_px: float = 0.0,
               rng: np.random.Generator | None = None) -> Marker:
-    pixels, _ = cv2.projectPoints(marker_object_points(SIZE), cv2.Rodrigues(rotation)[0], translation, CAMERA.k, CAMERA.d)
+    pixels, _ = cv2.projectPoints(
+        marker_object_points(SIZE), cv2.Rodrigues(rotation)[0], translation, CAMERA.k, CAMERA.d
+    )
     pixels = pixels.reshape(4, 2)
     if noise_px:
         pixels = pixels + (rng or np.random.default_rng()).normal(0, noise_px, pixels.shape)
@@ -111,7 +112,11 @@ def test_covariance_grows_with_distance_and_viewing_angle():
         return marker_observation(marker, marker_pose(marker, CAMERA, SIZE), CAMERA, SIZE, base, min_side_px=0.0)
 
     near, middle, far = (observed(d, 20.0) for d in (1.0, 2.0, 4.0))
-    assert np.trace(near.position_covariance()) < np.trace(middle.position_covariance()) < np.trace(far.position_covariance())
+    assert (
+        np.trace(near.position_covariance())
+        < np.trace(middle.position_covariance())
+        < np.trace(far.position_covariance())
+    )
     assert near.yaw_variance < middle.yaw_variance < far.yaw_variance
     straight, slanted, steep = (observed(3.0, f) for f in (20.0, 45.0, 70.0))
     assert np.trace(straight.position_covariance()) < np.trace(slanted.position_covariance()) \

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -26,13 +27,13 @@ def room_log(tmp_path_factory):
     truth = loop_path(laps=2)
     rng = np.random.default_rng(3)
     odometry = [truth[0]]
-    for a, b in zip(truth[:-1], truth[1:]):
+    for a, b in pairwise(truth):
         step = np.array([math.cos(a[2]) * (b[0] - a[0]) + math.sin(a[2]) * (b[1] - a[1]),
                          -math.sin(a[2]) * (b[0] - a[0]) + math.cos(a[2]) * (b[1] - a[1]),
                          math.remainder(b[2] - a[2], 2 * math.pi)])
         odometry.append(compose(odometry[-1], step * [1.02, 1.0, 1.01] + rng.normal(0, [0.005, 0.005, 0.003])))
     items = []
-    for k, (pose, odom) in enumerate(zip(truth, odometry)):
+    for k, (pose, odom) in enumerate(zip(truth, odometry, strict=True)):
         stamp = 1_000_000_000 + k * 500_000_000
         items.append(("/odom", m.Odometry(stamp, "odom", "base_link", *odom), stamp))
         items.append(("/scan", scan(ROOM, pose, beams=271, fov=math.radians(270.0), noise_m=0.01, seed=k,

@@ -60,7 +60,9 @@ def test_default_slam_is_the_landmark_graph_within_15_cm_and_10_cm(robot1, capsy
     assert main(["slam-eval", str(run / "trajectory.csv"), str(robot1 / "truth.csv"), "--tolerance-ms", "20",
                  "--landmarks", str(robot1 / "survey.csv"), "--json"]) == 0
     evaluated = json.loads(capsys.readouterr().out)
-    assert evaluated["ate"]["rmse_m"] == pytest.approx(ate) and evaluated["landmarks"]["mean_m"] == pytest.approx(landmarks)
+    assert evaluated["ate"]["rmse_m"] == pytest.approx(ate) and evaluated["landmarks"]["mean_m"] == pytest.approx(
+        landmarks
+    )
 
 
 def test_ekf_alone_within_20_cm_and_15_cm(robot1):

@@ -9,14 +9,22 @@ from __future__ import annotations
 
 import json
 import math
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from trundle.fusion.geometry import compose, inverse, relative, scan_to_points, transform_points, voxel_filter
-from trundle.fusion.localization.grid_localization import (CoarseMap, Localizer, LocalizerConfig, coarse_map, correlate_headings,
-                                         global_search, grid_from_map)
+from trundle.fusion.localization.grid_localization import (
+    CoarseMap,
+    Localizer,
+    LocalizerConfig,
+    coarse_map,
+    correlate_headings,
+    global_search,
+    grid_from_map,
+)
 from trundle.fusion.mapping.map_io import read_trajectory_csv
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.odometry.drift import drifting_odometry
@@ -43,7 +51,7 @@ class Office:
 
     def route(self, step_m: float) -> np.ndarray:
         poses = []
-        for a, b in zip(self.world.route[:-1], self.world.route[1:]):
+        for a, b in pairwise(self.world.route):
             n = max(1, int(np.hypot(*(b - a)) / step_m))
             heading = math.atan2(b[1] - a[1], b[0] - a[0])
             poses += [[*(a + (b - a) * k / n), heading] for k in range(n)]
@@ -111,7 +119,7 @@ def test_office_converges_from_unknown_start_without_touching_the_map(office):
     updates = run(localizer, truth, points, odometry)
     converged = [k for k, u in enumerate(updates) if u.converged]
     assert converged and converged[0] < 20
-    for u, pose in zip(updates[converged[0]:], truth[converged[0]:]):
+    for u, pose in zip(updates[converged[0]:], truth[converged[0]:], strict=True):
         assert u.status == "tracking"
         assert np.hypot(*(u.pose[:2] - pose[:2])) < 0.1
         assert angle_error(u.pose[2], pose[2]) < math.radians(2.0)
@@ -138,7 +146,7 @@ def test_office_kidnapping_is_detected_and_recovered(office):
     assert kidnap and 12 <= kidnap[0] <= 14
     recovered = [k for k in localizer.stats.converged_at if k > kidnap[0]]
     assert recovered and recovered[0] - 12 < 20
-    for u, pose in zip(updates[recovered[0]:], truth[recovered[0]:]):
+    for u, pose in zip(updates[recovered[0]:], truth[recovered[0]:], strict=True):
         assert np.hypot(*(u.pose[:2] - pose[:2])) < 0.1
 
 
@@ -154,7 +162,7 @@ class Intel:
         scans = [to_scan(laser, "laser", no_return) for laser in lasers]
         self.poses = np.array([laser.pose for laser in lasers])
         self.grid = LogOddsGrid(0.05)
-        for scan, pose in zip(scans[::2], self.poses[::2]):
+        for scan, pose in zip(scans[::2], self.poses[::2], strict=True):
             self.grid.insert_rays(pose[:2], transform_points(pose, scan_to_points(scan, range_max=20.0)))
         self.points = [voxel_filter(scan_to_points(scan, range_max=20.0), 0.05) for scan in scans]
         self.odometry = drifting_odometry(self.poses, seed=1)  # 5 % scale, 2 deg/m drift plus noise
@@ -174,7 +182,10 @@ def test_intel_converges_within_20_scans(intel, start):
     updates = run(localizer, intel.poses[index], [intel.points[k] for k in index], intel.odometry[index])
     converged = [k for k, u in enumerate(updates) if u.converged]
     assert converged and converged[0] < 20
-    errors = [np.hypot(*(u.pose[:2] - p[:2])) for u, p in zip(updates[converged[0]:], intel.poses[index][converged[0]:])]
+    errors = [
+        np.hypot(*(u.pose[:2] - p[:2]))
+        for u, p in zip(updates[converged[0] :], intel.poses[index][converged[0] :], strict=True)
+    ]
     assert max(errors) < 0.15
     assert localizer.stats.kidnaps_at == []
 
@@ -203,7 +214,7 @@ def test_intel_kidnapping_is_detected_and_recovered(intel):
     assert kidnap and splice <= kidnap[0] <= splice + 2
     recovered = [k for k in localizer.stats.converged_at if k > kidnap[0]]
     assert recovered and recovered[0] - splice < 20
-    for u, pose in zip(updates[recovered[0]:], intel.poses[index][recovered[0]:]):
+    for u, pose in zip(updates[recovered[0]:], intel.poses[index][recovered[0]:], strict=True):
         assert np.hypot(*(u.pose[:2] - pose[:2])) < 0.15
     np.testing.assert_array_equal(intel.grid.log_odds, before)
 

@@ -15,12 +15,11 @@ from rosbags.highlevel import AnyReader
 
 from trundle.logs import messages as m
 from trundle.logs import ros2
+from trundle.logs.metadata import read_metadata
 from trundle.logs.reader import LogReader
 from trundle.logs.replay import replay
-from trundle.logs.metadata import read_metadata
 from trundle.logs.writer import Logger
 from trundle.tools.cli.main import main
-
 
 T0 = 1_763_784_000_000_000_000
 

@@ -39,7 +39,7 @@ def test_wrap_is_unwrapped_forwards():
     clock.synchronise(tm_samples([T0 + k * MS for k in range(5)], boot, start))
     true = T0 + 10 * MS + np.arange(40) * 25 * MS
     raws = sensor_ms(true, boot, 0.0, start)
-    out = [clock.update(int(r), int(t) + 30 * MS) for r, t in zip(raws, true)]
+    out = [clock.update(int(r), int(t) + 30 * MS) for r, t in zip(raws, true, strict=True)]
     assert sum(o.event == "wrap" for o in out) == 1 and clock.wraps == 1 and clock.resets == 0
     assert np.all(np.abs(np.array([o.stamp_ns for o in out]) - true) <= MS)
     assert np.all(np.diff([o.unwrapped for o in out]) == 25)
@@ -56,7 +56,7 @@ def test_reboot_is_detected_and_stamps_stay_continuous():
     raws[reboot_at:] = sensor_ms(true[reboot_at:], true[reboot_at] - 7 * MS)  # clock back to ~0
     rng = np.random.default_rng(0)
     latency = 30 * MS + rng.integers(0, 3 * MS, true.size)
-    out = [clock.update(int(r), int(t + lat)) for r, t, lat in zip(raws, true, latency)]
+    out = [clock.update(int(r), int(t + lat)) for r, t, lat in zip(raws, true, latency, strict=True)]
     assert [o.event for o in out].count("reset") == 1 and out[reboot_at].event == "reset"
     stamps = np.array([o.stamp_ns for o in out])
     assert np.all(np.diff(stamps) > 0)
@@ -70,7 +70,7 @@ def test_host_stall_is_not_a_reboot():
     true = T0 + 10 * MS + np.arange(60) * 25 * MS
     rx = true + 30 * MS
     rx[20:30] = rx[30]  # the host read nothing for 250 ms, then got ten scans at once
-    out = [clock.update(int(r), int(t)) for r, t in zip(sensor_ms(true, boot, 0.0, 1000), rx)]
+    out = [clock.update(int(r), int(t)) for r, t in zip(sensor_ms(true, boot, 0.0, 1000), rx, strict=True)]
     assert clock.resets == 0 and clock.resyncs == 0
     assert np.all(np.abs(np.array([o.stamp_ns for o in out]) - true) <= MS)
 
@@ -84,7 +84,7 @@ def test_drift_is_estimated_from_the_latency_envelope(drift_ppm):
     raws = sensor_ms(true, boot, drift_ppm)
     rng = np.random.default_rng(1)
     latency = 20 * MS + rng.exponential(4 * MS, true.size).astype(np.int64)
-    out = [clock.update(int(r), int(t + lat)) for r, t, lat in zip(raws, true, latency)]
+    out = [clock.update(int(r), int(t + lat)) for r, t, lat in zip(raws, true, latency, strict=True)]
     assert clock.drift_ppm == pytest.approx(drift_ppm, abs=5.0)
     late = np.array([o.stamp_ns for o in out[-1000:]]) - true[-1000:]
     assert np.abs(late).max() <= 3 * MS  # without drift tracking the error would be 30-48 ms

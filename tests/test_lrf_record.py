@@ -16,7 +16,8 @@ from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
 from trundle.tools.emulators.device_server import DeviceServer
 from trundle.tools.emulators.faults import parse_faults
-from trundle.tools.emulators.rplidar_emulator import FLAGS, KINDS, MODELS as RPLIDAR_MODELS, RplidarDevice
+from trundle.tools.emulators.rplidar_emulator import FLAGS, KINDS, RplidarDevice
+from trundle.tools.emulators.rplidar_emulator import MODELS as RPLIDAR_MODELS
 from trundle.tools.emulators.scene import DEFAULT_SCENE, load_scene
 from trundle.tools.emulators.scip2_emulator import MODELS, ScipDevice
 
@@ -38,7 +39,7 @@ def test_record_scip2_to_mcap(tmp_path):
     sent = {s.timestamp: s for s in device.sent}
     timing = [x.msg for x in messages if x.topic == "/scan/timing"]
     assert len(timing) == len(scans)
-    for scan, info in zip(scans, timing):
+    for scan, info in zip(scans, timing, strict=True):
         raw = int(dict(info.status[0].values)["raw_ms"])
         want = sent[raw].distances / 1000.0
         want = np.where(sent[raw].distances == 0, np.inf, np.where(sent[raw].distances < 20, np.nan, want))

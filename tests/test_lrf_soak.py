@@ -12,8 +12,10 @@ import time
 import pytest
 
 from tests.lrf_harness import inject, running, wait_until
-from tests.test_rplidar_driver import make as make_rplidar, match as match_rplidar
-from tests.test_scip2_driver import make as make_scip2, match as match_scip2
+from tests.test_rplidar_driver import make as make_rplidar
+from tests.test_rplidar_driver import match as match_rplidar
+from tests.test_scip2_driver import make as make_scip2
+from tests.test_scip2_driver import match as match_scip2
 from trundle.tools.emulators.faults import FaultPlan
 
 SOAK_S = 60.0

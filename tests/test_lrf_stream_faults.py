@@ -9,16 +9,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from tests.lrf_harness import MUTATIONS, mutate
+from tests.test_rplidar_driver import OTHER_TYPES
 from trundle.drivers import rplidar as rp
 from trundle.drivers import rplidar_capsules as rc
-from trundle.drivers.rplidar_driver import RevolutionAssembler, Revolution, revolution_scan
+from trundle.drivers.rplidar_driver import Revolution, RevolutionAssembler, revolution_scan
 from trundle.drivers.scip2 import Measure
 from trundle.drivers.scip2_driver import ScipScanStream
 from trundle.drivers.sensor_clock import SensorClock
-from tests.lrf_harness import MUTATIONS, mutate
-from tests.test_rplidar_driver import OTHER_TYPES
 from trundle.tools.emulators import rplidar_emulator, scip2_emulator
 from trundle.tools.emulators.faults import FaultPlan
 from trundle.tools.emulators.scene import load_scene
@@ -83,7 +84,7 @@ def test_scip2_stream_survives_thousands_of_faults():
     assert len(logged) == len(intact) == counters["scans"]
     first_beam = int(round((360 - (540 - 720)) / 1440 * device.period_ns))
     reset_seen = False
-    for (scan, timing), want in zip(logged, intact):
+    for (scan, timing), want in zip(logged, intact, strict=True):
         assert timing.raw == want.timestamp
         np.testing.assert_array_equal(scan.ranges, stream.ranges(want.distances))
         reset_seen |= timing.event == "reset"

@@ -111,7 +111,7 @@ def test_rplidar_roboticia_reads_the_scene_on_a_pty(tmp_path, pty_modem_lines):
     assert info["model"] == 0x28 and info["firmware"] == (1, 27) and info["hardware"] == 5
     assert health == ("Good", 0)
     for i, scan in enumerate(scans):
-        quality, angle, distance = (np.array(v) for v in zip(*scan))
+        quality, angle, distance = (np.array(v) for v in zip(*scan, strict=True))
         assert np.all(quality == 47) and (i == 0 or len(scan) >= 150)  # the first may be a partial turn
         # every sample where the scene puts it (rplidar leaves out distance 0; when its reader
         # falls behind it restarts the scan, so a list may hold parts of two turns)

@@ -7,14 +7,14 @@ import math
 
 import numpy as np
 
+from tests.planar_world import ROOM, scan
+from tests.test_slam import loop_path
 from trundle.fusion.geometry import compose, relative
 from trundle.fusion.mapping.map_check import _stretches
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.grid_slam import Slam
 from trundle.logs import messages as m
-from tests.planar_world import ROOM, scan
-from tests.test_slam import loop_path
 
 
 def mapped_room() -> Slam:
@@ -22,7 +22,7 @@ def mapped_room() -> Slam:
     truth = loop_path(laps=2)
     odometry = drifting_odometry(truth, seed=5)
     slam = Slam(SlamConfig())
-    for k, (pose, odo) in enumerate(zip(truth, odometry)):
+    for k, (pose, odo) in enumerate(zip(truth, odometry, strict=True)):
         stamp = 1_000_000_000 + k * 500_000_000
         slam.process("/odom", m.Odometry(stamp, "odom", "base_link", *odo))
         slam.process("/scan", scan(ROOM, pose, beams=271, fov=math.radians(270.0), noise_m=0.01, seed=k,

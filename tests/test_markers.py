@@ -12,10 +12,10 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from tests.conftest import shared_file
 from trundle.logs.errors import UserError
 from trundle.logs.messages import CameraInfo
 from trundle.perception.markers import Marker, MarkerDetector, dictionary_by_name, marker_object_points, marker_pose
-from tests.conftest import shared_file
 
 PHOTOS = ["singlemarkersoriginal.jpg", "choriginal.jpg", "chocclusion_original.jpg"]
 
@@ -47,10 +47,15 @@ def test_edge_refined_corners_on_photos_move_out_of_the_black_square(photo: str)
     subpix = MarkerDetector("DICT_6X6_250", refinement="subpix").detect(image)
     edges = MarkerDetector("DICT_6X6_250").detect(image)
     assert [m.id for m in edges] == [m.id for m in subpix] == sorted(int(i) for i in _gold()[photo])
-    assert max(np.abs(a.corners - b.corners).max() for a, b in zip(edges, subpix)) <= 2.0
-    outwards = [np.mean(np.linalg.norm(e.corners - s.corners.mean(axis=0), axis=1)
-                        - np.linalg.norm(s.corners - s.corners.mean(axis=0), axis=1))
-                for e, s in zip(edges, subpix) if not np.array_equal(e.corners, s.corners)]  # too small: kept
+    assert max(np.abs(a.corners - b.corners).max() for a, b in zip(edges, subpix, strict=True)) <= 2.0
+    outwards = [
+        np.mean(
+            np.linalg.norm(e.corners - s.corners.mean(axis=0), axis=1)
+            - np.linalg.norm(s.corners - s.corners.mean(axis=0), axis=1)
+        )
+        for e, s in zip(edges, subpix, strict=True)
+        if not np.array_equal(e.corners, s.corners)
+    ]  # too small: kept
     assert len(outwards) >= 3 and np.mean(outwards) > 0.05
 
 
@@ -60,7 +65,7 @@ def test_grey_input_gives_the_same_markers() -> None:
     colour = detector.detect(image)
     grey = detector.detect(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
     assert [m.id for m in grey] == [m.id for m in colour]
-    assert all(np.array_equal(a.corners, b.corners) for a, b in zip(grey, colour))
+    assert all(np.array_equal(a.corners, b.corners) for a, b in zip(grey, colour, strict=True))
 
 
 def test_configuration_errors_are_user_errors() -> None:

@@ -8,8 +8,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from feature_scenes import scene
+
 from trundle.perception.feature_eval import corner_error
 from trundle.tools.cli.main import main
 

@@ -15,7 +15,7 @@ PRIOR = (0.3, 0.3, math.radians(10.0))
 
 
 def feed(model: MotionModel, stamps_s, poses) -> None:
-    for t, pose in zip(stamps_s, poses):
+    for t, pose in zip(stamps_s, poses, strict=True):
         model.update(int(round(t * 1e9)), pose)
 
 

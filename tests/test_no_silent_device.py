@@ -35,14 +35,20 @@ def refused_port() -> int:
         return sock.getsockname()[1]  # closed again: nothing listens there
 
 
-@pytest.mark.parametrize("flags, cause", [
-    (["--lrf", "scip2:///dev/nonexistent"], "No such file or directory: '/dev/nonexistent' (not plugged in, or a wrong path)"),
-    (["--lrf", "scip2:///dev/null"], "(not a serial port)"),
-    (["--lrf", "scip2://{regular}"], "(not a serial port)"),
-    (["--lrf", "scip2+tcp://127.0.0.1:{port}"], "Connection refused (nothing listens at that address and port)"),
-    (["--can", "slcan:///dev/nonexistent", "--encoders", "odrive:0,1"], "(not plugged in, or a wrong path)"),
-    (["--can", "socketcan://nope0", "--encoders", "odrive:0,1"], "cannot open socketcan://nope0"),
-])
+@pytest.mark.parametrize(
+    "flags, cause",
+    [
+        (
+            ["--lrf", "scip2:///dev/nonexistent"],
+            "No such file or directory: '/dev/nonexistent' (not plugged in, or a wrong path)",
+        ),
+        (["--lrf", "scip2:///dev/null"], "(not a serial port)"),
+        (["--lrf", "scip2://{regular}"], "(not a serial port)"),
+        (["--lrf", "scip2+tcp://127.0.0.1:{port}"], "Connection refused (nothing listens at that address and port)"),
+        (["--can", "slcan:///dev/nonexistent", "--encoders", "odrive:0,1"], "(not plugged in, or a wrong path)"),
+        (["--can", "socketcan://nope0", "--encoders", "odrive:0,1"], "cannot open socketcan://nope0"),
+    ],
+)
 def test_record_says_why_a_device_gives_nothing(flags, cause, tmp_path, capsys):
     regular = tmp_path / "notes.txt"
     regular.write_text("not a serial port")

@@ -121,7 +121,9 @@ def test_large_and_small_grids_update_identically() -> None:
         grid.insert_rays(np.array([0.5, -0.3]), ends[:100])
     for grid in (small, large):
         assert grid.observed.sum() == small.observed.sum()
-    np.testing.assert_allclose(np.sort(small.occupied_points(), axis=0), np.sort(large.occupied_points(), axis=0), atol=1e-9)
+    np.testing.assert_allclose(
+        np.sort(small.occupied_points(), axis=0), np.sort(large.occupied_points(), axis=0), atol=1e-9
+    )
     np.testing.assert_array_equal(np.sort(small.log_odds[small.observed]), np.sort(large.log_odds[large.observed]))
 
 
@@ -132,7 +134,11 @@ def test_rays_traced_once_update_every_grid_on_the_lattice() -> None:
     ends = rng.uniform(-4, 4, (150, 2))
     free = rng.uniform(-6, 6, (20, 2))
     sensor = np.array([0.013, -0.021])
-    shared, first, second = LogOddsGrid(0.05, subcell=True), LogOddsGrid(0.05, subcell=True), LogOddsGrid(0.05, subcell=True)
+    shared, first, second = (
+        LogOddsGrid(0.05, subcell=True),
+        LogOddsGrid(0.05, subcell=True),
+        LogOddsGrid(0.05, subcell=True),
+    )
     second.ensure_contains(np.array([-9.0, -2.0]), np.array([1.0, 8.0]))
     shared_second = LogOddsGrid(0.05, subcell=True)
     shared_second.ensure_contains(np.array([-9.0, -2.0]), np.array([1.0, 8.0]))

@@ -9,12 +9,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.conftest import shared_file
 from trundle.fusion.geometry import wrap_angle
-from trundle.fusion.odometry.diff_drive import (DiffDriveOdometry, OdometrySink, integrate, integrate_path, odometry_from_config,
-                                     odometry_transform)
+from trundle.fusion.odometry.diff_drive import (
+    DiffDriveOdometry,
+    OdometrySink,
+    integrate,
+    integrate_path,
+    odometry_from_config,
+    odometry_transform,
+)
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-from tests.conftest import shared_file
 
 R, B = 0.1, 0.5  # wheel radius, track (m)
 
@@ -29,7 +35,7 @@ def js(stamp_ns: int, left_rad: float, right_rad: float, names=("left", "right")
 
 def run(odo: DiffDriveOdometry, left_rad, right_rad) -> m.Odometry:
     out = None
-    for k, (a, b) in enumerate(zip(left_rad, right_rad)):
+    for k, (a, b) in enumerate(zip(left_rad, right_rad, strict=True)):
         out = odo.update(js(k * 10_000_000, a, b))
     return out
 
@@ -89,7 +95,7 @@ def test_any_chunking_gives_the_same_pose(ticks, data):
     one.update_many(stamps, left, right)
     cuts = sorted(data.draw(st.sets(st.integers(1, left.size - 1), max_size=left.size)))
     chunked = DiffDriveOdometry(R, B)
-    for lo, hi in zip([0, *cuts], [*cuts, left.size]):
+    for lo, hi in zip([0, *cuts], [*cuts, left.size], strict=True):
         chunked.update_many(stamps[lo:hi], left[lo:hi], right[lo:hi])
     single = DiffDriveOdometry(R, B)
     run(single, left, right)

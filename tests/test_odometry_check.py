@@ -1,4 +1,5 @@
-"""The odometry check learns how far odometry and laser disagree on this log and flags increments the laser contradicts."""
+"""The odometry check learns how far odometry and laser disagree on this log and flags the
+increments the laser contradicts."""
 
 from __future__ import annotations
 

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import pytest
 
+from tests.test_daemon import Running, ScriptedDriver, config, wait_for
 from trundle.logs.errors import DataError, UserError
 from trundle.logs.reader import LogReader
 from trundle.logs.recover import recover
 from trundle.tools.cli.main import main
 from trundle.tools.daemon.service import Daemon
-from tests.test_daemon import Running, ScriptedDriver, config, wait_for
 
 DEMO_LOG = Path(__file__).resolve().parent / "data" / "demo_short" / "demo.mcap"
 

@@ -167,7 +167,9 @@ def test_features_pipeline(log: Path, tmp_path: Path, capsys) -> None:
     assert len(points) == 3 and all(len(p.msg.points) > 0 for p in points)
     assert sum(len(p.msg.points) for p in points) == summary["keypoints"]
     ticks = topics["/camera/image_raw/compressed/keypoint_orientations"]
-    assert all(len(t.msg.points) == 2 * len(p.msg.points) for t, p in zip(ticks, points))   # ORB orients all
+    assert all(
+        len(t.msg.points) == 2 * len(p.msg.points) for t, p in zip(ticks, points, strict=True)
+    )  # ORB orients all
     assert main(["perceive", str(log), "--pipeline", "features", "--method", "nope",
                  "-o", str(tmp_path / "n.mcap")]) == 2
     assert "unknown feature detector 'nope'" in capsys.readouterr().err

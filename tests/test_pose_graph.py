@@ -147,7 +147,7 @@ def test_g2o_round_trip(tmp_path):
     np.testing.assert_allclose([float(t) for t in last_edge[6:]], [11.11, -0.25, 0.01, 400.0, 0.02, 2496.8])
     again = read_g2o(path)
     np.testing.assert_allclose(again.poses, graph.poses, atol=1e-8)
-    for a, b in zip(again.edges, graph.edges):
+    for a, b in zip(again.edges, graph.edges, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-15)
     assert again.fixed == {0}
 

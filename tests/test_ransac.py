@@ -15,10 +15,23 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.perception.ransac import (RansacResult, camera_motion_from_odometry, find_essential, find_fundamental,
-                                       find_homography, fit_essential, fit_homography, fit_line, homography_residuals,
-                                       line_residuals, motion_prior_mask, project, ransac, required_trials,
-                                       sampson_distance)
+from trundle.perception.ransac import (
+    RansacResult,
+    camera_motion_from_odometry,
+    find_essential,
+    find_fundamental,
+    find_homography,
+    fit_essential,
+    fit_homography,
+    fit_line,
+    homography_residuals,
+    line_residuals,
+    motion_prior_mask,
+    project,
+    ransac,
+    required_trials,
+    sampson_distance,
+)
 
 SETTINGS = settings(max_examples=40, deadline=None)
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
@@ -168,7 +181,9 @@ def _two_views(seed: int, n: int, rotation: np.ndarray, t: np.ndarray) -> tuple[
     return x1[:, :2] / x1[:, 2:], x2[:, :2] / x2[:, 2:]
 
 
-def _far_from_epipolar(f: np.ndarray, x1: np.ndarray, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+def _far_from_epipolar(
+    f: np.ndarray, x1: np.ndarray, rng: np.random.Generator, n: int
+) -> tuple[np.ndarray, np.ndarray]:
     src = rng.uniform(0, 640, (4 * n, 2))
     dst = rng.uniform(0, 640, (4 * n, 2))
     far = sampson_distance(f, src, dst) > 20.0

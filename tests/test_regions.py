@@ -11,8 +11,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.perception.regions import (central_moments, centroid, ellipse, find_regions, hu_moments, raw_moments,
-                                        region_of)
+from trundle.perception.regions import (
+    central_moments,
+    centroid,
+    ellipse,
+    find_regions,
+    hu_moments,
+    raw_moments,
+    region_of,
+)
 
 TINY = np.array([[1, 0, 2],
                  [0, 3, 0]])   # weights at (x, y) = (0, 0), (2, 0), (1, 1)

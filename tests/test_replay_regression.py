@@ -14,9 +14,9 @@ import pytest
 from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error
 from trundle.fusion.mapping.map_io import read_trajectory_csv
 from trundle.logs.reader import LogReader
+from trundle.logs.topics import IMAGE_TOPIC, SCAN_TOPIC, WHEELS_TOPIC
 from trundle.tools.demo.scoring import map_wall_distances, path_length, score_markers, sensor_mount
 from trundle.tools.demo.slam import run_slam, wheel_odometry
-from trundle.logs.topics import IMAGE_TOPIC, SCAN_TOPIC, WHEELS_TOPIC
 from trundle.tools.sim.world import load_world
 
 DATA = Path(__file__).parent / "data" / "demo_short"
@@ -56,7 +56,7 @@ def test_wheel_odometry_replays_exactly_what_the_daemon_computed_live(truth):
     replayed = [o for o in replayed if o is not None]
     assert len(replayed) == len(live) == 2187
     assert all(a.stamp_ns == b.stamp_ns and (a.x, a.y) == (b.x, b.y) and a.theta == pytest.approx(b.theta, abs=1e-12)
-               for a, b in zip(replayed, live))
+               for a, b in zip(replayed, live, strict=True))
     # pinned: the pose and distance the logged wheel angles integrate to
     pinned = [18.789902179956684, 0.09772442249100963, 1.2303213214683295]
     assert odometry.pose.tolist() == pytest.approx(pinned, abs=1e-9)

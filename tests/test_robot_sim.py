@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
-from trundle.logs import messages as m
 from trundle.tools.sim.robot import Mount, RobotModel, RobotSim
 from trundle.tools.sim.world import cast_rays, load_world, parse_world, simulate_scan
 

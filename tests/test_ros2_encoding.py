@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 from hypothesis import given, settings
+from strategies import ALL_MESSAGES
 
 from trundle.logs import messages as m
 from trundle.logs import ros2
-from strategies import ALL_MESSAGES
 
 # Planar yaw travels as a quaternion, so it comes back equal only to rounding.
 ANGLE_FIELDS = {"theta", "origin_theta", "yaw"}
@@ -22,7 +22,7 @@ def assert_same(a: m.Message, b: m.Message) -> None:
     if isinstance(a, m.LandmarkList | m.SceneMarkers):
         inner = "landmarks" if isinstance(a, m.LandmarkList) else "markers"
         assert len(getattr(a, inner)) == len(getattr(b, inner))
-        for x, y in zip(getattr(a, inner), getattr(b, inner)):
+        for x, y in zip(getattr(a, inner), getattr(b, inner), strict=True):
             assert_same(x, y)
         a, b = (dataclasses.replace(v, **{inner: ()}) for v in (a, b))
     for f in dataclasses.fields(a):

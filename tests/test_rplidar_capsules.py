@@ -11,11 +11,12 @@ from pathlib import Path
 import numpy as np
 import pyrplidar_protocol
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from tests.lrf_harness import MUTATIONS, mutate
 from trundle.drivers import rplidar as rp
 from trundle.drivers import rplidar_capsules as rc
-from tests.lrf_harness import MUTATIONS, mutate
 
 FIXTURE = json.loads((Path(__file__).parent / "data" / "pyrplidar_capsules.json").read_text())
 FORMATS = (rc.EXPRESS, rc.HQ, rc.ULTRA, rc.DENSE, rc.ULTRA_DENSE)
@@ -74,7 +75,9 @@ def test_express_samples_by_hand():
     # start 10 deg, next capsule at 42 deg: 1 deg per sample; sample 3 with dtheta 1.5 deg (12 Q3)
     dth = np.zeros(32, np.int64)
     dth[3] = 12
-    rows = rows_of([rc.encode_capsule(640, np.full(32, 4000), dth), rc.encode_capsule(42 * 64, np.full(32, 4000), 0 * dth)])
+    rows = rows_of(
+        [rc.encode_capsule(640, np.full(32, 4000), dth), rc.encode_capsule(42 * 64, np.full(32, 4000), 0 * dth)]
+    )
     angle, encoder, distance, _ = rc.EXPRESS.unpack(rows[:1], rows[1:])
     assert angle[0, :5].tolist() == [640, 704, 768, 832 - 96, 896] and encoder[0, 3] == 832
     assert (distance == 4000).all()
@@ -97,9 +100,13 @@ def test_dense_samples_by_hand():
     body = struct.pack("<H", 0x8000 | (30 * 64)) + struct.pack("<40H", *range(1000, 1040))
     capsule = bytes((0xA0 | (rp.xor(body) & 0xF), 0x50 | (rp.xor(body) >> 4))) + body
     assert capsule == rc.encode_dense_capsule(30 * 64, np.arange(1000, 1040), new_scan=True)
-    angle, encoder, distance, _ = rc.DENSE.unpack(rows_of([capsule]), rows_of([rc.encode_dense_capsule(34 * 64, np.zeros(40))]))
+    angle, encoder, distance, _ = rc.DENSE.unpack(
+        rows_of([capsule]), rows_of([rc.encode_dense_capsule(34 * 64, np.zeros(40))])
+    )
     assert (distance[0] == np.arange(1000, 1040) * 4).all()
-    assert angle[0, :3].tolist() == [30 * 64, 30 * 64 + 6, 30 * 64 + 12] and (angle == encoder).all()  # 4 deg / 40 = 6.4 Q6
+    assert (
+        angle[0, :3].tolist() == [30 * 64, 30 * 64 + 6, 30 * 64 + 12] and (angle == encoder).all()
+    )  # 4 deg / 40 = 6.4 Q6
 
 
 def test_ultra_dense_samples_by_hand():
@@ -186,7 +193,9 @@ def test_ultra_capsules_read_by_pyrplidar():
     angle, _, ours, _ = rc.ULTRA.unpack(rows[:-1], rows[1:])
     for i in range(7):
         nodes = pyrplidar_protocol.PyRPlidarScanUltraCapsule._parse_capsule(
-            pyrplidar_protocol.PyRPlidarScanUltraCapsule(capsules[i]), pyrplidar_protocol.PyRPlidarScanUltraCapsule(capsules[i + 1]))
+            pyrplidar_protocol.PyRPlidarScanUltraCapsule(capsules[i]),
+            pyrplidar_protocol.PyRPlidarScanUltraCapsule(capsules[i + 1]),
+        )
         assert [n.dist_mm_q2 for n in nodes] == ours[i].tolist() == distance[96 * i:96 * (i + 1)].tolist()
         assert [n.angle_z_q14 for n in nodes] == q14(angle[i]).tolist()
 
@@ -200,8 +209,10 @@ def test_a_bad_capsule_is_counted_and_the_stream_realigns(fmt):
     nodes = rp.Nodes.concat([decoder.feed(bytes(stream[:500])), decoder.feed(bytes(stream[500:]))])
     assert decoder.bad_capsules == 1 and decoder.framer.resyncs == 1
     # capsule 5 is lost, and with it the held-back ones before it; the samples after the break are intact
-    kept = set(zip(nodes.encoder_q6.tolist(), nodes.distance_q2.tolist()))
-    assert kept <= set(zip(((np.arange(distance.size) * 16) % rp.FULL_CIRCLE_Q6).tolist(), distance.tolist()))
+    kept = set(zip(nodes.encoder_q6.tolist(), nodes.distance_q2.tolist(), strict=True))
+    assert kept <= set(
+        zip(((np.arange(distance.size) * 16) % rp.FULL_CIRCLE_Q6).tolist(), distance.tolist(), strict=True)
+    )
     assert nodes.broken.sum() == 1 and nodes.encoder_q6[np.flatnonzero(nodes.broken)[0]] == 6 * fmt.samples * 16
 
 
@@ -224,4 +235,6 @@ def test_one_mutation_never_yields_a_wrong_sample(seed, how, value, where, fmt):
     mutate(stream, how, where, value)
     nodes = rc.CapsuleNodeDecoder(fmt).feed(bytes(stream))
     fields = ("encoder_q6", "angle_q6", "distance_q2", "quality")
-    assert set(zip(*(getattr(nodes, f).tolist() for f in fields))) <= set(zip(*(getattr(original, f).tolist() for f in fields)))
+    assert set(zip(*(getattr(nodes, f).tolist() for f in fields), strict=True)) <= set(
+        zip(*(getattr(original, f).tolist() for f in fields), strict=True)
+    )

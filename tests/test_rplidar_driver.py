@@ -16,16 +16,23 @@ import time
 import numpy as np
 import pytest
 
+from tests.lrf_harness import Recorder, inject, replug_delay_ns, running, wait_until
 from trundle.drivers import lrf
 from trundle.drivers import rplidar as rp
-from trundle.drivers.rplidar_driver import RplidarConfig, RplidarDriver, Revolution, revolution_scan
+from trundle.drivers.rplidar_driver import Revolution, RplidarConfig, RplidarDriver, revolution_scan
 from trundle.logs import messages as m
-from tests.lrf_harness import Recorder, inject, replug_delay_ns, running, wait_until
 from trundle.tools.emulators.device_server import DeviceServer
 from trundle.tools.emulators.faults import FaultPlan, parse_faults
 from trundle.tools.emulators.pty_link import PtyLink
-from trundle.tools.emulators.rplidar_emulator import (FLAGS, KINDS, MODELS, EmulatedMode, RplidarDevice, RplidarModel,
-                                                      SentRevolution)
+from trundle.tools.emulators.rplidar_emulator import (
+    FLAGS,
+    KINDS,
+    MODELS,
+    EmulatedMode,
+    RplidarDevice,
+    RplidarModel,
+    SentRevolution,
+)
 from trundle.tools.emulators.scene import load_scene
 
 PATIENT = {"timeout_s": 5.0, "error_limit": 50, "reply_timeout_s": 3.0}  # a busy test machine: no reconnects

@@ -94,13 +94,13 @@ def _check(method: str, walls: np.ndarray, pose: tuple[float, float, float], noi
     # What the scanner saw of each wall: runs of consecutive beams hitting it (a wall behind the
     # scanner shows at both ends of the field of view).
     edges = np.flatnonzero(np.diff(hit)) + 1
-    for first, stop in zip(np.r_[0, edges], np.r_[edges, beams]):
+    for first, stop in zip(np.r_[0, edges], np.r_[edges, beams], strict=True):
         w, seen = hit[first], np.arange(first, stop)
         if w < 0 or len(seen) < 30 or math.dist(exact[seen[0]], exact[seen[-1]]) < 0.5:
             continue
         if np.hypot(*np.diff(exact[seen], axis=0).T).max() > 0.1:
             continue                   # seen so obliquely that a lost beam or two opens a gap over max_gap
-        matching = [s for s, o in zip(segments, owner) if o == w and np.isin(s.beams, seen).mean() > 0.5]
+        matching = [s for s, o in zip(segments, owner, strict=True) if o == w and np.isin(s.beams, seen).mean() > 0.5]
         assert matching, f"wall {w} {walls[w].tolist()} (beams {first}-{stop - 1}) not found by {method}"
         longest = max(matching, key=lambda s: s.length)
         assert abs(longest.r - lines[w][0]) < 0.02 and _angle_error(longest.alpha, lines[w][1]) < math.radians(1)

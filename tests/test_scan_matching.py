@@ -10,11 +10,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from tests.planar_world import CORRIDOR, ROOM, scan
 from trundle.fusion.geometry import scan_to_points, transform_points, wrap_angle
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
-from trundle.fusion.matching.scan_matching import (angular_step, correlative_search, match_scan, refine_pose,
-                                          samples_walls_densely, score_pyramid)
-from tests.planar_world import CORRIDOR, ROOM, scan
+from trundle.fusion.matching.scan_matching import (
+    angular_step,
+    correlative_search,
+    match_scan,
+    refine_pose,
+    samples_walls_densely,
+    score_pyramid,
+)
 
 
 def build_map(walls: np.ndarray, poses: list[tuple[float, float, float]], resolution: float = 0.05,

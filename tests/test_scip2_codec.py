@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from tests.lrf_harness import MUTATIONS, mutate
 from trundle.drivers import scip2
 from trundle.drivers.scip2 import Measure, Reply, ScipError, ScipFramer
-from tests.lrf_harness import MUTATIONS, mutate
 
 # Byte-exact lines published for real sensors (lrf-protocols.md section 1.5, checksums included).
 URG_PP = [b"MODL:URG-04LX(Hokuyo Automatic Co.,Ltd.);N", b"DMIN:20;4", b"DMAX:5600;_", b"ARES:1024;\\",
@@ -56,7 +57,15 @@ def test_pp_replies_parse_to_the_model_table():
     assert (urg.model, urg.dmin, urg.dmax, urg.ares, urg.amin, urg.amax, urg.afrt, urg.rpm) == (
         "URG-04LX(Hokuyo Automatic Co.,Ltd.)", 20, 5600, 1024, 44, 725, 384, 600)
     utm = scip2.SensorParams.from_info(scip2.parse_info(reply_of(b"PP", b"00P", UTM_PP)))
-    assert (utm.dmin, utm.dmax, utm.ares, utm.amin, utm.amax, utm.afrt, utm.rpm) == (23, 60000, 1440, 0, 1080, 540, 2400)
+    assert (utm.dmin, utm.dmax, utm.ares, utm.amin, utm.amax, utm.afrt, utm.rpm) == (
+        23,
+        60000,
+        1440,
+        0,
+        1080,
+        540,
+        2400,
+    )
     assert utm.scan_period_s == pytest.approx(0.025)
     # URG-04LX step 44 = -119.53 deg, step 725 = +119.88 deg (spec geometry)
     assert np.degrees(urg.step_angle(44)) == pytest.approx(-119.53, abs=0.01)
@@ -178,7 +187,7 @@ def test_framer_is_independent_of_chunking(data):
     framer = ScipFramer()
     framer.expect(measure.echo())
     replies = []
-    for a, b in zip([0, *cuts], [*cuts, len(stream)]):
+    for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True):
         replies += framer.feed(stream[a:b])
     assert [scip2.decode_scan(r, measure).timestamp for r in replies] == [0, 1, 2]
     assert framer.resyncs == 0

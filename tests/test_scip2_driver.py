@@ -8,14 +8,15 @@ injected while the driver streamed.
 from __future__ import annotations
 
 import time
+from itertools import pairwise
 
 import numpy as np
 import pytest
 
+from tests.lrf_harness import Recorder, inject, replug_delay_ns, running, wait_until
 from trundle.drivers import lrf
 from trundle.drivers.scip2_driver import ScipConfig, ScipDriver
 from trundle.logs.errors import UserError
-from tests.lrf_harness import Recorder, inject, replug_delay_ns, running, wait_until
 from trundle.tools.emulators.device_server import DeviceServer
 from trundle.tools.emulators.faults import FaultPlan, parse_faults
 from trundle.tools.emulators.pty_link import PtyLink
@@ -49,7 +50,7 @@ def match(device: ScipDevice, sink: Recorder, start: int) -> list:
     """The sent scan behind every logged one, found by the raw timestamp the driver logs with it
     on /scan/timing: ranges must be bit-equal, nothing faulty logged, stamps the first beam's time."""
     with sink.lock:
-        pairs = [(a[1], b[1]) for a, b in zip(sink.messages, sink.messages[1:])
+        pairs = [(a[1], b[1]) for a, b in pairwise(sink.messages)
                  if a[0] == "/scan" and b[0] == "/scan/timing"]
     offset = first_beam_ns(device, start)
     matched, errors = [], []
@@ -91,12 +92,17 @@ def test_clean_stream_equals_what_the_sensor_sent(tmp_path):
     assert scan.angle_increment == pytest.approx(2 * np.pi / 1024)
     assert scan.time_increment == pytest.approx(0.1 / 1024) and scan.scan_time == pytest.approx(0.1)
     assert (scan.range_min, scan.range_max) == (pytest.approx(0.02), pytest.approx(5.6))
-    assert all(b.stamp_ns - a.stamp_ns == pytest.approx(1e8, abs=2e6) for a, b in zip(scans, scans[1:]))
+    assert all(b.stamp_ns - a.stamp_ns == pytest.approx(1e8, abs=2e6) for a, b in pairwise(scans))
     (tf,) = driver.static_messages()[0][1].transforms
-    assert (tf.frame_id, tf.child_frame_id, tf.translation[0], tf.yaw) == ("base_link", "laser", 0.1, pytest.approx(0.5))
+    assert (tf.frame_id, tf.child_frame_id, tf.translation[0], tf.yaw) == (
+        "base_link",
+        "laser",
+        0.1,
+        pytest.approx(0.5),
+    )
     names = [c[:3] for c in device.commands]
     assert names[0] == b"QT" and names[-1] == b"QT"  # stopped at start-up and at shutdown
-    assert [b"PP", b"VV", b"II", b"TM0"] == [n for n in names if n in (b"PP", b"VV", b"II", b"TM0")]
+    assert [n for n in names if n in (b"PP", b"VV", b"II", b"TM0")] == [b"PP", b"VV", b"II", b"TM0"]
     assert names.count(b"TM1") == 10 and b"MD0" in names
     assert "H0614967" in driver.hardware_id
     assert dict(driver.diagnostics().values)["serial"] == "H0614967"
@@ -168,7 +174,7 @@ def test_24_bit_clock_wrap_is_unwrapped(tmp_path):
     scans = sink.scans()
     logged = match(device, sink, device.params.angle_step(-0.5))
     raws = [s.timestamp for s in logged]
-    assert any(b < a for a, b in zip(raws, raws[1:]))  # the raw clock did wrap under our eyes
+    assert any(b < a for a, b in pairwise(raws))  # the raw clock did wrap under our eyes
     gaps = np.diff([s.stamp_ns for s in scans])
     assert np.all(gaps > 0) and np.all(np.abs(gaps - np.rint(gaps / 25e6) * 25e6) < 3e6)
     assert driver.counters["clock_resets"] == 0
@@ -275,7 +281,7 @@ def test_ethernet_model_over_tcp_with_intensities():
     with running(server, driver):
         wait_until(lambda: driver.counters["scans"] >= 5, "5 scans")
     logged = match(device, sink, 0)
-    for scan, want in zip(sink.scans(), logged):
+    for scan, want in zip(sink.scans(), logged, strict=True):
         np.testing.assert_array_equal(scan.intensities, want.intensities.astype(np.float32))
 
 

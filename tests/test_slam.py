@@ -3,18 +3,19 @@
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from tests.planar_world import ROOM, scan
 from trundle.fusion.geometry import compose, relative, wrap_angle
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.grid_slam import Slam
 from trundle.logs import messages as m
 from trundle.logs.errors import ConfigError
-from tests.planar_world import ROOM, scan
 
 WAYPOINTS = np.array([(-4.2, -2.3), (0.0, -2.3), (0.0, 0.3), (4.4, 0.3), (4.4, 3.3), (-4.2, 3.3), (-4.2, -2.3)])
 
@@ -24,7 +25,7 @@ def loop_path(laps: int = 2, step_m: float = 0.25, turn_step_rad: float = math.r
     poses = []
     heading = 0.0
     for _ in range(laps):
-        for a, b in zip(WAYPOINTS[:-1], WAYPOINTS[1:]):
+        for a, b in pairwise(WAYPOINTS):
             target = math.atan2(b[1] - a[1], b[0] - a[0])
             turn = wrap_angle(target - heading)
             for k in range(1, int(math.ceil(abs(turn) / turn_step_rad)) + 1):
@@ -122,7 +123,8 @@ def test_config_from_mapping_checks_keys_and_types() -> None:
                                       "tracking": {"search_window_xy_m": [0.2, 2]}})
     assert config.submaps.resolution == 0.1 and config.loop_closure.enabled is False
     assert config.tracking.search_window_xy_m == (0.2, 2.0) and config.submaps.scans_per_submap == 25
-    assert SlamConfig.from_mapping({"submaps": {"resolution": 1}}).submaps.resolution == 1.0  # a TOML integer is a number
+    # a TOML integer is a number
+    assert SlamConfig.from_mapping({"submaps": {"resolution": 1}}).submaps.resolution == 1.0
 
 
 @pytest.mark.parametrize("table, message", [

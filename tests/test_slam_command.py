@@ -10,13 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.planar_world import ROOM, scan
+from tests.test_slam import loop_path
 from trundle.fusion.mapping.map_io import load_map, read_trajectory_csv
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.logs import messages as m
 from trundle.logs.importers import write_log
 from trundle.logs.reader import LogReader
-from tests.planar_world import ROOM, scan
-from tests.test_slam import loop_path
 from trundle.tools.cli.main import main
 
 
@@ -34,7 +34,7 @@ def simulated_log(tmp_path_factory):
     odometry = drifting_odometry(truth, seed=4)
     mount = np.array([0.1, 0.0, 0.0])
     items = [("/tf_static", m.TFMessage((m.TransformStamped.planar(0, "base_link", "laser", 0.1, 0.0, 0.0),)), 0)]
-    for k, (pose, odo) in enumerate(zip(truth, odometry)):
+    for k, (pose, odo) in enumerate(zip(truth, odometry, strict=True)):
         stamp = 10**9 * (k + 1) // 2
         laser = pose + np.array([mount[0] * math.cos(pose[2]), mount[0] * math.sin(pose[2]), 0.0])
         items.append(("/odom", m.Odometry(stamp, "odom", "base_link", *odo), stamp))

@@ -11,13 +11,19 @@ import json
 import numpy as np
 import pytest
 
-from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
+from tests.conftest import shared_file
+from trundle.fusion.evaluation.trajectory_errors import (
+    Trajectory,
+    absolute_trajectory_error,
+    relation_error,
+    trajectory_relations,
+)
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.grid_slam import Slam
 from trundle.logs.importers import breezyslam, carmen
-from tests.conftest import shared_file
+from trundle.logs.topics import TF_STATIC_TOPIC
 from trundle.tools.cli.main import main
 
 
@@ -27,8 +33,9 @@ def intel_run(scans: int | None, loop_closure: bool = True) -> tuple[Slam, Traje
     stamps, reference = carmen.scan_poses(log)
     odometry = drifting_odometry(reference, seed=1)
     slam = Slam(SlamConfig.from_mapping({"loop_closure": {"enabled": loop_closure}}))
-    for k, (topic, msg, _) in enumerate(item for item in carmen.messages(log, odometry="laser", laser_odometry=odometry)
-                                        if item[0] != "/tf_static"):
+    for topic, msg, _ in carmen.messages(log, odometry="laser", laser_odometry=odometry):
+        if topic == TF_STATIC_TOPIC:
+            continue
         if scans is not None and slam.stats.scans >= scans:
             break
         slam.process(topic, msg)

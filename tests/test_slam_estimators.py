@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.planar_world import ROOM, scan
 from trundle.fusion.slam.backend import PoseGraphBackend
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.estimators import ESTIMATORS, EstimatorInputs, choices, make_estimator, resolve
@@ -19,7 +20,6 @@ from trundle.fusion.slam.local import LocalTrajectoryBuilder
 from trundle.fusion.slam.stats import SlamStats
 from trundle.logs import messages as m
 from trundle.logs.errors import UsageError
-from tests.planar_world import ROOM, scan
 
 SLAM = Path(__file__).resolve().parents[1] / "fusion" / "slam"
 

@@ -9,10 +9,19 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.fusion.geometry import (compose, inverse, no_return_directions, relative, rotate_covariance,
-                                     scan_to_points, transform_points, voxel_filter, wrap_angle)
-from trundle.logs.messages import LaserScan
 from tests.planar_world import ROOM, cast
+from trundle.fusion.geometry import (
+    compose,
+    inverse,
+    no_return_directions,
+    relative,
+    rotate_covariance,
+    scan_to_points,
+    transform_points,
+    voxel_filter,
+    wrap_angle,
+)
+from trundle.logs.messages import LaserScan
 
 poses = st.tuples(st.floats(-50, 50), st.floats(-50, 50), st.floats(-10, 10)).map(np.array)
 

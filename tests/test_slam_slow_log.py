@@ -9,7 +9,12 @@ import math
 import numpy as np
 import pytest
 
-from trundle.fusion.evaluation.trajectory_errors import Trajectory, absolute_trajectory_error, relation_error, trajectory_relations
+from trundle.fusion.evaluation.trajectory_errors import (
+    Trajectory,
+    absolute_trajectory_error,
+    relation_error,
+    trajectory_relations,
+)
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.grid_slam import Slam
 from trundle.tools.sim.robot import RobotSim

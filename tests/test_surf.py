@@ -8,8 +8,8 @@ import math
 import cv2
 import numpy as np
 import pytest
-
 from conftest import shared_file
+
 from trundle.perception.feature_eval import matching_score
 from trundle.perception.keypoints import from_cv, make_keypoints
 from trundle.perception.matching import match_descriptors
@@ -18,7 +18,7 @@ from trundle.perception.surf import describe_surf, detect_surf, integral_image, 
 
 def _blob(sigma: float, centre: tuple[float, float], size: int = 240) -> np.ndarray:
     y, x = np.mgrid[0:size, 0:size]
-    return (30 + 200 * np.exp(-((x - centre[0]) ** 2 + (y - centre[1]) ** 2) / (2 * sigma ** 2))).round().astype(np.uint8)
+    return (30 + 200 * np.exp(-((x - centre[0]) ** 2 + (y - centre[1]) ** 2) / (2 * sigma**2))).round().astype(np.uint8)
 
 
 def _texture(seed: int = 0, shape: tuple[int, int] = (240, 320)) -> np.ndarray:

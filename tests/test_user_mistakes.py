@@ -31,7 +31,8 @@ def files(tmp_path: Path) -> Path:
                                                                                        "resolution: 0"))
     (zero / "map.pgm").write_bytes((tmp_path / "map" / "map.pgm").read_bytes())
     for name, text in (("res0", "[slam.submaps]\nresolution = 0\n"), ("resneg", "[slam.submaps]\nresolution = -0.05\n"),
-                       ("resnan", "[slam.submaps]\nresolution = nan\n"), ("resinf", "[slam.submaps]\nresolution = inf\n"),
+                       ("resnan", "[slam.submaps]\nresolution = nan\n"),
+                       ("resinf", "[slam.submaps]\nresolution = inf\n"),
                        ("resfine", "[slam.submaps]\nresolution = 0.0005\n"), ("url5", "[lrf]\nurl = 5\n")):
         (tmp_path / f"{name}.toml").write_text(text)
     return tmp_path
@@ -42,11 +43,13 @@ CASES = [
     (["slam", "{log}", "-o", "{d}/file.txt"], "is a file, not a folder"),
     (["characterize", "{log}", "--topic", "/scan", "-o", "{d}/file.txt"], "is a file, not a folder"),
     (["demo", "-o", "{d}/file.txt"], "is a file, not a folder"),
-    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/res0.toml"], "slam.submaps.resolution = 0: expected a number >= 0.001"),
+    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/res0.toml"],
+     "slam.submaps.resolution = 0: expected a number >= 0.001"),
     (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resneg.toml"], "slam.submaps.resolution = -0.05"),
     (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resnan.toml"], "slam.submaps.resolution = nan"),
     (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resinf.toml"], "slam.submaps.resolution = inf"),
-    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resfine.toml"], "slam.submaps.resolution = 0.0005: expected a number >= 0.001"),
+    (["slam", "{log}", "-o", "{d}/o", "--config", "{d}/resfine.toml"],
+     "slam.submaps.resolution = 0.0005: expected a number >= 0.001"),
     (["localize", "{log}", "--map", "{d}/map/map.pgm"], "is a map image: give its YAML"),
     (["localize", "{log}", "--map", "{d}/binary.bin"], "is not a map YAML (binary data)"),
     (["localize", "{log}", "--map", "{d}/zero"], "resolution = 0 must be a number in"),
@@ -64,10 +67,16 @@ CASES = [
     (["import", "carmen", "/dev/zero", "-o", "{d}/c.mcap"], "/dev/zero is not a regular file"),
     (["import", "breezyslam", "/dev/zero", "-o", "{d}/b.mcap"], "/dev/zero is not a regular file"),
     # numbers once accepted without complaint
-    (["record", "--lrf", "scip2:///dev/null", "--duration", "-1", "-o", "{d}/r.mcap"], "--duration: -1 must be above 0"),
+    (
+        ["record", "--lrf", "scip2:///dev/null", "--duration", "-1", "-o", "{d}/r.mcap"],
+        "--duration: -1 must be above 0",
+    ),
     (["record", "--lrf", "scip2:///dev/null", "--duration", "0", "-o", "{d}/r.mcap"], "--duration: 0 must be above 0"),
     (["record", "--lrf", "scip2:///dev/null", "--duration", "nan", "-o", "{d}/r.mcap"], "'nan' is not a finite number"),
-    (["record", "--lrf", "scip2:///dev/null", "--split-size", "-1", "-o", "{d}/r.mcap"], "--split-size: -1 must be above 0"),
+    (
+        ["record", "--lrf", "scip2:///dev/null", "--split-size", "-1", "-o", "{d}/r.mcap"],
+        "--split-size: -1 must be above 0",
+    ),
     (["replay", "{log}", "--rate", "nan"], "'nan' is not a finite number"),
     (["replay", "{log}", "--rate", "inf"], "'inf' is not a finite number"),
     (["localize", "{log}", "--map", "{d}/map", "--max-range", "-1"], "--max-range: -1 must be above 0"),
@@ -83,7 +92,10 @@ CASES = [
     # misleading messages
     (["info", "{d}/folder"], "is a folder, not an MCAP log"),
     (["info", "/dev/zero"], "/dev/zero is not a regular file"),
-    (["slam", "{d}/wrongtype.mcap", "-o", "{d}/o"], "/scan carries sensor_msgs/msg/JointState, not sensor_msgs/msg/LaserScan"),
+    (
+        ["slam", "{d}/wrongtype.mcap", "-o", "{d}/o"],
+        "/scan carries sensor_msgs/msg/JointState, not sensor_msgs/msg/LaserScan",
+    ),
 ]
 
 

@@ -55,7 +55,9 @@ def test_max_range_and_per_ray_origins():
 def test_ray_casting_matches_half_plane_formula_in_convex_polygons(radius, bearing, angle, sides):
     """Inside a regular polygon the exit distance is min over edges facing the ray of
     (d - n.o) / (n.dir) with edge lines n.p = d: an independent formula."""
-    corners = np.stack([np.cos(np.arange(sides) * 2 * np.pi / sides), np.sin(np.arange(sides) * 2 * np.pi / sides)], 1) * 2.0
+    corners = (
+        np.stack([np.cos(np.arange(sides) * 2 * np.pi / sides), np.sin(np.arange(sides) * 2 * np.pi / sides)], 1) * 2.0
+    )
     segments = np.hstack([corners, np.roll(corners, -1, axis=0)])
     mids = (corners + np.roll(corners, -1, axis=0)) / 2
     normals = mids / np.linalg.norm(mids, axis=1, keepdims=True)
@@ -76,7 +78,9 @@ def test_exact_scan_with_min_range_max_range_and_grazing_beams():
     assert ranges[0] == -np.inf and ranges[1] == pytest.approx(1.0)
     assert ranges[2] == np.inf and ranges[3] == np.inf
     # a beam meeting the east wall 85 deg from its normal returns nothing
-    grazing = LaserModel(beams=2, angle_min=math.radians(85), angle_max=math.radians(86), max_incidence_rad=math.radians(80))
+    grazing = LaserModel(
+        beams=2, angle_min=math.radians(85), angle_max=math.radians(86), max_incidence_rad=math.radians(80)
+    )
     assert np.isinf(simulate_scan(world, (-1.9, -1.9, -math.pi / 2), grazing)).all()
 
 

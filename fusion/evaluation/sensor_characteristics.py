@@ -84,10 +84,13 @@ def linearity(measured: np.ndarray, reference: np.ndarray) -> dict[str, float]:
     gain, offset = np.polyfit(v, m, 1)
     residual = m - (gain * v + offset)
     full_scale = abs(gain) * (v.max() - v.min())
-    return {"gain": float(gain), "offset": float(offset),
-            "nonlinearity": float(np.abs(residual).max()),
-            "nonlinearity_percent_fs": float(100.0 * np.abs(residual).max() / full_scale) if full_scale else float("nan"),
-            "r_squared": float(1.0 - residual.var() / m.var()) if m.var() > 0 else float("nan")}
+    return {
+        "gain": float(gain),
+        "offset": float(offset),
+        "nonlinearity": float(np.abs(residual).max()),
+        "nonlinearity_percent_fs": float(100.0 * np.abs(residual).max() / full_scale) if full_scale else float("nan"),
+        "r_squared": float(1.0 - residual.var() / m.var()) if m.var() > 0 else float("nan"),
+    }
 
 
 def hysteresis(measured: np.ndarray, reference: np.ndarray, bins: int = 50) -> dict[str, float]:
@@ -111,7 +114,10 @@ def hysteresis(measured: np.ndarray, reference: np.ndarray, bins: int = 50) -> d
         raise ValueError("the rising and falling parts of the sweep do not overlap")
     diff = np.abs(up[both] - down[both])
     span = m.max() - m.min()
-    return {"hysteresis": float(diff.max()), "hysteresis_percent_fs": float(100 * diff.max() / span) if span else float("nan")}
+    return {
+        "hysteresis": float(diff.max()),
+        "hysteresis_percent_fs": float(100 * diff.max() / span) if span else float("nan"),
+    }
 
 
 def timing(stamps_ns: np.ndarray) -> dict[str, float]:
@@ -200,8 +206,10 @@ def sweep_figures(measured: np.ndarray, reference: np.ndarray, hold: np.ndarray,
     rising = np.bincount(level_index, direction > 0, minlength=levels.size) > 0
     falling = np.bincount(level_index, direction < 0, minlength=levels.size) > 0
     both = rising & falling
-    gaps = [abs(hold_m[(level_index == k) & (direction > 0)].mean() - hold_m[(level_index == k) & (direction < 0)].mean())
-            for k in np.flatnonzero(both)]
+    gaps = [
+        abs(hold_m[(level_index == k) & (direction > 0)].mean() - hold_m[(level_index == k) & (direction < 0)].mean())
+        for k in np.flatnonzero(both)
+    ]
     # The hysteresis-free curve: levels met from both sides (a turning point is met from one).
     static = both if both.sum() >= 3 else np.ones(levels.size, bool)
     span = float(curve[static].max() - curve[static].min())
@@ -268,7 +276,7 @@ def static_intervals(stamps_ns: np.ndarray, speeds: np.ndarray, threshold: float
     still = np.concatenate([[False], s < threshold, [False]])
     edges = np.flatnonzero(np.diff(still.astype(np.int8)))
     out = []
-    for a, b in zip(edges[::2], edges[1::2]):
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
         if (t[b - 1] - t[a]) * 1e-9 >= min_duration_s:
             out.append((int(t[a]), int(t[b - 1])))
     return out

@@ -136,7 +136,9 @@ def read_relations(path: str | Path) -> Relations:
                 t1.append(seconds_to_ns(tokens[0]))
                 t2.append(seconds_to_ns(tokens[1]))
             except (ValueError, InvalidOperation):
-                raise DataError(f"{path}:{number}: expected 't1 t2 x y z roll pitch yaw', got {line.strip()!r}") from None
+                raise DataError(
+                    f"{path}:{number}: expected 't1 t2 x y z roll pitch yaw', got {line.strip()!r}"
+                ) from None
             deltas.append([values[0], values[1], values[5]])
     if not deltas:
         raise DataError(f"{path}: no relations")
@@ -261,7 +263,9 @@ def align_se2(source_xy: np.ndarray, target_xy: np.ndarray) -> np.ndarray:
     target = np.asarray(target_xy, dtype=np.float64).reshape(-1, 2)
     ms, mt = source.mean(axis=0), target.mean(axis=0)
     s, t = source - ms, target - mt
-    theta = math.atan2(float(np.sum(s[:, 0] * t[:, 1] - s[:, 1] * t[:, 0])), float(np.sum(s[:, 0] * t[:, 0] + s[:, 1] * t[:, 1])))
+    theta = math.atan2(
+        float(np.sum(s[:, 0] * t[:, 1] - s[:, 1] * t[:, 0])), float(np.sum(s[:, 0] * t[:, 0] + s[:, 1] * t[:, 1]))
+    )
     c, si = math.cos(theta), math.sin(theta)
     shift = mt - np.array([c * ms[0] - si * ms[1], si * ms[0] + c * ms[1]])
     return np.array([shift[0], shift[1], theta])
@@ -280,7 +284,8 @@ def absolute_trajectory_error(estimate: Trajectory, reference: Trajectory, toler
     heading = np.degrees(wrap_angle(aligned[:, 2] - truth[:, 2]))
     return AbsoluteError(int(found.sum()), float(np.sqrt(np.mean(error ** 2))), float(error.mean()),
                          float(np.median(error)), float(error.std()), float(error.max()),
-                         float(np.sqrt(np.mean(np.square(heading)))), tuple(float(v) for v in alignment))
+                         float(np.sqrt(np.mean(np.square(heading)))),
+                         (float(alignment[0]), float(alignment[1]), float(alignment[2])))
 
 
 @dataclass(frozen=True)
@@ -302,8 +307,8 @@ def landmark_error(ids: list[str], positions: np.ndarray, reference_ids: list[st
                    alignment_xyt) -> LandmarkError:
     """Errors of mapped landmarks (map frame) against the reference, the map placed by ``alignment_xyt``
     (e.g. the trajectory's ATE alignment, so map and path are judged in one frame)."""
-    reference = {name: np.asarray(p, np.float64) for name, p in zip(reference_ids, reference_positions)}
-    mapped = {name: np.asarray(p, np.float64) for name, p in zip(ids, positions)}
+    reference = {name: np.asarray(p, np.float64) for name, p in zip(reference_ids, reference_positions, strict=True)}
+    mapped = {name: np.asarray(p, np.float64) for name, p in zip(ids, positions, strict=True)}
     common = [name for name in mapped if name in reference]
     if not common:
         raise DataError("no mapped landmark has an id of the reference landmarks")
@@ -312,5 +317,5 @@ def landmark_error(ids: list[str], positions: np.ndarray, reference_ids: list[st
     errors = np.hypot(*(aligned - np.array([reference[n] for n in common])).T)
     return LandmarkError(len(common), float(errors.mean()), float(np.sqrt(np.mean(errors ** 2))),
                          float(np.median(errors)), float(errors.max()),
-                         {n: float(e) for n, e in zip(common, errors)},
+                         {n: float(e) for n, e in zip(common, errors, strict=True)},
                          sorted(set(reference) - set(mapped)), sorted(set(mapped) - set(reference)))

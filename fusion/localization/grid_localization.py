@@ -29,10 +29,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from trundle.fusion.odometry.ekf import PoseEKF, odometry_noise
 from trundle.fusion.geometry import compose, relative, voxel_filter, wrap_angle
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.matching.scan_matching import MatchResult, match_scan
+from trundle.fusion.odometry.ekf import PoseEKF, odometry_noise
 from trundle.logs.errors import UserError
 from trundle.logs.messages import OccupancyGrid
 
@@ -86,10 +86,10 @@ def coarse_map(grid: LogOddsGrid, resolution_m: float = 0.2, sigma_m: float | No
     rows, cols = -(-height // factor), -(-width // factor)
     pad = ((0, rows * factor - height), (0, cols * factor - width))
     distance = np.pad(distance, pad, constant_values=4.0 * sigma).reshape(rows, factor, cols, factor).min(axis=(1, 3))
-    free = np.pad(free, pad).reshape(rows, factor, cols, factor).any(axis=(1, 3))
+    coarse_free = np.pad(free, pad).reshape(rows, factor, cols, factor).any(axis=(1, 3))
     likelihood = np.exp(-0.5 * (distance / sigma) ** 2).astype(np.float32)
     likelihood[distance >= 4.0 * sigma] = 0.0
-    return CoarseMap(likelihood, free, grid.origin.copy(), factor * grid.resolution)
+    return CoarseMap(likelihood, np.asarray(coarse_free), grid.origin.copy(), factor * grid.resolution)
 
 
 def correlate_headings(coarse: CoarseMap, points_xy: np.ndarray, headings: np.ndarray) -> np.ndarray:
@@ -140,7 +140,7 @@ def global_search(grid: LogOddsGrid, points_xy: np.ndarray, *, coarse: CoarseMap
     near = points[np.hypot(points[:, 0], points[:, 1]) <= max_range_m]
     if len(near) < 3:
         return []
-    headings = wrap_angle(np.arange(0.0, 2.0 * math.pi, angular_step_rad))
+    headings = np.asarray(wrap_angle(np.arange(0.0, 2.0 * math.pi, angular_step_rad)))
     scores = correlate_headings(coarse, near, headings)
     scores[:, ~coarse.free] = 0.0
     # local maxima over (heading, row, col), heading axis circular
@@ -258,7 +258,7 @@ class Localizer:
     def hypotheses(self) -> list[tuple[np.ndarray, float]]:
         """Current hypotheses as (pose, probability), best first."""
         probabilities = self._probabilities()
-        return [(h.pose.copy(), float(p)) for h, p in zip(self._hypotheses, probabilities)]
+        return [(h.pose.copy(), float(p)) for h, p in zip(self._hypotheses, probabilities, strict=True)]
 
     def update(self, points_xy: np.ndarray, odometry_delta_xyt: np.ndarray | None = None) -> LocalizationUpdate:
         """Process one scan: ``points_xy`` (N, 2) in the robot frame, ``odometry_delta_xyt`` the motion
@@ -312,7 +312,10 @@ class Localizer:
             return self._report(converged=True)
         if self._ekf.correct(pose, covariance, gate_chi2):
             self._fix_misses = 0
-            self._hypotheses[0].pose, self._hypotheses[0].covariance = self._ekf.pose.copy(), self._ekf.covariance.copy()
+            self._hypotheses[0].pose, self._hypotheses[0].covariance = (
+                self._ekf.pose.copy(),
+                self._ekf.covariance.copy(),
+            )
             return self._report()
         self.stats.fixes_rejected += 1
         self._fix_misses += 1
@@ -334,7 +337,7 @@ class Localizer:
 
     def _same_place(self, a: np.ndarray, b: np.ndarray) -> bool:
         return bool(np.hypot(*(a[:2] - b[:2])) < self.config.merge_m
-                    and abs(wrap_angle(a[2] - b[2])) < self.config.merge_rad)
+                    and abs(float(wrap_angle(a[2] - b[2]))) < self.config.merge_rad)
 
     # --- searching ---------------------------------------------------------------------------
 
@@ -389,7 +392,7 @@ class Localizer:
         self._hypotheses = kept
         if kept:
             probabilities = self._probabilities()
-            self._hypotheses = [h for h, p in zip(kept, probabilities) if p >= cfg.prune_probability]
+            self._hypotheses = [h for h, p in zip(kept, probabilities, strict=True) if p >= cfg.prune_probability]
 
     def _probabilities(self) -> np.ndarray:
         if not self._hypotheses:
@@ -426,7 +429,11 @@ class Localizer:
                 self._ekf.reset(slipped.pose, slipped.covariance)
         self._bad = 0 if good else self._bad + 1
         hypothesis.motion = relative(previous, self._ekf.pose)
-        hypothesis.pose, hypothesis.covariance, hypothesis.score = self._ekf.pose.copy(), self._ekf.covariance.copy(), score
+        hypothesis.pose, hypothesis.covariance, hypothesis.score = (
+            self._ekf.pose.copy(),
+            self._ekf.covariance.copy(),
+            score,
+        )
         if self._bad >= cfg.lost_after:
             return None
         return LocalizationUpdate(self._ekf.pose.copy(), self._ekf.covariance.copy(), TRACKING, score, 1.0, 1)

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from trundle.fusion.evaluation.trajectory_errors import align_se2
-from trundle.fusion.optimization.factor_graph import POSITION, FactorGraph
 from trundle.fusion.geometry import compose, relative, rotation
+from trundle.fusion.optimization.factor_graph import POSITION, FactorGraph
 from trundle.logs.messages import LandmarkList
 
 MIN_LANDMARK_SIGMA_M = 0.01   # a mapped landmark is never taken as known better than this
@@ -48,7 +48,7 @@ def solve_pose(observed: np.ndarray, covariances: np.ndarray, mapped: np.ndarray
     graph = FactorGraph()
     robot = graph.add_pose(guess)
     graph.fixed_poses = set()
-    for xy, cov, where, where_cov in zip(observed, covariances, mapped, mapped_cov):
+    for xy, cov, where, where_cov in zip(observed, covariances, mapped, mapped_cov, strict=True):
         point = graph.add_point(where)
         graph.fixed_points.add(point)
         turn = rotation(float(guess[2]))   # a mapped landmark's uncertainty, seen from the robot
@@ -73,9 +73,11 @@ class LandmarkFixer:
                  window_m: float = 3.0) -> None:
         self.map = {name: (np.asarray(p, np.float64), np.diag(np.maximum(np.asarray(s, np.float64),
                                                                         MIN_LANDMARK_SIGMA_M) ** 2))
-                    for name, p, s in zip(ids, positions, sigmas)}
+                    for name, p, s in zip(ids, positions, sigmas, strict=True)}
         self.window_s, self.window_m = window_s, window_m
-        self._recent: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray, float]] = []  # stamp, id, odom pose, xy, cov, path
+        self._recent: list[
+            tuple[int, str, np.ndarray, np.ndarray, np.ndarray, float]
+        ] = []  # stamp, id, odom pose, xy, cov, path
         self._path_m = 0.0
         self._last_odometry: np.ndarray | None = None
         self.unknown = 0

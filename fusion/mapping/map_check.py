@@ -90,14 +90,16 @@ def check_map(submaps: list[Submap], submap_frames: np.ndarray, keyframe_poses: 
     count = len(keyframe_poses)
     agree = np.zeros(count)
     conflict = np.zeros(count)
-    world = [transform_points(pose, points) for pose, points in zip(keyframe_poses, keyframe_points)]
+    world = [transform_points(pose, points) for pose, points in zip(keyframe_poses, keyframe_points, strict=True)]
     lows = np.array([w.min(axis=0) if len(w) else (np.inf, np.inf) for w in world]).reshape(-1, 2)
     highs = np.array([w.max(axis=0) if len(w) else (-np.inf, -np.inf) for w in world]).reshape(-1, 2)
-    for submap, frame in zip(submaps, submap_frames):
+    for submap, frame in zip(submaps, submap_frames, strict=True):
         if not submap.nodes or submap.grid.shape[0] == 0:
             continue
         first, last = min(submap.nodes), max(submap.nodes)
-        corners = np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) * np.array(submap.grid.shape[::-1]) * submap.grid.resolution
+        corners = (
+            np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) * np.array(submap.grid.shape[::-1]) * submap.grid.resolution
+        )
         box = transform_points(frame, corners + submap.grid.origin)
         lo, hi = box.min(axis=0), box.max(axis=0)
         ks = np.flatnonzero(np.all(highs >= lo, axis=1) & np.all(lows <= hi, axis=1))
@@ -135,7 +137,7 @@ def _stretches(per_keyframe: np.ndarray, window: int = 5) -> list[tuple[int, int
     smooth = np.array([np.median(values[max(0, i - half):i + half + 1]) for i in range(len(values))])
     runs: list[tuple[int, int]] = []
     start = last = -1
-    for k, value in zip(compared, smooth):
+    for k, value in zip(compared, smooth, strict=True):
         if value < 0.5 and per_keyframe[k] < 0.5:
             if start < 0:
                 start = int(k)

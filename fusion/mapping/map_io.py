@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -103,7 +104,7 @@ def write_trajectory_csv(path: str | os.PathLike[str], stamps_ns: np.ndarray, po
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["t_ns", "x", "y", "theta"])
-        for t, (x, y, theta) in zip(np.asarray(stamps_ns, np.int64), np.asarray(poses, np.float64)):
+        for t, (x, y, theta) in zip(np.asarray(stamps_ns, np.int64), np.asarray(poses, np.float64), strict=True):
             writer.writerow([int(t), f"{x:.6f}", f"{y:.6f}", f"{theta:.6f}"])
 
 
@@ -122,8 +123,9 @@ def read_trajectory_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.nd
 
 
 def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajectories: list[np.ndarray],
-                    colours: list[tuple[int, int, int]] | None = None, loops: list[tuple[np.ndarray, np.ndarray]] = (),
-                    min_size: int = 1000, highlights: list[np.ndarray] = (),
+                    colours: list[tuple[int, int, int]] | None = None,
+                    loops: Sequence[tuple[np.ndarray, np.ndarray]] = (), min_size: int = 1000,
+                    highlights: Sequence[np.ndarray] = (),
                     landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Path:
     """PNG of the map with trajectories (each (N, 3), map frame) drawn over it, scaled up to ``min_size`` px.
 
@@ -164,13 +166,23 @@ def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajector
         cv2.rectangle(image, tuple(end - 3 * scale), tuple(end + 3 * scale), colour, 2)
     if landmarks is not None:
         magenta = (200, 0, 200)
-        for name, xy, cov in zip(*landmarks):
+        for name, xy, cov in zip(*landmarks, strict=True):
             centre = pixels(np.asarray(xy, np.float64).reshape(1, 2))[0]
             values, vectors = np.linalg.eigh(np.nan_to_num(np.asarray(cov, np.float64).reshape(2, 2)))
             axes = np.maximum(3.0 * np.sqrt(np.maximum(values, 0.0)) / grid.resolution * scale, 3.0)
             angle = -math.degrees(math.atan2(vectors[1, 1], vectors[0, 1]))
-            cv2.ellipse(image, tuple(int(v) for v in centre), (int(axes[1] * (1 << shift)), int(axes[0] * (1 << shift))),
-                        angle, 0, 360, magenta, 1, cv2.LINE_AA, shift)
+            cv2.ellipse(
+                image,
+                tuple(int(v) for v in centre),
+                (int(axes[1] * (1 << shift)), int(axes[0] * (1 << shift))),
+                angle,
+                0,
+                360,
+                magenta,
+                1,
+                cv2.LINE_AA,
+                shift,
+            )
             c = centre >> shift
             cv2.drawMarker(image, (int(c[0]), int(c[1])), magenta, cv2.MARKER_CROSS, 4 * scale + 6, 1)
             cv2.putText(image, str(name), (int(c[0]) + 6, int(c[1]) - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4, magenta, 1,
@@ -218,7 +230,7 @@ def write_landmarks_csv(path: str | os.PathLike[str], ids: list[str], positions:
         writer = csv.writer(f)
         writer.writerow(LANDMARKS_HEADER)
         for name, (x, y), (sx, sy) in zip(ids, np.asarray(positions, np.float64).reshape(-1, 2),
-                                          np.asarray(sigmas, np.float64).reshape(-1, 2)):
+                                          np.asarray(sigmas, np.float64).reshape(-1, 2), strict=True):
             writer.writerow([name, f"{x:.6f}", f"{y:.6f}", f"{sx:.6f}", f"{sy:.6f}"])
 
 

@@ -11,8 +11,9 @@ update.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, TypeVar
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -77,7 +78,9 @@ def trace_rays(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hit
     everything = np.vstack([sensor_xy[None], hits_xy, free_ends_xy])
     hit_coords = (hits_xy - origin) / resolution
     hit_cells = np.floor(hit_coords).astype(np.int64)
-    crossed = ray_cells((sensor_xy - origin) / resolution, np.vstack([hit_coords, (free_ends_xy - origin) / resolution]))
+    crossed = ray_cells(
+        (sensor_xy - origin) / resolution, np.vstack([hit_coords, (free_ends_xy - origin) / resolution])
+    )
     return TracedRays(origin, crossed, hit_cells[:, ::-1], hit_coords - hit_cells, everything.min(axis=0),
                       everything.max(axis=0))
 
@@ -103,7 +106,9 @@ class MatchFields:
     in the window is exact: it is computed on the window grown by the larger cap. A request outside
     the window grows it (by ``WINDOW_SLACK_CELLS`` more, for the next scans and the match's steps)."""
 
-    def __init__(self, grid: LogOddsGrid, max_distance_m: float, sigma_m: float, lines: bool, min_flatness: float) -> None:
+    def __init__(
+        self, grid: LogOddsGrid, max_distance_m: float, sigma_m: float, lines: bool, min_flatness: float
+    ) -> None:
         self.grid = grid
         self.max_distance_m = float(max_distance_m)
         self.sigma_m = float(sigma_m)
@@ -333,8 +338,9 @@ class LogOddsGrid:
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The walls the returns describe at occupied cells ``(rows, cols)`` (a grid built with ``subcell``):
         the mean of each cell's returns (m) and, where the returns of its 3 x 3 occupied neighbourhood
-        lie on a line (``flatness`` at least ``min_flatness``, as in :class:`trundle.fusion.matching.icp.LineReference`),
-        that line's normal; returns mean (N, 2), normal (N, 2), is_line (N,).
+        lie on a line (``flatness`` at least ``min_flatness``, as in
+        :class:`trundle.fusion.matching.icp.LineReference`), that line's normal; returns mean (N, 2),
+        normal (N, 2), is_line (N,).
 
         Occupied cells put every wall on the cell lattice, up to half a cell from where it is, and a
         match inherits that error, the same each time the wall is seen. The returns themselves know better.
@@ -374,7 +380,9 @@ class LogOddsGrid:
         """The grid as nav_msgs/OccupancyGrid: percent occupancy, -1 where never observed."""
         data = np.rint(100.0 * self.probability()).astype(np.int8)
         data[~self.observed] = -1
-        return OccupancyGrid(stamp_ns, frame_id, self.resolution, float(self.origin[0]), float(self.origin[1]), 0.0, data)
+        return OccupancyGrid(
+            stamp_ns, frame_id, self.resolution, float(self.origin[0]), float(self.origin[1]), 0.0, data
+        )
 
     def _changed(self) -> None:
         self.version += 1

@@ -11,6 +11,7 @@ the map follows from the optimised pose of the submap's anchor keyframe.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -56,7 +57,7 @@ class SubmapStack:
     ``grid_options`` go to each :class:`LogOddsGrid` (inverse sensor model, clamps).
     """
 
-    def __init__(self, resolution: float = 0.05, scans_per_submap: int = 30, **grid_options: float | bool) -> None:
+    def __init__(self, resolution: float = 0.05, scans_per_submap: int = 30, **grid_options: Any) -> None:
         if scans_per_submap < 1:
             raise ValueError("scans_per_submap must be at least 1")
         self.resolution = resolution
@@ -86,8 +87,9 @@ class SubmapStack:
                                        LogOddsGrid(self.resolution, **self.grid_options)))
         origin = transform_points(pose_local, np.asarray(sensor_robot, dtype=np.float64).reshape(1, 2))[0]
         free = None if free_ends_robot is None else transform_points(pose_local, free_ends_robot)
-        rays = trace_rays(self.submaps[-1].grid.origin, self.resolution, origin, transform_points(pose_local, points_robot),
-                          free)
+        rays = trace_rays(
+            self.submaps[-1].grid.origin, self.resolution, origin, transform_points(pose_local, points_robot), free
+        )
         done = []
         for submap in self.active:
             submap.insert(node, pose_local, rays)

@@ -74,14 +74,17 @@ def icp(reference: LineReference | np.ndarray, points_xy: np.ndarray, initial_po
     converged = False
     iterations = 0
     state: tuple = (np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0, bool))
-    for iterations in range(1, max_iterations + 1):
+    for _ in range(max_iterations):
+        iterations += 1
         moved = points @ rotation(pose[2]).T + pose[:2]
         distance, index = ref.tree.query(moved, distance_upper_bound=max_correspondence_m)
         paired = np.isfinite(distance)
         index = np.where(paired, index, 0)
         targets, normals, lines = ref.points[index], ref.normals[index], ref.is_line[index]
 
-        def evaluate(trial: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        def evaluate(trial: np.ndarray, targets: np.ndarray = targets, normals: np.ndarray = normals,
+                     lines: np.ndarray = lines, paired: np.ndarray = paired
+                     ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
             rot = rotation(trial[2])
             q = points @ rot.T + trial[:2]
             dq_dtheta = points @ np.array([[-rot[1, 0], -rot[0, 0]], [rot[0, 0], -rot[1, 0]]]).T

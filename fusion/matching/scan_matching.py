@@ -12,12 +12,12 @@ covariance for the match. Both are vectorised over points and poses.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
-from trundle.fusion.geometry import rotation, wrap_angle
+from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.mapping.occupancy_grid import FieldWindow, LogOddsGrid
 from trundle.fusion.optimization.levenberg_marquardt import Settings, levenberg_marquardt
 from trundle.fusion.optimization.robust_kernels import robust_loss
@@ -136,7 +136,8 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     thetas = t0 + angular_step_rad * np.arange(-n_theta, n_theta + 1)
     limit = int(math.ceil(window_xy_m / res))
     levels = max(1, min(8, int(math.ceil(math.log2(2 * limit + 1))) + 1))
-    pyramid = grid.cached(("pyramid", float(sigma), levels), lambda: score_pyramid(grid.likelihood_field(sigma), levels))
+    pyramid = grid.cached(("pyramid", float(sigma), levels),
+                          lambda: score_pyramid(grid.likelihood_field(sigma), levels))
     pad = 1 << (levels - 1)
 
     c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
@@ -209,7 +210,8 @@ def _bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarr
     flat = field.reshape(-1)
     i00 = r0 * width + c0
     i10 = np.minimum(i00 + width, flat.size - 1)
-    f00, f01, f10, f11 = flat[i00], flat[np.minimum(i00 + 1, flat.size - 1)], flat[i10], flat[np.minimum(i10 + 1, flat.size - 1)]
+    f00, f01 = flat[i00], flat[np.minimum(i00 + 1, flat.size - 1)]
+    f10, f11 = flat[i10], flat[np.minimum(i10 + 1, flat.size - 1)]
     top, bottom = f01 - f00, f11 - f10
     du = top + fv * (bottom - top)
     left = f00 + fu * top
@@ -287,7 +289,8 @@ def match_covariance(jacobian: np.ndarray, residuals: np.ndarray, weights: np.nd
         covariance = raw + floor
     else:
         best_xy = float(np.linalg.eigvalsh(raw[:2, :2])[0])
-        scale = max(1.0, min_std_xy_m ** 2 / max(best_xy, 1e-300), min_std_theta_rad ** 2 / max(float(raw[2, 2]), 1e-300))
+        scale = max(1.0, min_std_xy_m ** 2 / max(best_xy, 1e-300),
+                    min_std_theta_rad ** 2 / max(float(raw[2, 2]), 1e-300))
         values, axes = np.linalg.eigh(scale * raw)
         covariance = (axes * np.minimum(values, max_variance)) @ axes.T + 1e-6 * floor
     return 0.5 * (covariance + covariance.T)
@@ -349,6 +352,7 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
     def evaluate_lines(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         rx, ry, cx, cy, window = placed(pose)
         lines = window.lines
+        assert lines is not None   # only called when the fields have their walls (``fields.lines``)
         qx, qy = rx + pose[0], ry + pose[1]
         d, du, dv, inside = sample(window.distance, window, cx, cy)
         col = np.clip(np.floor(cx).astype(np.int64) - window.col0, 0, window.distance.shape[1] - 1)
@@ -368,7 +372,8 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
         return float(loss.sum()), d, jac, weight, active
 
     pose, iterations, (d, jac, weight, active) = solve_pose(evaluate_field, initial_pose_xyt, max_iterations)
-    if fields.lines and max_iterations > 0 and len(placed(pose)[4].lines.mean):  # from the field's wide basin to the walls
+    walls = placed(pose)[4].lines if fields.lines and max_iterations > 0 else None
+    if walls is not None and len(walls.mean):  # from the field's wide basin to the walls
         pose, more, (d, jac, weight, active) = solve_pose(evaluate_lines, pose, max_iterations)
         iterations += more
     inliers = active & (np.abs(d) <= inlier)
@@ -408,10 +413,12 @@ def match_scan(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.nd
                min_std_xy_m: float = 0.01, min_std_theta_rad: float = math.radians(0.25),
                prior_std_xy_m: float | None = None, prior_std_theta_rad: float | None = None,
                shaped_covariance: bool = False, wall_lines: bool = True) -> MatchResult | None:
-    """Match ``points_xy`` (robot frame) against ``grid`` near ``initial_pose_xyt``; None if nothing scores ``min_score``.
+    """Match ``points_xy`` (robot frame) against ``grid`` near ``initial_pose_xyt``; None if nothing scores
+    ``min_score``.
 
     A correlative search over ``+-window_xy_m`` / ``+-window_theta_rad`` (optionally weighted by a
-    Gaussian prior, see :func:`correlative_search`) finds the best lattice pose, then (``refine``) Levenberg-Marquardt polishes it and estimates the covariance.
+    Gaussian prior, see :func:`correlative_search`) finds the best lattice pose, then (``refine``)
+    Levenberg-Marquardt polishes it and estimates the covariance.
     """
     found = correlative_search(grid, points_xy, initial_pose_xyt, window_xy_m=window_xy_m,
                                window_theta_rad=window_theta_rad, angular_step_rad=angular_step_rad,

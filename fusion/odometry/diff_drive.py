@@ -21,8 +21,8 @@ from pydantic import Field, model_validator
 from trundle.fusion.geometry import wrap_angle
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-from trundle.logs.topics import DIAGNOSTICS_TOPIC, ODOM_TOPIC, TF_TOPIC, WHEELS_TOPIC
 from trundle.logs.schema import Schema, parse
+from trundle.logs.topics import DIAGNOSTICS_TOPIC, ODOM_TOPIC, TF_TOPIC, WHEELS_TOPIC
 
 
 def _sinc(u: np.ndarray) -> np.ndarray:
@@ -39,14 +39,14 @@ def _dsinc(u: np.ndarray) -> np.ndarray:
     return np.where(small, -u / 3.0 + u**3 / 30.0, closed)
 
 
-def integrate_path(pose: tuple[float, float, float] | np.ndarray, d_left_m: np.ndarray, d_right_m: np.ndarray,
-                   track_m: float) -> np.ndarray:
+def integrate_path(pose: tuple[float, float, float] | np.ndarray, d_left_m: float | np.ndarray,
+                   d_right_m: float | np.ndarray, track_m: float) -> np.ndarray:
     """Poses (N, 3) after each of N wheel steps, starting from ``pose`` (x, y, theta).
 
     Parameters
     ----------
     pose : start (x m, y m, theta rad); theta is not wrapped, so headings stay continuous.
-    d_left_m, d_right_m : (N,) distance each wheel rolled in each step (m, forward positive).
+    d_left_m, d_right_m : (N,) distance each wheel rolled in each step (m, forward positive; a scalar: one step).
     track_m : distance between the wheel contact points (m).
     """
     d_left = np.atleast_1d(np.asarray(d_left_m, dtype=np.float64))
@@ -169,7 +169,9 @@ class DiffDriveOdometry:
             try:
                 self._indices = (names.index(self.left), names.index(self.right))
             except ValueError:
-                raise UserError(f"wheel joints {self.left!r} and {self.right!r} not in joint state names {list(names)}") from None
+                raise UserError(
+                    f"wheel joints {self.left!r} and {self.right!r} not in joint state names {list(names)}"
+                ) from None
             self._names = names
         return self._indices
 
@@ -196,7 +198,7 @@ class DiffDriveOdometry:
                     result = self._advance(stamps[start:b], left[start:b], right[start:b])
                 self._mark_stale(int(stamps[b]))
                 result = None
-                start = b + 1
+                start = int(b) + 1
             if start < stamps.size:
                 result = self._advance(stamps[start:], left[start:], right[start:])
             return result

@@ -34,8 +34,13 @@ def drifting_odometry(reference: np.ndarray, *, scale_error: float = 0.05,
     length = np.hypot(steps[:, 0], steps[:, 1])
     scale = (1.0 + scale_error) * (1.0 + rng.normal(0.0, scale_noise, len(steps)))
     heading_sigma = np.sqrt(heading_noise_rad_per_sqrt_m ** 2 * length + (turn_noise * steps[:, 2]) ** 2)
-    noisy = np.column_stack([steps[:, 0] * scale, steps[:, 1] * scale,
-                             steps[:, 2] + heading_drift_rad_per_m * length + rng.normal(0.0, 1.0, len(steps)) * heading_sigma])
+    noisy = np.column_stack(
+        [
+            steps[:, 0] * scale,
+            steps[:, 1] * scale,
+            steps[:, 2] + heading_drift_rad_per_m * length + rng.normal(0.0, 1.0, len(steps)) * heading_sigma,
+        ]
+    )
     heading = reference[0, 2] + np.concatenate([[0.0], np.cumsum(noisy[:, 2])])
     c, s = np.cos(heading[:-1]), np.sin(heading[:-1])
     moves = np.column_stack([c * noisy[:, 0] - s * noisy[:, 1], s * noisy[:, 0] + c * noisy[:, 1]])

@@ -149,4 +149,7 @@ def random_glitches(count: int, span_s: float, magnitude_rad: float, duration_s:
     # sorted uniform draws in a span shortened by the gaps, then spread out again: gaps guaranteed
     starts = np.sort(rng.uniform(low, high - (count - 1) * gap, count)) + gap * np.arange(count)
     signs = rng.choice([-1.0, 1.0], count)
-    return [OdometryFault("heading_glitch", float(t), duration_s, float(s * magnitude_rad)) for t, s in zip(starts, signs)]
+    return [
+        OdometryFault("heading_glitch", float(t), duration_s, float(s * magnitude_rad))
+        for t, s in zip(starts, signs, strict=True)
+    ]

@@ -103,7 +103,7 @@ class IncrementAccumulator:
         self._s = [nxx + vxy, nxy, nxt, nyy + vxy, nyt, tt + vth]
         self._x += c * bx - s * by
         self._y += s * bx + c * by
-        self._theta = wrap_angle(self._theta + bt)
+        self._theta = float(wrap_angle(self._theta + bt))
         self.distance_m += distance
         self.turn_rad += turn
         self.duration_s += dt
@@ -172,7 +172,7 @@ class OdometryIncrements:
         chain = np.vstack([self._ref, np.array([r[1:4] for r in due]).reshape(-1, 3)])
         steps = relative(chain[:-1], chain[1:])
         partial = np.zeros((len(due), 3))
-        for k, (step, dt) in enumerate(zip(steps, np.diff(stamps) * 1e-9)):
+        for k, (step, dt) in enumerate(zip(steps, np.diff(stamps) * 1e-9, strict=True)):
             acc.add(step, dt)
             partial[k] = acc.delta
         if due:

@@ -53,7 +53,7 @@ class MotionModel:
         self.prior_sigma = np.asarray(prior_sigma, np.float64)
         self.floor_sigma = np.asarray(floor_sigma, np.float64)
         self.warmup = int(warmup)
-        self._errors = {name: deque(maxlen=history) for name in self.PREDICTORS}
+        self._errors: dict[str, deque[np.ndarray]] = {name: deque(maxlen=history) for name in self.PREDICTORS}
         self._intervals: deque[float] = deque(maxlen=history)
         self._typical_interval: float | None = None   # their median, until the next interval
         self._last: tuple[int, np.ndarray] | None = None
@@ -90,7 +90,7 @@ class MotionModel:
         for name, errors in self._errors.items():
             e = np.abs(np.array(errors))
             scores[name] = float(np.sum(np.sqrt(np.mean(e ** 2, axis=0)) / self.floor_sigma))
-        name = min(scores, key=scores.get)
+        name = min(scores, key=scores.__getitem__)
         e = np.abs(np.array(self._errors[name]))
         sigma = np.maximum(np.sqrt(np.mean(e ** 2, axis=0)) * intervals, self.floor_sigma)
         return MotionPrediction(self._guess(name, dt_s), sigma, e.max(axis=0) * intervals, name, True)

@@ -29,8 +29,15 @@ import scipy.sparse as sp
 
 from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.observation_models import between_error, range_bearing, relative_position
-from trundle.fusion.optimization.levenberg_marquardt import (OptimizeResult, Settings, block_triplets, factor_spd,
-                                                            levenberg_marquardt, solve_spd, sparse_jacobian)
+from trundle.fusion.optimization.levenberg_marquardt import (
+    OptimizeResult,
+    Settings,
+    block_triplets,
+    factor_spd,
+    levenberg_marquardt,
+    solve_spd,
+    sparse_jacobian,
+)
 from trundle.fusion.optimization.pose_graph import PoseGraph
 from trundle.fusion.optimization.robust_kernels import ROBUST_KERNELS, Kernel, robust_loss
 
@@ -117,7 +124,7 @@ class FactorGraph:
 
     def _add(self, kind: str, variables: tuple[int, ...], measurement, information) -> int:
         types, dim = KINDS[kind]
-        for index, kind_of in zip(variables, types):
+        for index, kind_of in zip(variables, types, strict=True):
             count = len(self._poses) if kind_of == POSE else len(self._points)
             if not 0 <= index < count:
                 raise ValueError(f"{kind} factor names {kind_of} {index}, but there are {count}")
@@ -248,7 +255,8 @@ class FactorGraph:
             residuals.append((a @ e[:, :, None])[:, :, 0].reshape(-1))
             factor_rows = row + dim * np.arange(len(index))
             for k, kind_of in enumerate(types):
-                triplets.append(block_triplets(a @ jac[k], factor_rows, (pose_col if kind_of == POSE else point_col)[index[:, k]]))
+                triplets.append(block_triplets(a @ jac[k], factor_rows,
+                                               (pose_col if kind_of == POSE else point_col)[index[:, k]]))
             row += dim * len(index)
         return sparse_jacobian(triplets, (row, n)), np.concatenate(residuals) if residuals else np.zeros(row)
 
@@ -343,7 +351,8 @@ class FactorGraph:
         if n and len(free):
             jac, _ = self._system(self.poses, self.points, dict(kernels or {}), columns)
             factor = factor_spd((jac.T @ jac).tocsc())
-            per_solve = max(1, MARGINAL_SOLVE_VALUES // (3 * n))   # variables per solve: its right-hand side stays small
+            # variables per solve: its right-hand side stays small
+            per_solve = max(1, MARGINAL_SOLVE_VALUES // (3 * n))
             for chunk in np.array_split(free, -(-len(free) // per_solve)):
                 picks = np.concatenate([starts[k] + np.arange(widths[k]) for k in chunk])
                 rhs = np.zeros((n, len(picks)))

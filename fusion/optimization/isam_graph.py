@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from trundle.fusion.optimization.factor_graph import FactorGraph
 from trundle.fusion.geometry import compose
+from trundle.fusion.optimization.factor_graph import FactorGraph
 from trundle.logs.errors import UserError
 
 EDGE_TAGS = ("ODOMETRY", "EDGE2", "EDGE", "EDGE_SE2")

@@ -25,8 +25,11 @@ import scipy.sparse.linalg as spla
 
 from trundle.fusion.geometry import wrap_angle
 
-Matrix: TypeAlias = np.ndarray | sp.spmatrix | sp.sparray
-Linearization: TypeAlias = tuple[Matrix, np.ndarray]
+Sparse: TypeAlias = sp.spmatrix | sp.sparray
+Matrix: TypeAlias = np.ndarray | Sparse
+# What ``linearize`` returns: ``H`` dense, or sparse in CSC (SuperLU's format; the graphs build it with ``tocsc()``).
+Hessian: TypeAlias = np.ndarray | sp.csc_matrix
+Linearization: TypeAlias = tuple[Hessian, np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -103,7 +106,7 @@ def update(x: np.ndarray, dx: np.ndarray, poses: int) -> np.ndarray:
     return out
 
 
-def factor_spd(matrix: sp.spmatrix | sp.sparray) -> spla.SuperLU | None:
+def factor_spd(matrix: Sparse) -> spla.SuperLU | None:
     """SuperLU factors (COLAMD order, diagonal pivots) of a sparse symmetric positive-definite matrix;
     None when it is exactly singular."""
     try:
@@ -115,7 +118,7 @@ def factor_spd(matrix: sp.spmatrix | sp.sparray) -> spla.SuperLU | None:
 
 def solve_spd(matrix: Matrix, rhs: np.ndarray) -> np.ndarray:
     """Solve a symmetric positive-definite system, sparse (SuperLU) or dense; NaN when it is singular."""
-    if not sp.issparse(matrix):
+    if isinstance(matrix, np.ndarray):   # not sparse
         try:
             return np.linalg.solve(matrix, rhs)
         except np.linalg.LinAlgError:
@@ -140,17 +143,19 @@ def sparse_jacobian(triplets: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]
     """A sparse (rows, columns) matrix of :func:`block_triplets` pieces (duplicates add up)."""
     if not triplets:
         return sp.csr_matrix(shape)
-    data, rows, cols = (np.concatenate(part) for part in zip(*triplets))
+    data, rows, cols = (np.concatenate(part) for part in zip(*triplets, strict=True))
     return sp.csr_matrix((data, (rows, cols)), shape=shape)
 
 
-def _damping(hessian: Matrix, settings: Settings) -> Matrix:
-    """``D`` of ``H + lambda D``: the identity, or the clamped diagonal of ``H``."""
+def _damped(hessian: Hessian, settings: Settings) -> Callable[[float], Hessian]:
+    """``lambda -> H + lambda D`` with ``D`` the identity, or the clamped diagonal of ``H``; sparse when ``H`` is."""
     n = hessian.shape[0]
-    if settings.diagonal_damping:
-        diagonal = np.maximum(np.asarray(hessian.diagonal()), settings.min_diagonal)
-        return sp.diags(diagonal, format="csc") if sp.issparse(hessian) else np.diag(diagonal)
-    return sp.identity(n, format="csc") if sp.issparse(hessian) else np.eye(n)
+    diagonal = np.maximum(np.asarray(hessian.diagonal()), settings.min_diagonal) if settings.diagonal_damping else None
+    if isinstance(hessian, np.ndarray):   # dense
+        dense = np.eye(n) if diagonal is None else np.diag(diagonal)
+        return lambda lam: hessian + lam * dense
+    sparse = sp.identity(n, format="csc") if diagonal is None else sp.diags(diagonal, format="csc")
+    return lambda lam: hessian + lam * sparse
 
 
 def levenberg_marquardt(cost: Callable[[np.ndarray], float], linearize: Callable[[np.ndarray], Linearization],
@@ -170,11 +175,11 @@ def levenberg_marquardt(cost: Callable[[np.ndarray], float], linearize: Callable
     iterations, converged = 0, False
     while iterations < max_iterations:
         hessian, gradient = linearize(x)
-        damping = _damping(hessian, settings)
+        damped = _damped(hessian, settings)
         accepted = False
         while iterations < max_iterations and not accepted:
             iterations += 1
-            dx = solve_spd(hessian + lam * damping, -gradient)
+            dx = solve_spd(damped(lam), -gradient)
             if not np.isfinite(dx).all():
                 lam *= settings.lambda_factor
                 continue

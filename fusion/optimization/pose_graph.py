@@ -21,10 +21,17 @@ from scipy.sparse.csgraph import breadth_first_order
 
 from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.observation_models import between_error
-from trundle.fusion.optimization.levenberg_marquardt import (OptimizeResult, Settings, block_triplets,
-                                                            levenberg_marquardt, solve_spd, sparse_jacobian)
+from trundle.fusion.optimization.levenberg_marquardt import (
+    OptimizeResult,
+    Settings,
+    block_triplets,
+    levenberg_marquardt,
+    solve_spd,
+    sparse_jacobian,
+)
 from trundle.fusion.optimization.robust_kernels import check_kernel, robust_loss
 from trundle.logs.errors import UserError
+
 
 class PoseGraph:
     """Nodes are planar poses (x, y, theta); edges are relative-pose measurements with information."""
@@ -34,7 +41,8 @@ class PoseGraph:
         self._edge_ij: list[tuple[int, int]] = []
         self._edge_z: list[np.ndarray] = []
         self._edge_info: list[np.ndarray] = []
-        self._edge_arrays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None   # the lists as arrays, until they change
+        # the lists as arrays, until they change
+        self._edge_arrays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.fixed: set[int] = {0}
 
     # ----------------------------------------------------------------- building
@@ -289,7 +297,7 @@ class PoseGraph:
         ij, z, info = self.edges
         lines = [f"VERTEX_SE2 {k} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g}" for k, p in enumerate(self.poses)]
         rows, cols = np.triu_indices(3)
-        for (i, j), m, upper in zip(ij, z, info[:, rows, cols]):
+        for (i, j), m, upper in zip(ij, z, info[:, rows, cols], strict=True):
             numbers = " ".join(f"{v:.17g}" for v in (*m, *upper))
             lines.append(f"EDGE_SE2 {i} {j} {numbers}")
         if self.fixed:

@@ -6,7 +6,8 @@ so ``k^2`` in chi2 units), so that an outlier pulls less. Iteratively reweighted
 minimises ``sum rho(s)`` by weighting each error's normal-equation rows with ``w = rho'(s)``:
 
 - ``None``: least squares, ``rho = s``, ``w = 1``;
-- ``"huber"``: ``rho = s`` for ``s <= k^2``, else ``2 k sqrt(s) - k^2`` (linear in ``|e|``), ``w = min(1, k / sqrt(s))``;
+- ``"huber"``: ``rho = s`` for ``s <= k^2``, else ``2 k sqrt(s) - k^2`` (linear in ``|e|``),
+  ``w = min(1, k / sqrt(s))``;
 - ``"cauchy"``: ``rho = k^2 log(1 + s / k^2)``, ``w = 1 / (1 + s / k^2)``.
 """
 

@@ -164,7 +164,7 @@ class PoseGraphBackend:
         """A fresh occupancy grid from every keyframe scan at its optimised pose."""
         grid = LogOddsGrid(resolution or self.config.submaps.resolution)
         mount = self.mount
-        for pose, points, free in zip(self.graph.poses, self._points, self._free):
+        for pose, points, free in zip(self.graph.poses, self._points, self._free, strict=True):
             origin = compose(pose, mount)[:2]
             c, s = math.cos(pose[2]), math.sin(pose[2])
             rot = np.array([[c, -s], [s, c]])
@@ -186,7 +186,7 @@ class PoseGraphBackend:
 
     def keyframe_endpoints(self) -> list[np.ndarray]:
         """Every keyframe's scan points (N, 2) at its optimised pose, map frame."""
-        return [transform_points(pose, points) for pose, points in zip(self.graph.poses, self._points)]
+        return [transform_points(pose, points) for pose, points in zip(self.graph.poses, self._points, strict=True)]
 
     def keyframe_scans(self, first: int, last: int) -> np.ndarray:
         """Optimised map poses of the scans whose keyframes are ``first`` .. ``last`` (inclusive)."""
@@ -198,5 +198,5 @@ class PoseGraphBackend:
         """Mean distance (m) of each keyframe's points to ``grid``'s occupied cells at its optimised pose."""
         voxel = self.config.scan.voxel_m
         residuals = [refine_pose(grid, voxel_filter(points, voxel), pose, max_iterations=0).residual_m
-                     for pose, points in zip(self.graph.poses, self._points)]
+                     for pose, points in zip(self.graph.poses, self._points, strict=True)]
         return np.array(residuals)

@@ -21,16 +21,16 @@ other landmark (the feature-map SLAM of Smith, Self and Cheeseman; Thrun, Burgar
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 from scipy.stats import chi2
 
-from trundle.fusion.slam.data_association import UNPAIRED, Association, individual_d2, jcbb, nearest_neighbour
 from trundle.fusion.geometry import wrap_angle
-from trundle.fusion.odometry.increments import MotionNoise, compose_jacobians
 from trundle.fusion.observation_models import point_from_range_bearing, range_bearing
+from trundle.fusion.odometry.increments import MotionNoise, compose_jacobians
+from trundle.fusion.slam.data_association import UNPAIRED, Association, jcbb, nearest_neighbour
 from trundle.logs.messages import LandmarkObservation
 
 ASSOCIATIONS = ("jcbb", "nn")
@@ -160,7 +160,7 @@ class EkfSlam:
         r = np.array([o.covariance for o in observations])
         known = np.array([bool(o.id) for o in observations])
         new_known: list[int] = []
-        for i in np.flatnonzero(known):
+        for i in np.flatnonzero(known).tolist():
             j = self._index.get(observations[i].id)
             if j is None:
                 new_known.append(int(i))
@@ -224,8 +224,9 @@ class EkfSlam:
         if len(pool) == 0:
             return Association(np.full(k, UNPAIRED, np.int64), 0.0), list(range(k))
         # every pairing's marginal distance first; the joint covariance only over landmarks some sighting may be
-        nu_all, s_all = zip(*(self._innovations(np.repeat(z[i:i + 1], len(pool), 0), np.repeat(r[i:i + 1], len(pool), 0),
-                                                pool) for i in range(k)))
+        nu_all, s_all = zip(*(self._innovations(np.repeat(z[i:i + 1], len(pool), 0),
+                                                np.repeat(r[i:i + 1], len(pool), 0), pool) for i in range(k)),
+                            strict=True)
         nu_all, s_all = np.stack(nu_all), np.stack(s_all)
         d2 = np.einsum("kmi,kmi->km", nu_all, np.linalg.solve(s_all, nu_all[..., None])[..., 0])
         near = np.flatnonzero((d2 <= cfg.gate_chi2).any(axis=0))

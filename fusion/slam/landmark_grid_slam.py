@@ -4,9 +4,10 @@ landmark constraints do.
 :class:`LandmarkConstraints` is a constraint source of the grid SLAM's back end
 (:class:`trundle.fusion.slam.backend.ConstraintSource`); the facade
 (:class:`trundle.fusion.slam.grid_slam.Slam`) routes LandmarkList messages to it. A sighting (an
-id is needed: the grid SLAM does not associate anonymous features) is tied to the keyframe of the latest scan: the robot's pose at the sighting's stamp in that
-keyframe's frame is the scan's offset from its keyframe composed with the odometry since the
-scan, and the landmark goes through it into the keyframe's frame. A marker with its full pose is
+id is needed: the grid SLAM does not associate anonymous features) is tied to the keyframe of the
+latest scan: the robot's pose at the sighting's stamp in that keyframe's frame is the scan's
+offset from its keyframe composed with the odometry since the scan, and the landmark goes through
+it into the keyframe's frame. A marker with its full pose is
 a landmark *pose* with a between factor (x, y, yaw), like Cartographer's translation and rotation
 weights; a point landmark has a relative-position factor. Whenever the pose graph is optimised
 (loop closures, the end of the run, or a landmark seen again from a keyframe far from where it
@@ -36,9 +37,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from trundle.fusion.geometry import compose, rotation, wrap_angle
 from trundle.fusion.optimization.error_correlation import decorrelated_information
 from trundle.fusion.optimization.factor_graph import BETWEEN, POSITION, FactorGraph
-from trundle.fusion.geometry import compose, rotation, wrap_angle
 from trundle.fusion.optimization.pose_graph import PoseGraph
 from trundle.fusion.slam.backend import PoseGraphBackend
 from trundle.fusion.slam.config import SlamConfig
@@ -175,7 +176,7 @@ class LandmarkConstraints:
         single = [s for s in self._sightings if s.landmark not in revisited]
         if single:
             nodes = sorted({s.node for s in single})
-            headings = dict(zip(nodes, graph.marginal_covariances(nodes, kernels=kernels)[0][:, 2, 2]))
+            headings = dict(zip(nodes, graph.marginal_covariances(nodes, kernels=kernels)[0][:, 2, 2], strict=True))
             graph.fixed_poses = set(range(len(graph.poses)))
             graph.fixed_points = set(range(len(graph.points)))
             self._add_sightings(graph, single, variables, headings)
@@ -207,7 +208,8 @@ class LandmarkConstraints:
                 variables[s.landmark] = (s.oriented, graph.add_pose(guess) if s.oriented else graph.add_point(guess))
             index = variables[s.landmark][1]
             info = np.linalg.inv(covariance)
-            row = graph.add_between(s.node, index, z, info) if s.oriented else graph.add_position(s.node, index, z, info)
+            row = (graph.add_between(s.node, index, z, info) if s.oriented
+                   else graph.add_position(s.node, index, z, info))
             rows[s.oriented].append((row, s))
         return rows
 
@@ -282,7 +284,8 @@ class LandmarkConstraints:
         laser.optimize(max_iterations=100, robust_kernel=kernel, kernel_width=3.0)
         names = np.unique([s.landmark for s in self._sightings], return_inverse=True)[1]
         nodes = sorted({s.node for s in self._sightings})
-        headings = dict(zip(nodes, FactorGraph.from_pose_graph(laser).marginal_covariances(nodes)[0][:, 2, 2]))
+        headings = dict(zip(nodes, FactorGraph.from_pose_graph(laser).marginal_covariances(nodes)[0][:, 2, 2],
+                            strict=True))
         offsets = np.arange(-self.max_time_offset_s, self.max_time_offset_s + 1e-12, TIME_OFFSET_STEP_S)
         poses = laser.poses   # a copy per call: once, not once per offset
         costs = np.array([self._scatter(float(offset), poses, names, headings) for offset in offsets])
@@ -298,14 +301,15 @@ class LandmarkConstraints:
         """The robust information-weighted scatter of each landmark's sightings about their mean, placed
         by keyframe ``poses`` (with their heading variances, rad^2) with the stamps moved by ``offset``
         (s); ``names``: each sighting's landmark."""
-        where, information = [], []
+        where_rows: list[np.ndarray] = []
+        information_rows: list[np.ndarray] = []
         for s in self._sightings:
             z, covariance = s.measurement(offset, float(heading_variances[s.node]))
             turn = rotation(float(poses[s.node, 2]))
-            where.append(poses[s.node, :2] + turn @ z[:2])
-            information.append(np.linalg.inv(turn @ (covariance[:2, :2] if not s.oriented else
-                                                     _position_block(z, covariance)) @ turn.T))
-        where, information = np.array(where), np.array(information)
+            where_rows.append(poses[s.node, :2] + turn @ z[:2])
+            information_rows.append(np.linalg.inv(turn @ (covariance[:2, :2] if not s.oriented else
+                                                          _position_block(z, covariance)) @ turn.T))
+        where, information = np.array(where_rows), np.array(information_rows)
         cost = 0.0
         for k in range(names.max() + 1):
             mine = names == k
@@ -336,7 +340,8 @@ class LandmarkConstraints:
         points = [n for n in names if not self._variables[n][0]]
         pose_covs, point_covs = self._graph.marginal_covariances([self._variables[n][1] for n in oriented],
                                                                  [self._variables[n][1] for n in points])
-        covariance = {**{n: c[:2, :2] for n, c in zip(oriented, pose_covs)}, **dict(zip(points, point_covs))}
+        covariance = {**{n: c[:2, :2] for n, c in zip(oriented, pose_covs, strict=True)},
+                      **dict(zip(points, point_covs, strict=True))}
         counts: dict[str, int] = {}
         for s in self._sightings:
             counts[s.landmark] = counts.get(s.landmark, 0) + 1

@@ -30,14 +30,14 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, create_model
 
-from trundle.fusion.slam.ekf_slam import EkfSlam, EkfSlamConfig
-from trundle.fusion.optimization.error_correlation import decorrelated_information
-from trundle.fusion.optimization.factor_graph import BETWEEN, RANGE_BEARING, FactorGraph
 from trundle.fusion.geometry import compose, rotation
 from trundle.fusion.odometry.increments import Increment, MotionNoise, OdometryIncrements
+from trundle.fusion.optimization.error_correlation import decorrelated_information
+from trundle.fusion.optimization.factor_graph import BETWEEN, RANGE_BEARING, FactorGraph
+from trundle.fusion.slam.ekf_slam import EkfSlam, EkfSlamConfig
 from trundle.logs import messages as m
-from trundle.logs.topics import LANDMARK_TOPIC
 from trundle.logs.schema import Name, Schema, parse
+from trundle.logs.topics import LANDMARK_TOPIC
 
 
 @dataclass(frozen=True)
@@ -259,7 +259,7 @@ class GraphLandmarkSlam:
         self._last_node_odometry = self._last_odometry
         report = self.front.ekf.update(msg.landmarks)
         self.graph.set_pose(node, self.front.ekf.pose)
-        for observation, j in zip(msg.landmarks, report.landmark):
+        for observation, j in zip(msg.landmarks, report.landmark, strict=True):
             if j < 0:
                 continue
             name = self.front.ekf.ids[int(j)]
@@ -269,7 +269,8 @@ class GraphLandmarkSlam:
             else:
                 point = self._points.get(name)
                 if point is None:
-                    point = self._points[name] = self.graph.add_point(self.front.ekf.mean[3 + 2 * int(j):5 + 2 * int(j)])
+                    at = 3 + 2 * int(j)   # the landmark's position in the EKF state
+                    point = self._points[name] = self.graph.add_point(self.front.ekf.mean[at:at + 2])
                 self.graph.add_range_bearing(node, point, observation.range, observation.bearing,
                                              np.linalg.inv(observation.covariance))
 
@@ -322,8 +323,8 @@ class GraphLandmarkSlam:
                     nominal[kind][chosen], self.graph.factor_errors(kind)[chosen], variables[chosen, group_column],
                     stamps[variables[chosen, 0]])
                 self.graph.set_information(kind, reweighted)
-            self.stats.correlation_time_s = {("range_bearing" if k == RANGE_BEARING else "marker"): [float(v) for v in t]
-                                             for k, t in tau.items()}
+            self.stats.correlation_time_s = {("range_bearing" if k == RANGE_BEARING else "marker"):
+                                             [float(v) for v in t] for k, t in tau.items()}
             result = self.graph.optimize(cfg.max_iterations, kernels)
             self.stats.optimizations += 1
             self.stats.iterations += result.iterations

@@ -12,8 +12,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trundle.fusion.geometry import (compose, no_return_directions, relative, rotate_covariance, scan_to_points,
-                                     voxel_filter)
+from trundle.fusion.geometry import (
+    compose,
+    no_return_directions,
+    relative,
+    rotate_covariance,
+    scan_to_points,
+    voxel_filter,
+)
 from trundle.fusion.mapping.submaps import SubmapStack
 from trundle.fusion.matching.scan_matching import MatchResult, samples_walls_densely
 from trundle.fusion.odometry.ekf import PoseEKF
@@ -130,8 +136,10 @@ class LocalTrajectoryBuilder:
         # de-skewed by the odometry's velocity, or the tracked one; the latter also when the odometry is
         # rejected (a glitch's velocity would bend the scan it is tested against)
         tracked_points = scan_to_points(scan, mount, *limits, self.motion.velocity if swept else None)
-        points = (scan_to_points(scan, mount, *limits, relative(last_odom, odom) / dt) if with_odometry
-                  else tracked_points)
+        points = tracked_points
+        if with_odometry:
+            assert odom is not None and last_odom is not None   # with_odometry: both are there
+            points = scan_to_points(scan, mount, *limits, relative(last_odom, odom) / dt)
         free_ends = None
         if opts.no_return_clear_m > 0:
             free_ends = mount[:2] + opts.no_return_clear_m * no_return_directions(scan, mount)

@@ -88,6 +88,7 @@ class Tracker:
             model = self.odometry_noise(odom_step)
             outlier = usual and self.odometry_check.is_outlier(disagreement, match_covariance, model)
             if usual and not outlier:
+                assert result is not None   # usual: there is a match
                 self.odometry_check.accept(disagreement, match_covariance, model)
                 return self._fuse(result), searched
             self.odometry_check.interrupt()
@@ -102,10 +103,12 @@ class Tracker:
                 result = refine_pose(submap.grid, points, result.pose, shaped_covariance=True, wall_lines=self.dense)
                 usual = self._usual(result)
             if usual:  # the laser contradicts the odometry increment: the match bridges it
+                assert result is not None   # usual: there is a match
                 self.stats.odometry_rejected += 1
                 self.ekf = before
                 return self._fuse(result), searched
         elif odom_step is None and usual:
+            assert result is not None   # usual: there is a match
             return self._fuse(result), searched
         elif odom_step is None:  # motion unlike any seen lately (a robot that turned on the spot sets off):
             # the widest window, around the prediction and around the last pose (a velocity extrapolated too far)

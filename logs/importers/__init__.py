@@ -10,8 +10,8 @@ import gzip
 import os
 import time
 import zlib
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 from trundle.logs import messages as m
 from trundle.logs.errors import DataError, UsageError, UserError

@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 
@@ -109,9 +109,9 @@ def messages(lines: list[DatLine]) -> Iterator[Item]:
                                                                        0.0, 0.0),)), last
         angles = np.array([line.left_ticks, line.right_ticks], np.float64) * (2.0 * math.pi / TICKS_PER_REV)
         yield JOINT_STATES_TOPIC, m.JointState(stamp, "base_link", ("left", "right"), angles), last
-        yield SCAN_TOPIC, m.LaserScan(stamp - SWEEP_NS, "laser", ANGLE_MIN, ANGLE_MIN + ANGLE_STEP * (BEAMS - 1), ANGLE_STEP,
-                                   STEP_S, SCAN_TIME_S, RANGE_MIN_M, RANGE_MAX_M,
-                                   ranges_to_metres(line.ranges_mm)), last
+        scan = m.LaserScan(stamp - SWEEP_NS, "laser", ANGLE_MIN, ANGLE_MIN + ANGLE_STEP * (BEAMS - 1), ANGLE_STEP,
+                           STEP_S, SCAN_TIME_S, RANGE_MIN_M, RANGE_MAX_M, ranges_to_metres(line.ranges_mm))
+        yield SCAN_TOPIC, scan, last
 
 
 def import_breezyslam(path: str | os.PathLike[str], out: str | os.PathLike[str]) -> dict[str, int]:
@@ -121,6 +121,10 @@ def import_breezyslam(path: str | os.PathLike[str], out: str | os.PathLike[str])
     make odometry from the wheel angles without a config file.
     """
     lines, malformed = read_dat(path)
-    metadata = {"command": "import breezyslam", "source": os.fspath(path), "malformed_lines": str(malformed),
-                "robot": ROBOT}
+    metadata: dict[str, object] = {
+        "command": "import breezyslam",
+        "source": os.fspath(path),
+        "malformed_lines": str(malformed),
+        "robot": ROBOT,
+    }
     return write_log(messages(lines), out, metadata=metadata)

@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Iterator
 
 import numpy as np
 
@@ -252,7 +252,8 @@ def messages(log: CarmenLog, *, odometry: str = "odom", laser_odometry: np.ndarr
                                                                        *offset),)), log_ns
         if odometry == "laser" and not rear:
             x, y, theta = laser.odom_pose if laser_odometry is None else laser_odometry[front_index[index]]
-            yield ODOM_TOPIC, m.Odometry(_ns(laser.stamp_s), "odom", "base_link", float(x), float(y), float(theta)), log_ns
+            odom = m.Odometry(_ns(laser.stamp_s), "odom", "base_link", float(x), float(y), float(theta))
+            yield ODOM_TOPIC, odom, log_ns
         yield (REAR_SCAN_TOPIC if rear else SCAN_TOPIC), to_scan(laser, frame, no_return), log_ns
 
 
@@ -283,8 +284,13 @@ def import_carmen(path: str | os.PathLike[str], out: str | os.PathLike[str], *, 
     log = read_carmen(path) if log is None else log
     if laser_odometry is None or odometry != "laser":
         odometry, description = choose_odometry(log, odometry)
-    metadata = {"command": "import carmen", "source": os.fspath(path), "odometry": odometry,
-                "odometry_description": description, "malformed_lines": str(log.malformed),
-                "skipped_lines": log.skipped}
+    metadata: dict[str, object] = {
+        "command": "import carmen",
+        "source": os.fspath(path),
+        "odometry": odometry,
+        "odometry_description": description,
+        "malformed_lines": str(log.malformed),
+        "skipped_lines": log.skipped,
+    }
     return write_log(messages(log, odometry=odometry, laser_odometry=laser_odometry, max_range_m=max_range_m),
                      out, metadata=metadata)

@@ -25,10 +25,10 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -126,8 +126,9 @@ def read_mrclam(folder: str | os.PathLike[str], robot: int) -> MrclamRun:
         malformed[measurement_file] = malformed.get(measurement_file, 0) + int((~valid).sum())
     run = MrclamRun(odometry_ns[order], odometry[order], sightings_ns[valid],
                     [(int(b), float(r), float(a)) for b, r, a in sightings[valid]],
-                    {int(b): int(s) for s, b in zip(subjects, barcodes[:, 0])},
-                    {int(s): tuple(float(v) for v in row) for s, row in zip(landmark_ids, landmarks)},
+                    {int(b): int(s) for s, b in zip(subjects, barcodes[:, 0], strict=True)},
+                    {int(s): (float(x), float(y), float(sx), float(sy))
+                     for s, (x, y, sx, sy) in zip(landmark_ids, landmarks, strict=True)},
                     malformed=malformed)
     truth_path = folder / f"Robot{robot}_Groundtruth.dat"
     if truth_path.is_file():
@@ -166,7 +167,7 @@ def landmark_lists(run: MrclamRun) -> tuple[list[m.LandmarkList], dict[str, int]
     of robots, unknown barcodes)."""
     groups: dict[int, list[m.LandmarkObservation]] = {}
     dropped = {"robot_sightings": 0, "unknown_barcodes": 0}
-    for stamp, (barcode, range_m, bearing) in zip(run.sightings_ns, run.sightings):
+    for stamp, (barcode, range_m, bearing) in zip(run.sightings_ns, run.sightings, strict=True):
         subject = run.subject_of_barcode.get(barcode)
         if subject is None:
             dropped["unknown_barcodes"] += 1
@@ -181,8 +182,10 @@ def landmark_lists(run: MrclamRun) -> tuple[list[m.LandmarkList], dict[str, int]
 def messages(run: MrclamRun, sightings: list[m.LandmarkList]) -> Iterator[Item]:
     """``/odom`` and ``/landmarks`` in time order (log time = stamp; odometry first at equal times)."""
     poses = integrate(run.odometry_ns, run.odometry)
-    odometry = [(int(t), 0, m.Odometry(int(t), "odom", "base_link", *pose, vx=float(v), wz=float(w)))
-                for t, pose, (v, w) in zip(run.odometry_ns, poses, run.odometry)]
+    odometry = [
+        (int(t), 0, m.Odometry(int(t), "odom", "base_link", pose[0], pose[1], pose[2], vx=float(v), wz=float(w)))
+        for t, pose, (v, w) in zip(run.odometry_ns, poses, run.odometry, strict=True)
+    ]
     for t, kind, msg in sorted(odometry + [(s.stamp_ns, 1, s) for s in sightings], key=lambda item: item[:2]):
         yield (ODOM_TOPIC if kind == 0 else LANDMARK_TOPIC), msg, t
 
@@ -193,9 +196,17 @@ def import_mrclam(folder: str | os.PathLike[str], robot: int, out: str | os.Path
     ``--reference``: its ground truth and the survey) and the sightings dropped, by reason."""
     run = read_mrclam(folder, robot)
     sightings, dropped = landmark_lists(run)
-    metadata = {"command": "import mrclam", "source": os.fspath(folder), "robot_number": str(robot),
-                "dropped_sightings": dropped, "malformed_rows": run.malformed,
-                "landmark_sensor": {"range_sigma_m": RANGE_SIGMA_M, "range_sigma_fraction": RANGE_SIGMA_FRACTION,
-                                    "bearing_sigma_rad": BEARING_SIGMA_RAD}}
+    metadata: dict[str, object] = {
+        "command": "import mrclam",
+        "source": os.fspath(folder),
+        "robot_number": str(robot),
+        "dropped_sightings": dropped,
+        "malformed_rows": run.malformed,
+        "landmark_sensor": {
+            "range_sigma_m": RANGE_SIGMA_M,
+            "range_sigma_fraction": RANGE_SIGMA_FRACTION,
+            "bearing_sigma_rad": BEARING_SIGMA_RAD,
+        },
+    }
     counts = write_log(messages(run, sightings), out, metadata=metadata)
     return counts, run, dropped

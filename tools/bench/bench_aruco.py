@@ -12,14 +12,20 @@ Run: python tools/bench/bench_aruco.py [--repeat N]
 from __future__ import annotations
 
 import argparse
+from functools import partial
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from trundle.logs.messages import CameraInfo
-from trundle.perception.markers import (CORNER_REFINEMENT, MarkerDetector, dictionary_by_name, marker_object_points,
-                                        marker_pose)
+from trundle.perception.markers import (
+    CORNER_REFINEMENT,
+    MarkerDetector,
+    dictionary_by_name,
+    marker_object_points,
+    marker_pose,
+)
 from trundle.tools.bench import report
 from trundle.tools.bench.bench_color import cpu_per_call
 
@@ -68,7 +74,10 @@ def main() -> None:
     frames = {"synthetic_4x4": ("DICT_4X4_50", synthetic_frame())}
     for name in PHOTOS:
         if (DATA / name).exists():
-            frames[name.removesuffix(".jpg")] = ("DICT_6X6_250", cv2.imread(str(DATA / name)))
+            photo = cv2.imread(str(DATA / name))
+            if photo is None:
+                raise SystemExit(f"{DATA / name}: not an image")
+            frames[name.removesuffix(".jpg")] = ("DICT_6X6_250", photo)
     figures: dict[str, float] = {}
     for name, (dictionary, image) in frames.items():
         ours, bare = MarkerDetector(dictionary), bare_detector(dictionary)
@@ -77,10 +86,10 @@ def main() -> None:
             raise SystemExit(f"{name}: marker counts differ")
         best = dict.fromkeys(("ours", "bare", "ours_pose", "bare_pose"), float("inf"))
         for _ in range(args.repeat):
-            best["ours"] = min(best["ours"], cpu_per_call(lambda: ours.detect(image)))
-            best["bare"] = min(best["bare"], cpu_per_call(lambda: bare.detectMarkers(image)))
-            best["ours_pose"] = min(best["ours_pose"], cpu_per_call(lambda: our_poses(ours, image)))
-            best["bare_pose"] = min(best["bare_pose"], cpu_per_call(lambda: bare_poses(bare, image)))
+            best["ours"] = min(best["ours"], cpu_per_call(partial(ours.detect, image)))
+            best["bare"] = min(best["bare"], cpu_per_call(partial(bare.detectMarkers, image)))
+            best["ours_pose"] = min(best["ours_pose"], cpu_per_call(partial(our_poses, ours, image)))
+            best["bare_pose"] = min(best["bare_pose"], cpu_per_call(partial(bare_poses, bare, image)))
         figures[f"{name}_markers"] = count
         figures[f"{name}_detect_ms"] = best["ours"] * 1e3
         figures[f"{name}_bare_detect_ms"] = best["bare"] * 1e3

@@ -28,6 +28,7 @@ import sys
 import tempfile
 import time
 import timeit
+from itertools import pairwise
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -58,8 +59,10 @@ def _offer(link: str, rate: float, duration_s: float, ready, done, result) -> No
             due = int((now - start) * rate) + 1
             if due > sent:
                 stamp = (time.monotonic_ns() // 1000) & 0xFFFFFFFF
-                batch = [can.Message(arbitration_id=0x100 + (i & 0xFF), data=PAYLOAD.pack(i, stamp), is_extended_id=False)
-                         for i in range(sent, due)]
+                batch = [
+                    can.Message(arbitration_id=0x100 + (i & 0xFF), data=PAYLOAD.pack(i, stamp), is_extended_id=False)
+                    for i in range(sent, due)
+                ]
                 adapter.bus.send_many(batch)
                 sent = due
             time.sleep(0.001)
@@ -83,7 +86,7 @@ def _summarise(rate: float, seqs: list[int], lat_us: list[int], info: dict, cpu_
     instead), so a rate counts as sustained only if the emulator could offer all of it, nothing
     was lost or reordered and the median latency stayed under 20 ms (no standing backlog; the
     p99 is reported but not judged, as it follows the load of the shared machine)."""
-    inversions = sum(1 for a, b in zip(seqs, seqs[1:]) if b < a)
+    inversions = sum(1 for a, b in pairwise(seqs) if b < a)
     lat = sorted(lat_us)
     achieved = info["sent"] / info["offer_s"]
     p99 = lat[int(0.99 * (len(lat) - 1))] / 1000 if lat else float("inf")
@@ -112,7 +115,7 @@ def _measure(rate: float, duration_s: float, open_reader) -> dict:
     while time.monotonic() < deadline:
         payloads = read(0.2)
         if not payloads:
-            if first is not None and time.monotonic() - last > 1.0:
+            if last is not None and time.monotonic() - last > 1.0:
                 break
             continue
         now_us = (time.monotonic_ns() // 1000) & 0xFFFFFFFF
@@ -232,15 +235,17 @@ def decode_costs(number: int) -> dict:
     vesc = DbcWheels(dbc, ["VESC_Status5_id9.Tachometer", "VESC_Status5_id10.Tachometer"], (0, 1), units_per_rev=42)
     vesc_msg = can.Message(arbitration_id=0x1B09, data=bytes.fromhex("0000002A01F40000"), is_extended_id=True)
     db = cantools.database.load_file(str(dbc))
+    assert isinstance(db, cantools.database.Database)
     status5 = db.get_message_by_frame_id(0x1B09)
+    vesc_data = bytes(vesc_msg.data)
     cases = {
         "odrive_codec": lambda: odrive.decode_encoder_estimates(data),
         "odrive_handle": lambda: odrive_protocol.handle(odrive_msg, 0),
         "cia406_codec": lambda: layout.decode(tpdo),
-        "dbc_cantools_decode": lambda: status5.decode(vesc_msg.data, decode_choices=False, scaling=False),
+        "dbc_cantools_decode": lambda: status5.decode(vesc_data, decode_choices=False, scaling=False),
         "dbc_handle": lambda: vesc.handle(vesc_msg, 0),
     }
-    out = {"struct_unpack_ns": baseline}
+    out: dict[str, object] = {"struct_unpack_ns": baseline}
     for name, fn in cases.items():
         ns = _per_frame_ns(fn, number)
         out[name] = {"ns_per_frame": ns, "ratio_to_struct_unpack": ns / baseline}
@@ -274,11 +279,13 @@ def main() -> int:
         results["throughput"].append(row)
         for name in ("bare_line_reader", "canbus_lines", "canbus_python-can"):
             r = row[name]
-            print(f"  {rate:5d}/s {name:<18} offered {r['achieved_offer_per_s']:6.0f}/s received {r['received']:6d} "
-                  f"lost {r['lost']:4d} reordered {r['out_of_order']:3d} latency median {r['latency_median_ms']:8.2f} ms "
-                  f"p99 {r['latency_p99_ms']:8.2f} ms cpu {r['host_cpu_percent']:3.0f}% "
-                  f"{'sustained' if r['sustained'] else 'NOT sustained (limited by ' + r['limited_by'] + ')'}"
-                  + (f"  rate x{r['ratio_received_per_s_to_bare']:.2f} of bare" if name != "bare_line_reader" else ""))
+            print(
+                f"  {rate:5d}/s {name:<18} offered {r['achieved_offer_per_s']:6.0f}/s received {r['received']:6d} "
+                f"lost {r['lost']:4d} reordered {r['out_of_order']:3d} latency median {r['latency_median_ms']:8.2f} ms "
+                f"p99 {r['latency_p99_ms']:8.2f} ms cpu {r['host_cpu_percent']:3.0f}% "
+                f"{'sustained' if r['sustained'] else 'NOT sustained (limited by ' + r['limited_by'] + ')'}"
+                + (f"  rate x{r['ratio_received_per_s_to_bare']:.2f} of bare" if name != "bare_line_reader" else "")
+            )
     for name in ("canbus_lines", "canbus_python-can", "bare_line_reader"):
         ok = [row["offered_per_s"] for row in results["throughput"] if row[name]["sustained"]]
         results[f"max_sustained_per_s_{name}"] = max(ok) if ok else 0

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -27,7 +27,7 @@ def frame(seed: int = 0) -> np.ndarray:
     """640x480 BGR: blurred colour noise with 10 non-overlapping orange ellipses and pixel noise."""
     rng = np.random.default_rng(seed)
     image = cv2.GaussianBlur(rng.integers(0, 256, (480, 640, 3)).astype(np.uint8), (0, 0), 6)
-    image = cv2.normalize(image, None, 40, 200, cv2.NORM_MINMAX)
+    image = cv2.normalize(image, None, 40, 200, cv2.NORM_MINMAX)  # type: ignore[call-overload]  # dst None: allocated (stubs say otherwise)
     for i in range(10):
         centre = (60 + 130 * (i % 5), 120 + 240 * (i // 5))
         cv2.ellipse(image, centre, (int(rng.integers(20, 50)), int(rng.integers(12, 30))), float(rng.uniform(0, 180)),

@@ -29,11 +29,11 @@ import cv2
 from trundle.logs.reader import LogReader
 from trundle.logs.topics import CAN_RX_TOPIC, IMAGE_TOPIC, SCAN_TOPIC, WHEELS_TOPIC
 from trundle.tools.bench import report
-from trundle.tools.sim.camera_render import CameraRenderer
-from trundle.tools.daemon.status import query_status
 from trundle.tools.config.toml_text import format_config
-from trundle.tools.sim.robot import RobotSim
+from trundle.tools.daemon.status import query_status
 from trundle.tools.emulators.sim_devices import SimDevices
+from trundle.tools.sim.camera_render import CameraRenderer
+from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
 
 REPO = Path(__file__).resolve().parents[2]
@@ -50,7 +50,7 @@ def cpu_seconds(pid: int) -> float:
 def render_clip(sim: RobotSim, path: Path, seconds: float = 4.0) -> Path:
     """An MJPEG clip of what the camera sees along the route (the emulator serves its packets)."""
     renderer = CameraRenderer(sim.world, sim.camera.scaled(WIDTH, HEIGHT))
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (WIDTH, HEIGHT))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), FPS, (WIDTH, HEIGHT))
     for i in range(int(seconds * FPS)):
         writer.write(renderer.render(sim.camera_pose_at(10.0 + i / FPS)))
     writer.release()

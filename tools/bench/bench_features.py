@@ -3,7 +3,7 @@ and (--accuracy) every detector + matcher on the public ground truth.
 
 Timing (process CPU seconds, minimum over interleaved rounds, graf img1 800x640 and the same
 resized to 640x480 with INTER_AREA):
-- surf_vs_sift: `trundle.perception.surf.surf` (defaults) / `cv2.SIFT_create().detectAndCompute`
+- surf_vs_sift: `trundle.perception.surf.surf` (defaults) / `cv2.SIFT.create().detectAndCompute`
   (goal <= 3);
 - orb_pair: `image_matching.match_images(..., "orb", max_keypoints=1000)` without RANSAC's
   share, i.e. 2 x detect_and_describe + `matching.match` (cross-check, ratio 0.8) /
@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -59,7 +60,7 @@ def load(relative: str) -> np.ndarray:
 
 
 def raw_orb_pair(a: np.ndarray, b: np.ndarray) -> int:
-    orb = cv2.ORB_create(1000)
+    orb = cv2.ORB.create(1000)
     ka, da = orb.detectAndCompute(a, None)
     kb, db = orb.detectAndCompute(b, None)
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
@@ -78,13 +79,13 @@ def our_orb_pair(a: np.ndarray, b: np.ndarray) -> int:
 def timing(repeat: int) -> dict[str, float]:
     graf1, graf2 = load("oxford/graf/img1.png"), load("oxford/graf/img2.png")
     small1, small2 = (cv2.resize(g, (640, 480), interpolation=cv2.INTER_AREA) for g in (graf1, graf2))
-    sift = cv2.SIFT_create()
+    sift = cv2.SIFT.create()
     figures: dict[str, float] = {}
     for name, image in (("graf_800x640", graf1), ("graf_640x480", small1)):
         best = {"surf": float("inf"), "sift": float("inf")}
         for _ in range(repeat):
-            best["surf"] = min(best["surf"], cpu(lambda: surf(image)))
-            best["sift"] = min(best["sift"], cpu(lambda: sift.detectAndCompute(image, None)))
+            best["surf"] = min(best["surf"], cpu(partial(surf, image)))
+            best["sift"] = min(best["sift"], cpu(partial(sift.detectAndCompute, image, None)))
         figures[f"{name}_surf_keypoints"] = len(surf(image)[0])
         figures[f"{name}_sift_keypoints"] = len(sift.detect(image, None))
         figures[f"{name}_surf_ms"] = best["surf"] * 1e3
@@ -106,7 +107,7 @@ def surf_against_sift() -> dict[str, float]:
     """Matching score of our SURF and of OpenCV SIFT on graf 1->2 and 1->3: the 2000 strongest
     keypoints each, brute-force L2 with cross-check, correct within 3 px (as tests/test_surf.py)."""
     images = {i: load(f"oxford/graf/img{i}.png") for i in (1, 2, 3)}
-    sift = cv2.SIFT_create(nfeatures=BUDGET)
+    sift = cv2.SIFT.create(nfeatures=BUDGET)
     feats = {"surf": {i: surf(img, hessian_threshold=300, max_keypoints=BUDGET) for i, img in images.items()},
              "sift": {}}
     for i, img in images.items():

@@ -53,7 +53,8 @@ def main() -> None:
         import_breezyslam(DATA, logs / "run00.mcap")
         for i in range(1, args.logs):
             shutil.copy(logs / "run00.mcap", logs / f"run{i:02d}.mcap")
-        loop = f'for f in "{logs}"/*.mcap; do "{trundle}" slam "$f" -o "{root}/loop/$(basename "$f" .mcap)" || exit 1; done'
+        loop = (f'for f in "{logs}"/*.mcap; do '
+                f'"{trundle}" slam "$f" -o "{root}/loop/$(basename "$f" .mcap)" || exit 1; done')
         shell_s = wall_s(["bash", "-c", loop], root)
         fleet_s, run_s, share = {}, {}, {}
         for cpus in (1, 2):

@@ -23,12 +23,13 @@ import importlib.util
 import math
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from trundle.fusion.slam.ekf_slam import EkfSlam
 from trundle.fusion.optimization.isam_graph import read_isam_graph
+from trundle.fusion.slam.ekf_slam import EkfSlam
 from trundle.logs import messages as m
 from trundle.logs.importers.mrclam import import_mrclam
 from trundle.logs.reader import LogReader
@@ -55,9 +56,16 @@ def ekf_update_figures(repeat: int) -> dict[str, float]:
         ekf = ekf_with(n, rng)
         _, positions, _ = ekf.landmarks()
         picks = rng.choice(n, 5, replace=False)
-        sightings = [m.LandmarkObservation(str(j), float(np.hypot(*positions[j])), math.atan2(positions[j][1], positions[j][0]),
-                                           np.diag([0.01, 0.0004])) for j in picks]
-        figures[f"ekf_update_ms_{n}"] = report.best_of(lambda: ekf.update(sightings), repeat, 20) * 1e3
+        sightings = [
+            m.LandmarkObservation(
+                str(j),
+                float(np.hypot(*positions[j])),
+                math.atan2(positions[j][1], positions[j][0]),
+                np.diag([0.01, 0.0004]),
+            )
+            for j in picks
+        ]
+        figures[f"ekf_update_ms_{n}"] = report.best_of(partial(ekf.update, sightings), repeat, 20) * 1e3
     for n in SIZES:
         figures[f"ekf_update_over_10_{n}"] = figures[f"ekf_update_ms_{n}"] / figures["ekf_update_ms_10"]
     big = [n for n in SIZES if n >= 50]
@@ -128,7 +136,7 @@ def draw_mrclam(path: Path, run, outputs: dict[str, Path]) -> None:
     survey_ids = [str(s) for s in sorted(run.landmarks) if s > 5]
     survey = np.array([run.landmarks[int(s)][:2] for s in survey_ids])
     figure, axes = plt.subplots(1, len(outputs), figsize=(5.0 * len(outputs), 7.5), sharey=True)
-    for ax, (name, folder) in zip(np.atleast_1d(axes), outputs.items()):
+    for ax, (name, folder) in zip(np.atleast_1d(axes), outputs.items(), strict=True):
         estimate = Trajectory(*read_trajectory_csv(folder / "trajectory.csv"))
         ate = absolute_trajectory_error(estimate, truth, 20_000_000)
         aligned = compose(np.array(ate.alignment_xyt), estimate.poses)
@@ -141,7 +149,9 @@ def draw_mrclam(path: Path, run, outputs: dict[str, Path]) -> None:
         ax.scatter(survey[:, 0], survey[:, 1], marker="s", s=40, facecolors="none", edgecolors="k", label="survey")
         ax.scatter(mapped[:, 0], mapped[:, 1], marker="x", s=40, color="tab:purple",
                    label=f"landmarks: mean error {error.mean_m * 100:.1f} cm")
-        ax.set_title(f"MRCLAM Dataset 2, robot 1: {'landmark graph (default)' if name == 'graph' else 'EKF-SLAM alone'}")
+        ax.set_title(
+            f"MRCLAM Dataset 2, robot 1: {'landmark graph (default)' if name == 'graph' else 'EKF-SLAM alone'}"
+        )
         ax.set_aspect("equal")
         ax.set_xlabel("x (m)")
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, fontsize=8)

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from mcap.writer import CompressionType, Writer
+from mcap.writer import Writer
 
 from trundle.logs import messages as m
 from trundle.logs import ros2
@@ -40,7 +40,8 @@ def bare(path: Path, pool: list[bytes], n: int, compression: str) -> float:
     with open(path, "wb") as f:
         w = Writer(f, compression=COMPRESSION[compression])
         w.start(profile="ros2", library="bench")
-        sid = w.register_schema("sensor_msgs/msg/LaserScan", "ros2msg", ros2.schema_text("sensor_msgs/msg/LaserScan").encode())
+        schema = ros2.schema_text("sensor_msgs/msg/LaserScan").encode()
+        sid = w.register_schema("sensor_msgs/msg/LaserScan", "ros2msg", schema)
         cid = w.register_channel(SCAN_TOPIC, "cdr", sid)
         for i in range(n):
             w.add_message(cid, i, pool[i % len(pool)], i, i)
@@ -73,8 +74,13 @@ def main() -> None:
     pool = [ros2.encode(scan(seed))[1] for seed in range(200)]
     with tempfile.TemporaryDirectory() as tmp:
         for compression in ("none", "zstd"):
-            rounds = [(bare(Path(tmp) / f"bare-{compression}{i}.mcap", pool, args.messages, compression),
-                       ours(Path(tmp) / f"ours-{compression}{i}.mcap", pool, args.messages, compression)) for i in range(7)]
+            rounds = [
+                (
+                    bare(Path(tmp) / f"bare-{compression}{i}.mcap", pool, args.messages, compression),
+                    ours(Path(tmp) / f"ours-{compression}{i}.mcap", pool, args.messages, compression),
+                )
+                for i in range(7)
+            ]
             b, o = min(r[0] for r in rounds), min(r[1] for r in rounds)  # interleaved: load drift hits both
             figures[f"bare_mcap_msgs_per_cpu_s_{compression}"] = args.messages / b
             figures[f"logger_msgs_per_cpu_s_{compression}"] = args.messages / o

@@ -25,6 +25,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -78,8 +79,8 @@ def decode_figures() -> dict[str, float]:
         np.testing.assert_array_equal(got, want[:, 0] if measure.intensity else want)
         t_ours = t_theirs = float("inf")
         for _ in range(7):  # interleaved, so a busy moment of the machine hits both alike
-            t_ours = min(t_ours, report.best_of(lambda: ours(raw, measure), repeat=1, number=100))
-            t_theirs = min(t_theirs, report.best_of(lambda: theirs(raw, measure), repeat=1, number=5))
+            t_ours = min(t_ours, report.best_of(partial(ours, raw, measure), repeat=1, number=100))
+            t_theirs = min(t_theirs, report.best_of(partial(theirs, raw, measure), repeat=1, number=5))
         key = command.lower()
         figures[f"decode_{key}_ours_us"] = t_ours * 1e6
         figures[f"decode_{key}_hokuyolx_us"] = t_theirs * 1e6
@@ -122,7 +123,12 @@ def record_path(make_driver, out: Path, lost_counters: tuple[str, ...]):
         driver.stop()
         logger.close()
         out.unlink()
-        return {"scans": scans, "errors": driver.counters["errors"], "lost": sum(driver.counters[k] for k in lost_counters)}
+        return {
+            "scans": scans,
+            "errors": driver.counters["errors"],
+            "lost": sum(driver.counters[k] for k in lost_counters),
+        }
+
     return work
 
 
@@ -179,7 +185,9 @@ def path_figures(prefix: str, result: dict, seconds: float, nominal_hz: float) -
         f"{prefix}_scan_rate_hz": rate,
         f"{prefix}_record_cpu_share_percent": 100 * share,
         f"{prefix}_record_cpu_per_scan_ms": 1000 * share / rate if rate else float("inf"),
-        f"{prefix}_record_cpu_share_at_{nominal_hz:g}hz_percent": 100 * share * nominal_hz / rate if rate else float("inf"),
+        f"{prefix}_record_cpu_share_at_{nominal_hz:g}hz_percent": 100 * share * nominal_hz / rate
+        if rate
+        else float("inf"),
         f"{prefix}_record_scans_lost": stats["lost"],
         f"{prefix}_record_errors": stats["errors"],
         f"{prefix}_bare_read_cpu_share_percent": 100 * bare,
@@ -187,7 +195,9 @@ def path_figures(prefix: str, result: dict, seconds: float, nominal_hz: float) -
         f"{prefix}_record_over_bare_read": share / bare if bare else float("inf"),
     }
     if "record_without_timing_topic" in result:
-        figures[f"{prefix}_record_without_timing_topic_cpu_share_percent"] = 100 * result["record_without_timing_topic"][0]
+        figures[f"{prefix}_record_without_timing_topic_cpu_share_percent"] = (
+            100 * result["record_without_timing_topic"][0]
+        )
     return figures
 
 

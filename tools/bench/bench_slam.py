@@ -11,10 +11,11 @@ closure (green) and ours (red) over our map.
 Scan matches are timed on Intel scans 40..119 against a submap built from the 20 scans before
 each, from GMapping's pose perturbed by (0.1 m, -0.1 m, 3 deg): the correlative search alone
 (its branch-and-bound pyramid already built, as it is for every scan matched against a finished
-submap; the first search with the build is reported too) is the baseline; the full match (search + Levenberg-Marquardt), the refinement alone, point-to-line
-ICP and an exhaustive search over the same lattice are given as ratios to it; matches are timed
-in CPU seconds. Wall-clock figures depend on the machine's load (shared with other work), so CPU
-time and the load average are recorded too.
+submap; the first search with the build is reported too) is the baseline; the full match
+(search + Levenberg-Marquardt), the refinement alone, point-to-line ICP and an exhaustive search
+over the same lattice are given as ratios to it; matches are timed in CPU seconds. Wall-clock
+figures depend on the machine's load (shared with other work), so CPU time and the load average
+are recorded too.
 fr079 (issue 14) is mapped laser-only from GMapping's corrected scans, as ``trundle import carmen
 --odometry none`` makes it, and scored against the corrected poses (consecutive relations, revisits
 less than 3 m and more than 30 s apart, ATE). Each log's real-time factor is given with
@@ -31,19 +32,31 @@ import math
 import os
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from trundle.fusion.evaluation.trajectory_errors import (Trajectory, absolute_trajectory_error, relation_error, revisit_relations,
-                                       trajectory_relations)
+from trundle.fusion.evaluation.trajectory_errors import (
+    Trajectory,
+    absolute_trajectory_error,
+    relation_error,
+    revisit_relations,
+    trajectory_relations,
+)
 from trundle.fusion.geometry import scan_to_points, transform_points, voxel_filter
-from trundle.fusion.matching.icp import LineReference, icp
 from trundle.fusion.mapping.map_io import plot_trajectory
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
+from trundle.fusion.matching.icp import LineReference, icp
+from trundle.fusion.matching.scan_matching import (
+    MatchResult,
+    angular_step,
+    correlative_search,
+    match_scan,
+    refine_pose,
+)
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.fusion.odometry.drift import drifting_odometry
-from trundle.fusion.matching.scan_matching import angular_step, correlative_search, match_scan, refine_pose
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.estimators import EstimatorInputs, make_estimator
 from trundle.fusion.slam.grid_slam import Slam
@@ -55,7 +68,9 @@ DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 CARTOGRAPHER_RTF = {"intel": 15.0, "fr079": 17.0, "csail": 12.0}  # Hess et al. 2016, Table V
 
 
-def map_log(path: Path, wheels: DiffDriveOdometry | None, loop_closure: bool = True) -> tuple[Slam, float, float, float]:
+def map_log(
+    path: Path, wheels: DiffDriveOdometry | None, loop_closure: bool = True
+) -> tuple[Slam, float, float, float]:
     """Run SLAM over an MCAP log as ``trundle slam`` does; returns it, duration, wall and CPU seconds."""
     reader = LogReader(path)
     duration = reader.info().duration_s
@@ -86,6 +101,24 @@ def exhaustive(grid: LogOddsGrid, points: np.ndarray, pose: np.ndarray, window: 
     return best
 
 
+def matchers(grid: LogOddsGrid, points: np.ndarray, guess: np.ndarray, near: np.ndarray, window: float,
+             window_theta: float) -> list[tuple[str, Callable[[], object]]]:
+    """The timed matchers on one scan: searches from ``guess``, refinements from ``near`` (m, rad).
+
+    "cold" and "search" are the same call: the first one builds the grid's pyramid.
+    """
+    step = math.radians(0.5)
+    return [("cold", lambda: correlative_search(grid, points, guess, window_xy_m=window,
+                                                window_theta_rad=window_theta, angular_step_rad=step)),
+            ("search", lambda: correlative_search(grid, points, guess, window_xy_m=window,
+                                                  window_theta_rad=window_theta, angular_step_rad=step)),
+            ("match", lambda: match_scan(grid, points, guess, window_xy_m=window,
+                                         window_theta_rad=window_theta, angular_step_rad=step)),
+            ("refine", lambda: refine_pose(grid, points, near)),
+            ("icp", lambda: icp(LineReference(grid.occupied_points()), points, near)),
+            ("exhaustive", lambda: exhaustive(grid, points, guess, window, window_theta, step))]
+
+
 def time_matches(log: carmen.CarmenLog, first: int, count: int) -> dict[str, float]:
     _, reference = carmen.scan_poses(log)
     scans = [carmen.to_scan(laser, "laser", carmen.infer_no_return(log)) for laser in log.lasers]
@@ -100,29 +133,29 @@ def time_matches(log: carmen.CarmenLog, first: int, count: int) -> dict[str, flo
         points = voxel_filter(scan_to_points(scans[k], range_max=30.0), 0.05)
         guess = reference[k] + offset
         grid.likelihood_field(0.05), grid.distance_field(0.5)  # fields are shared by all matchers: not timed
-        step = math.radians(0.5)
-        for name, run in (("cold", lambda: correlative_search(grid, points, guess, window_xy_m=window,
-                                                              window_theta_rad=window_theta, angular_step_rad=step)),
-                          ("search", lambda: correlative_search(grid, points, guess, window_xy_m=window,
-                                                                window_theta_rad=window_theta, angular_step_rad=step)),
-                          ("match", lambda: match_scan(grid, points, guess, window_xy_m=window,
-                                                       window_theta_rad=window_theta, angular_step_rad=step)),
-                          ("refine", lambda: refine_pose(grid, points, reference[k] + offset / 5)),
-                          ("icp", lambda: icp(LineReference(grid.occupied_points()), points, reference[k] + offset / 5)),
-                          ("exhaustive", lambda: exhaustive(grid, points, guess, window, window_theta, step))):
+        for name, run in matchers(grid, points, guess, reference[k] + offset / 5, window, window_theta):
             start = time.process_time()
             result = run()
             times[name].append(time.process_time() - start)
-            if name == "match" and result is not None:
+            if name == "match" and isinstance(result, MatchResult):  # else None: no match
                 errors.append(float(np.hypot(*(result.pose[:2] - reference[k][:2]))))
     median = {name: float(np.median(values)) * 1e3 for name, values in times.items()}
     base = median["search"]
-    return {"match_scans": count, "search_with_pyramid_build_ms": median["cold"], "search_ms": base, "full_match_ms": median["match"],
-            "full_match_vs_search": median["match"] / base, "refine_only_ms": median["refine"],
-            "refine_only_vs_search": median["refine"] / base, "icp_ms": median["icp"], "icp_vs_search": median["icp"] / base,
-            "exhaustive_ms": median["exhaustive"], "exhaustive_vs_search": median["exhaustive"] / base,
-            "match_error_to_gmapping_median_m": float(np.median(errors)),
-            "search_angular_step_formula_deg": math.degrees(angular_step(0.05, 30.0))}
+    return {
+        "match_scans": count,
+        "search_with_pyramid_build_ms": median["cold"],
+        "search_ms": base,
+        "full_match_ms": median["match"],
+        "full_match_vs_search": median["match"] / base,
+        "refine_only_ms": median["refine"],
+        "refine_only_vs_search": median["refine"] / base,
+        "icp_ms": median["icp"],
+        "icp_vs_search": median["icp"] / base,
+        "exhaustive_ms": median["exhaustive"],
+        "exhaustive_vs_search": median["exhaustive"] / base,
+        "match_error_to_gmapping_median_m": float(np.median(errors)),
+        "search_angular_step_formula_deg": math.degrees(angular_step(0.05, 30.0)),
+    }
 
 
 def fr079_figures(path: Path, folder: Path) -> dict[str, object]:

@@ -11,6 +11,8 @@ Run: python tools/bench/bench_world.py
 
 from __future__ import annotations
 
+from functools import partial
+
 import cv2
 import numpy as np
 
@@ -29,9 +31,10 @@ def main() -> None:
         frame = renderer.render(pose, rng)
         maps = np.random.default_rng(1).random((2, height, width), dtype=np.float32) * [[[width - 1]], [[height - 1]]]
         maps = maps.astype(np.float32)
-        render = report.best_of(lambda: renderer.render(pose, rng), repeat=5, number=10)
-        jpeg = report.best_of(lambda: cv2.imencode(".jpg", frame, (cv2.IMWRITE_JPEG_QUALITY, 85)), repeat=5, number=10)
-        remap = report.best_of(lambda: cv2.remap(frame, maps[0], maps[1], cv2.INTER_LINEAR), repeat=5, number=10)
+        render = report.best_of(partial(renderer.render, pose, rng), repeat=5, number=10)
+        encode = partial(cv2.imencode, ".jpg", frame, (cv2.IMWRITE_JPEG_QUALITY, 85))
+        jpeg = report.best_of(encode, repeat=5, number=10)
+        remap = report.best_of(partial(cv2.remap, frame, maps[0], maps[1], cv2.INTER_LINEAR), repeat=5, number=10)
         key = f"render_{width}x{height}"
         figures[f"{key}_ms"] = render * 1e3
         figures[f"{key}_fps"] = 1.0 / render
@@ -41,8 +44,11 @@ def main() -> None:
     laser = (10.2, 5.25, 0.0)
     scan = report.best_of(lambda: simulate_scan(world, laser, model, np.random.default_rng(0)), repeat=5, number=20)
     angles = laser[2] + model.angles()
-    per_beam = report.best_of(lambda: [cast_rays(world.segments, laser[:2], angles[i:i + 1]) for i in range(angles.size)],
-                              repeat=3, number=1)
+    per_beam = report.best_of(
+        lambda: [cast_rays(world.segments, laser[:2], angles[i : i + 1]) for i in range(angles.size)],
+        repeat=3,
+        number=1,
+    )
     figures["scan_1081_beams_ms"] = scan * 1e3
     figures["scan_cpu_percent_at_40hz"] = 100.0 * 40.0 * scan
     figures["scan_per_beam_loop_vs_vectorised_ratio"] = per_beam / scan

@@ -22,7 +22,9 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reference", type=reference,
                    help="the true value: a number (m, e.g. a wall at a known distance) or a CSV of values over "
                         "time with columns t_ns (or t_s) and value")
-    p.add_argument("--beam", type=beam, default="all", help="laser beam index compared with --reference, or 'all' (default)")
+    p.add_argument(
+        "--beam", type=beam, default="all", help="laser beam index compared with --reference, or 'all' (default)"
+    )
     p.add_argument("--stated-min", type=finite, help="device's stated lower limit (default: from the messages)")
     p.add_argument("--stated-max", type=finite, help="device's stated upper limit (default: from the messages)")
     p.add_argument("--bits", type=positive_int, help="A/D bits, for the range / 2^bits resolution")
@@ -44,7 +46,7 @@ def reference(text: str) -> Path | float:
 
 def beam(text: str) -> int | str:
     """``--beam``: ``all`` or a beam index >= 0."""
-    return text if text == "all" else non_negative_int(text)
+    return text if text == "all" else int(non_negative_int(text))
 
 
 def run(args: argparse.Namespace) -> int:

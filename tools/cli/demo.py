@@ -13,8 +13,8 @@ import signal
 from pathlib import Path
 
 from trundle.logs.errors import UserError
-from trundle.tools.config.arguments import non_negative_int, number_in, percent, positive
 from trundle.tools.cli.progress import Progress
+from trundle.tools.config.arguments import non_negative_int, number_in, percent, positive
 from trundle.tools.demo.report import ATE_LIMIT_M
 from trundle.tools.demo.run import LOG_NAME, DemoSettings, run_demo
 from trundle.tools.sim.world import DEFAULT_WORLD
@@ -26,7 +26,9 @@ def register(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("-o", "--output", type=Path, default=Path("trundle-demo"),
                    help="output folder (default ./trundle-demo)")
-    p.add_argument("--duration", type=positive, help="robot time to record, s (default: the whole route, about a minute)")
+    p.add_argument(
+        "--duration", type=positive, help="robot time to record, s (default: the whole route, about a minute)"
+    )
     p.add_argument("--camera-fps", type=number_in(0.0, 60.0, low_open=True), default=DemoSettings.camera_fps,
                    help="camera frame rate, above 0 and at most 60 (default %(default)s)")
     p.add_argument("--camera-size", default="x".join(map(str, DemoSettings.camera_size)),

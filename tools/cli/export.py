@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import dataclasses
 import json
@@ -10,6 +11,7 @@ import sys
 
 import numpy as np
 
+from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader
@@ -33,17 +35,22 @@ def _plain(value: object) -> object:
         return value.hex()
     if isinstance(value, float) and not np.isfinite(value):
         return str(value)
-    if dataclasses.is_dataclass(value):
-        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, m.Message):
+        return _plain_message(value)
     if isinstance(value, tuple):
         return [_plain(v) for v in value]
     return value
 
 
-def flatten(msg: object) -> dict[str, object]:
+def _plain_message(msg: m.Message) -> dict[str, object]:
+    """A message as a JSON-ready dict of its fields."""
+    return {f.name: _plain(getattr(msg, f.name)) for f in dataclasses.fields(msg)}
+
+
+def flatten(msg: m.Message) -> dict[str, object]:
     """One row: scalars as they are, arrays expanded to ``name.i`` columns (CSV)."""
     row: dict[str, object] = {}
-    for f in dataclasses.fields(msg):  # type: ignore[arg-type]
+    for f in dataclasses.fields(msg):
         value = getattr(msg, f.name)
         if isinstance(value, np.ndarray):
             for i, v in enumerate(value.reshape(-1).tolist()):
@@ -61,13 +68,13 @@ def run(args: argparse.Namespace) -> int:
     if args.output:
         new_file(args.output, "-o")
     items = reader.messages([args.topic])
-    out = open(args.output, "w", newline="") if args.output else sys.stdout
     count = 0
-    try:
+    with open(args.output, "w", newline="") if args.output else contextlib.nullcontext(sys.stdout) as out:
         writer = None
         for item in items:
             if args.format == "ndjson":
-                out.write(json.dumps({"topic": item.topic, "log_time_ns": item.log_time_ns, **_plain(item.msg)}) + "\n")
+                record = {"topic": item.topic, "log_time_ns": item.log_time_ns, **_plain_message(item.msg)}
+                out.write(json.dumps(record) + "\n")
             else:
                 row = {"log_time_ns": item.log_time_ns, **flatten(item.msg)}
                 if writer is None:
@@ -75,9 +82,6 @@ def run(args: argparse.Namespace) -> int:
                     writer.writeheader()
                 writer.writerow(row)
             count += 1
-    finally:
-        if args.output:
-            out.close()
     if count == 0:
         raise UserError(f"no messages on topic {args.topic} that trundle can decode")
     return 0

@@ -42,7 +42,9 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("logs", nargs="+", metavar="LOG_OR_GLOB", help="log files, folders, quoted globs or URLs")
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder (created)")
     p.add_argument("--address", help="Ray cluster HOST:PORT (default: RAY_ADDRESS, else a local Ray)")
-    p.add_argument("--retries", type=non_negative_int, default=3, help="runs again of a task lost with its worker (default 3)")
+    p.add_argument(
+        "--retries", type=non_negative_int, default=3, help="runs again of a task lost with its worker (default 3)"
+    )
     p.add_argument("--job-options", nargs="+", default=[], metavar="KEY=VALUE", help="the job's options (below)")
     p.add_argument("--num-cpus", type=positive_int, help="CPUs of the local Ray (default: all of this machine)")
     p.add_argument("--cpus-per-log", type=positive, default=1.0, help="CPUs each log's task reserves (default 1)")

@@ -18,10 +18,12 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from trundle.fusion.mapping.map_io import write_landmarks_csv, write_trajectory_csv
 from trundle.fusion.odometry.drift import drifting_odometry
-from trundle.logs.importers.breezyslam import import_breezyslam
 from trundle.logs.errors import UserError
+from trundle.logs.importers.breezyslam import import_breezyslam
 from trundle.logs.importers.carmen import ODOMETRY_SOURCES, choose_odometry, import_carmen, read_carmen, scan_poses
 from trundle.logs.importers.mrclam import ROBOT_SUBJECTS, import_mrclam
 from trundle.logs.paths import new_file
@@ -50,7 +52,9 @@ def register(p: argparse.ArgumentParser) -> None:
     b.add_argument("input", type=Path)
     b.add_argument("-o", "--output", type=Path, required=True, help="output .mcap (must not exist)")
     b.set_defaults(func=run_breezyslam)
-    r = formats.add_parser("mrclam", help="UTIAS MRCLAM dataset folder (RobotN_Odometry.dat, RobotN_Measurement.dat, ...)")
+    r = formats.add_parser(
+        "mrclam", help="UTIAS MRCLAM dataset folder (RobotN_Odometry.dat, RobotN_Measurement.dat, ...)"
+    )
     r.add_argument("input", type=Path, help="dataset folder")
     r.add_argument("--robot", type=number_in(min(ROBOT_SUBJECTS), max(ROBOT_SUBJECTS), whole=True), required=True,
                    help=f"robot number ({min(ROBOT_SUBJECTS)}-{max(ROBOT_SUBJECTS)})")
@@ -106,13 +110,14 @@ def run_mrclam(args: argparse.Namespace) -> int:
             new_file(path, option)
     counts, run, dropped = import_mrclam(args.input, args.robot, args.output)
     if args.reference:
-        if run.groundtruth is None:
+        if run.groundtruth is None or run.groundtruth_ns is None:
             raise UserError(f"--reference: no Robot{args.robot}_Groundtruth.dat in {args.input}")
         write_trajectory_csv(args.reference, run.groundtruth_ns, run.groundtruth)
     if args.landmarks_reference:
         surveyed = sorted(s for s in run.landmarks if s not in ROBOT_SUBJECTS)
         write_landmarks_csv(args.landmarks_reference, [str(s) for s in surveyed],
-                            [run.landmarks[s][:2] for s in surveyed], [run.landmarks[s][2:] for s in surveyed])
+                            np.array([run.landmarks[s][:2] for s in surveyed]),
+                            np.array([run.landmarks[s][2:] for s in surveyed]))
     _summary(counts, args.output)
     print(f"dropped {dropped['robot_sightings']} sightings of other robots and {dropped['unknown_barcodes']} of "
           f"barcodes not in Barcodes.dat")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 from trundle.logs.reader import LogReader
 from trundle.tools.jobs.info import as_dict
@@ -19,16 +19,19 @@ def register(p: argparse.ArgumentParser) -> None:
 def _when(ns: int | None) -> str:
     if ns is None:
         return "-"
-    t = datetime.fromtimestamp(ns / 1e9, tz=timezone.utc)
+    t = datetime.fromtimestamp(ns / 1e9, tz=UTC)
     return f"{t:%b %d %Y %H:%M:%S}.{ns % 1_000_000_000:09d} ({ns / 1e9:.9f})"
 
 
 def _size(n: int) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if n < 1024 or unit == "GiB":
-            return f"{n:.1f} {unit}" if unit != "B" else f"{n} B"
-        n /= 1024
-    return f"{n} B"
+    if n < 1024:
+        return f"{n} B"
+    size = n / 1024
+    for unit in ("KiB", "MiB"):
+        if size < 1024:
+            return f"{size:.1f} {unit}"
+        size /= 1024
+    return f"{size:.1f} GiB"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -36,7 +39,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(as_dict(info), indent=2))
         return 0 if info.message_count or info.complete else 1
-    state = "complete" if info.complete else f"INCOMPLETE: {info.error} (read what was intact; `trundle recover` fixes it)"
+    state = (
+        "complete" if info.complete else f"INCOMPLETE: {info.error} (read what was intact; `trundle recover` fixes it)"
+    )
     lines = [
         f"Files:             {info.path.name}",
         f"Bag size:          {_size(info.size_bytes)}",

@@ -34,7 +34,9 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--slip", action="append", default=[], metavar="T:S:FRACTION")
     p.add_argument("--scale", type=finite, metavar="FRACTION", help="distance scale error over the whole log")
     p.add_argument("--dropout", action="append", default=[], metavar="T:S")
-    p.add_argument("--glitches", type=non_negative_int, default=0, metavar="N", help="N heading glitches at random times")
+    p.add_argument(
+        "--glitches", type=non_negative_int, default=0, metavar="N", help="N heading glitches at random times"
+    )
     p.add_argument("--glitch-deg", type=finite, default=20.0, help="size of each random glitch (default 20 deg)")
     p.add_argument("--glitch-s", type=positive, default=0.6, help="duration of each random glitch (default 0.6 s)")
     p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the random glitches' times and signs")
@@ -79,9 +81,9 @@ def faults_from_args(args: argparse.Namespace, span_s: float) -> list[OdometryFa
 
 def run(args: argparse.Namespace) -> int:
     info = LogReader(args.log).info()
-    odometry = [t for t in info.topics.values()
-                if t.ros_type in ("nav_msgs/msg/Odometry", "sensor_msgs/msg/JointState") and t.first_ns is not None]
-    span_s = max(((t.last_ns - t.first_ns) * 1e-9 for t in odometry), default=0.0)
+    span_s = max(((t.last_ns - t.first_ns) * 1e-9 for t in info.topics.values()
+                  if t.ros_type in ("nav_msgs/msg/Odometry", "sensor_msgs/msg/JointState")
+                  and t.first_ns is not None and t.last_ns is not None), default=0.0)
     report = inject_faults(args.log, args.output, faults_from_args(args, span_s), load_config(args.config))
     if args.json:
         print(json.dumps(report, indent=2))

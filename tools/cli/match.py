@@ -32,7 +32,12 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--descriptor", choices=sorted(DESCRIPTORS),
                    help="descriptor (default: the detector's own, SIFT for detectors without one)")
     p.add_argument("--max-keypoints", type=positive_int, help="keep the strongest N keypoints per image")
-    p.add_argument("--ratio", type=number_in(0.0, 1.0, low_open=True), default=0.8, help="Lowe's ratio test, best/second best (1 = off; 0.8)")
+    p.add_argument(
+        "--ratio",
+        type=number_in(0.0, 1.0, low_open=True),
+        default=0.8,
+        help="Lowe's ratio test, best/second best (1 = off; 0.8)",
+    )
     p.add_argument("--min-difference", type=non_negative, default=0.0,
                    help="reject when second best - best distance is below this (0 = off)")
     p.add_argument("--max-distance", type=positive, default=math.inf, help="reject matches farther than this")
@@ -61,7 +66,7 @@ def draw(image1: np.ndarray, image2: np.ndarray, result: PairMatch) -> np.ndarra
     matches = [cv2.DMatch(int(i), int(j), 0.0) for i, j in result.matches.pairs]
     inliers = result.fit.inliers.astype(np.uint8).tolist()
     outliers = (1 - result.fit.inliers.astype(np.uint8)).tolist()
-    canvas = cv2.drawMatches(image1, kp1, image2, kp2, matches, None, matchColor=(0, 0, 255),
+    canvas = cv2.drawMatches(image1, kp1, image2, kp2, matches, None, matchColor=(0, 0, 255),  # type: ignore[call-overload]  # outImg None: allocated
                              singlePointColor=(160, 160, 160), matchesMask=outliers)
     return cv2.drawMatches(image1, kp1, image2, kp2, matches, canvas, matchColor=(0, 200, 0),
                            matchesMask=inliers, flags=cv2.DrawMatchesFlags_DRAW_OVER_OUTIMG

@@ -26,8 +26,8 @@ from pathlib import Path
 from typing import Any
 
 from trundle.logs.errors import UserError
-from trundle.tools.config.arguments import non_negative, non_negative_int, number_in, positive, positive_int
 from trundle.tools.cli.progress import Progress
+from trundle.tools.config.arguments import non_negative, non_negative_int, number_in, positive, positive_int
 from trundle.tools.jobs.perceive import perceive_log
 
 
@@ -45,14 +45,20 @@ def register(p: argparse.ArgumentParser) -> None:
     c.add_argument("--upper", help="fast path: upper HSV bound, e.g. 45,1,1 (H below lower wraps through 0)")
     c.add_argument("--template", help="image of the colour (back-projection path)")
     c.add_argument("--template-mask", help="mask image selecting the template's pixels (non-zero)")
-    c.add_argument("--bins", type=number_in(1, 180, whole=True), default=32, help="histogram bins per channel (default 32)")
+    c.add_argument(
+        "--bins", type=number_in(1, 180, whole=True), default=32, help="histogram bins per channel (default 32)"
+    )
     c.add_argument("--weights", default="0.5,0.3,0.2", help="H,S,V back-projection weights (default 0.5,0.3,0.2)")
-    c.add_argument("--level", type=number_in(0, 255, whole=True), default=128, help="likeness threshold 0..255 (default 128)")
+    c.add_argument(
+        "--level", type=number_in(0, 255, whole=True), default=128, help="likeness threshold 0..255 (default 128)"
+    )
     c.add_argument("--blur", type=non_negative, default=2.0, help="Gaussian blur sigma of the likeness, px (default 2)")
     c.add_argument("--min-area", type=non_negative_int, default=50, help="smallest region, px (default 50)")
     c.add_argument("--max-area", type=positive_int, help="largest region, px")
     c.add_argument("--max-aspect", type=number_in(1.0), help="largest ellipse axis ratio a/b (>= 1)")
-    c.add_argument("--min-extent", type=number_in(0.0, 1.0), default=0.0, help="smallest fraction of its box a region fills")
+    c.add_argument(
+        "--min-extent", type=number_in(0.0, 1.0), default=0.0, help="smallest fraction of its box a region fills"
+    )
     k = p.add_argument_group("markers pipeline")
     k.add_argument("--dictionary", default="DICT_6X6_250", help="ArUco dictionary (default DICT_6X6_250)")
     k.add_argument("--refinement", default="edges", choices=("edges", "subpix", "none", "contour", "apriltag"),
@@ -75,7 +81,7 @@ def _triple(text: str | None, name: str) -> tuple[float, float, float] | None:
         values = ()
     if len(values) != 3:
         raise UserError(f"{name} needs three comma-separated numbers, got {text!r}")
-    return values  # type: ignore[return-value]
+    return values[0], values[1], values[2]
 
 
 def _value(text: str) -> Any:

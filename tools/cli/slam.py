@@ -56,7 +56,9 @@ def run(args: argparse.Namespace) -> int:
           f"{'landmarks.csv, ' if landmarks else ''}report.json, slam.mcap")
     check = report.get("map_check")
     if check is not None and not check["passed"]:
-        failing = [s for s in check["stretches"] if s["last_keyframe"] - s["first_keyframe"] + 1 >= check["min_stretch"]]
+        failing = [
+            s for s in check["stretches"] if s["last_keyframe"] - s["first_keyframe"] + 1 >= check["min_stretch"]
+        ]
         where = ", ".join(f"{max(s['start_s'], 0.0):.0f}-{max(s['end_s'], 0.0):.0f} s" for s in failing[:5])
         print(f"trundle slam: warning: the map fails its self-check (consistency {check['consistency']:.2f}; "
               f"{check['inconsistent_keyframes']} keyframes contradict the rest of the map, at {where}; "

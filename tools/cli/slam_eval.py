@@ -16,12 +16,20 @@ from __future__ import annotations
 import argparse
 import json
 from dataclasses import asdict
-
 from pathlib import Path
 
-from trundle.fusion.evaluation.trajectory_errors import (Relations, Trajectory, absolute_trajectory_error, landmark_error, poses_at,
-                                       read_reference, relation_error, relative_pose_error, revisit_relations,
-                                       trajectory_relations)
+from trundle.fusion.evaluation.trajectory_errors import (
+    Relations,
+    Trajectory,
+    absolute_trajectory_error,
+    landmark_error,
+    poses_at,
+    read_reference,
+    relation_error,
+    relative_pose_error,
+    revisit_relations,
+    trajectory_relations,
+)
 from trundle.fusion.mapping.map_io import read_landmarks_csv
 from trundle.logs.errors import UserError
 from trundle.tools.config.arguments import non_negative, positive, positive_int
@@ -61,7 +69,10 @@ def evaluate(result: Trajectory, reference, step: int = 1, tolerance_ns: int = 1
                                **_revisit_error(result, revisit_relations(reference, revisit_m, revisit_s),
                                                 tolerance_ns)}}
     else:
-        report = {"relations": "relations file", "relation_error": asdict(relation_error(result, reference, tolerance_ns))}
+        report = {
+            "relations": "relations file",
+            "relation_error": asdict(relation_error(result, reference, tolerance_ns)),
+        }
     return report
 
 
@@ -85,10 +96,13 @@ def _text(report: dict) -> str:
              f"  rotation sq         {e['rotation_sq_deg2']['mean']:.3f} +- {e['rotation_sq_deg2']['std']:.3f} deg^2"]
     if "ate" in report:
         a, r = report["ate"], report["rpe"]
-        lines += [f"ATE (SE(2)-aligned):  rmse {a['rmse_m']:.4f} m, mean {a['mean_m']:.4f} m, median {a['median_m']:.4f} m,"
-                  f" max {a['max_m']:.4f} m, heading rmse {a['rotation_rmse_deg']:.3f} deg over {a['count']} poses",
-                  f"RPE ({r['step']} scan{'s' if r['step'] > 1 else ''}):"
-                  f"         translation rmse {r['translation_rmse_m']:.4f} m, rotation rmse {r['rotation_rmse_deg']:.3f} deg"]
+        lines += [
+            f"ATE (SE(2)-aligned):  rmse {a['rmse_m']:.4f} m, mean {a['mean_m']:.4f} m, median {a['median_m']:.4f} m,"
+            f" max {a['max_m']:.4f} m, heading rmse {a['rotation_rmse_deg']:.3f} deg over {a['count']} poses",
+            f"RPE ({r['step']} scan{'s' if r['step'] > 1 else ''}):"
+            f"         translation rmse {r['translation_rmse_m']:.4f} m,"
+            f" rotation rmse {r['rotation_rmse_deg']:.3f} deg",
+        ]
         v = report["revisits"]
         lines.append(f"Revisits (< {v['max_distance_m']:g} m, > {v['min_gap_s']:g} s apart): {v['count']} relations, "
                      f"mean {v['translation_abs_m']['mean']:.4f} m, {v['rotation_abs_deg']['mean']:.3f} deg"

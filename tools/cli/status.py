@@ -9,6 +9,7 @@ unit put it) and the one named in the system config ``/etc/trundle/robot.toml``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 from pathlib import Path
 
@@ -35,10 +36,8 @@ def candidate_sockets() -> list[Path]:
     """Where a daemon's status socket may be, in the order asked (see the module doc)."""
     candidates = [default_socket_path(), SYSTEM_SOCKET]
     if SYSTEM_CONFIG.is_file():
-        try:
+        with contextlib.suppress(UserError):  # a broken system config names no socket; the daemon would refuse it too
             candidates.append(load_config(SYSTEM_CONFIG).status.socket)
-        except UserError:
-            pass  # a broken system config names no socket; the daemon would refuse it too
     return list(dict.fromkeys(candidates))
 
 

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import shutil
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 from trundle.logs import messages as m
 
@@ -35,6 +36,7 @@ class DiskGuard:
     def check(self) -> None:
         """Below ``min_free_mb``: delete the oldest closed logs (or stop recording); resume above it."""
         cfg, folder = self.config, self.folder
+        assert folder is not None  # check_daemon_config
         floor = cfg.min_free_mb * 1e6
         try:
             usage = shutil.disk_usage(folder)
@@ -68,8 +70,9 @@ class DiskGuard:
 
     def _deletable_logs(self) -> list[Path]:
         """Closed ``*.mcap`` files in the log folder, oldest first (never the file being written)."""
-        current = self._current_log()
-        logs = [p for p in self.folder.glob("*.mcap") if p.is_file() and p != current]
+        current, folder = self._current_log(), self.folder
+        assert folder is not None  # check_daemon_config
+        logs = [p for p in folder.glob("*.mcap") if p.is_file() and p != current]
         return sorted(logs, key=lambda p: (p.stat().st_mtime, p.name))
 
     def diagnostics(self, robot: str) -> m.DiagnosticStatus:

@@ -31,7 +31,9 @@ class LiveView:
         try:
             import foxglove
         except ImportError:
-            raise UserError("the live view needs the optional extra: pip install 'trundle[live]' (foxglove-sdk)") from None
+            raise UserError(
+                "the live view needs the optional extra: pip install 'trundle[live]' (foxglove-sdk)"
+            ) from None
         self._foxglove = foxglove
         self.context = foxglove.Context()
         try:

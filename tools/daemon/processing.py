@@ -14,8 +14,8 @@ from __future__ import annotations
 import collections
 import threading
 import time
-from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any, Callable
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -181,7 +181,8 @@ class Processing:
     def diagnostics(self, robot: str) -> m.DiagnosticStatus:
         """The ``robot/processing`` entry of ``/diagnostics``: ERROR once a message failed to process
         (SLAM or marker detection raised), with the last error; OK otherwise."""
-        values = (("errors", str(self.errors)), ("dropped", str(self.dropped)), ("skipped_scans", str(self.skipped_scans)))
+        values = (("errors", str(self.errors)), ("dropped", str(self.dropped)),
+                  ("skipped_scans", str(self.skipped_scans)))
         if self.errors:
             return m.DiagnosticStatus(m.ERROR, f"{robot}/processing",
                                       f"{self.errors} message(s) failed to process: {self.last_error}", "", values)

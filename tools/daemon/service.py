@@ -30,8 +30,9 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from trundle.drivers import devices
 from trundle.drivers.health import HealthReporter
@@ -270,12 +271,13 @@ class Daemon:
     # ------------------------------------------------------------------ logger
     def _open_logger(self) -> None:
         """A new log named ``prefix_YYYYmmdd-HHMMSS.mcap``, starting with the latched topics."""
-        cfg = self.config.logger
+        cfg, folder = self.config.logger, self.config.logger.folder
+        assert folder is not None  # check_daemon_config
         stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime())
-        path = cfg.folder / f"{cfg.prefix}_{stamp}.mcap"
+        path = folder / f"{cfg.prefix}_{stamp}.mcap"
         n = 1
-        while any(cfg.folder.glob(f"{path.stem}*")):
-            path = cfg.folder / f"{cfg.prefix}_{stamp}-{n}.mcap"
+        while any(folder.glob(f"{path.stem}*")):
+            path = folder / f"{cfg.prefix}_{stamp}-{n}.mcap"
             n += 1
         metadata = {"command": "daemon", "robot": {"name": self.config.robot}, "config_file": self.config.source,
                     "devices": {d.name: {"family": d.family, "url": d.url, **d.options} for d in self.config.devices}}

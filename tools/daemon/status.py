@@ -13,8 +13,9 @@ import os
 import socket
 import socketserver
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, cast
+from typing import Any, cast
 
 from trundle.logs.errors import UserError
 
@@ -127,13 +128,17 @@ def format_status(status: dict[str, Any]) -> str:
     if "error" in disk:
         lines.append(f"disk: {disk['folder']}: {disk['error']}")
     elif disk:
-        lines.append(f"disk: {_size(disk['free_bytes'])} free in {disk['folder']} (floor {_size(disk['min_free_bytes'])}, "
-                     f"{disk['action']}; {disk['deleted_count']} logs deleted)")
+        lines.append(
+            f"disk: {_size(disk['free_bytes'])} free in {disk['folder']} (floor {_size(disk['min_free_bytes'])}, "
+            f"{disk['action']}; {disk['deleted_count']} logs deleted)"
+        )
     for name, odo in status.get("odometry", {}).items():
         lines.append(f"odometry ({name}): {'STALE, ' if odo['stale'] else ''}{odo['distance_m']:.1f} m travelled, "
                      f"{odo['gaps']} gaps")
     if "live" in status:
-        lines.append(f"live view: {status['live']['url']} (open it in Foxglove), {status['live']['sent']} messages sent")
+        lines.append(
+            f"live view: {status['live']['url']} (open it in Foxglove), {status['live']['sent']} messages sent"
+        )
     if "processing" in status:
         p = status["processing"]
         extra = "".join(f", {k} {v}" for k, v in p.items() if k in ("slam", "markers"))

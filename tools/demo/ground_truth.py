@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import collections
 import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -118,11 +119,12 @@ def _ground_truth(log: Path, topic: str, true_ns: Callable[[Any], int | None], s
     unmatched = 0
     with LogReader(log) as reader:
         for item in reader.messages(topics=[topic]):
-            t = true_ns(item.msg)
+            msg = cast(m.LaserScan | m.CompressedImage, item.msg)  # the demo's scan or image topic
+            t = true_ns(msg)
             if t is None:
                 unmatched += 1
                 continue
-            stamps.append(item.msg.stamp_ns)
+            stamps.append(msg.stamp_ns)
             times.append(t)
     poses = [sim.pose_at(devices.sim_time(t)) for t in times]
     return (Trajectory(np.array(stamps, np.int64), np.array(poses).reshape(-1, 3)), np.array(times, np.int64),

@@ -10,7 +10,7 @@ import math
 import os
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -20,12 +20,18 @@ from trundle.fusion.mapping.map_io import plot_trajectory
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
+from trundle.logs.topics import DIAGNOSTICS_TOPIC, IMAGE_TOPIC
 from trundle.perception.images import decode_image
 from trundle.tools.demo.ground_truth import Recording
-from trundle.tools.demo.scoring import (MarkerScore, camera_from_info, camera_pose, map_wall_distances, path_length,
-                                        score_trajectory)
+from trundle.tools.demo.scoring import (
+    MarkerScore,
+    camera_from_info,
+    camera_pose,
+    map_wall_distances,
+    path_length,
+    score_trajectory,
+)
 from trundle.tools.demo.slam import SlamRun
-from trundle.logs.topics import DIAGNOSTICS_TOPIC, IMAGE_TOPIC
 from trundle.tools.jobs.slam import map_check_report
 from trundle.tools.sim.camera_render import CameraRenderer
 from trundle.tools.sim.robot import Mount
@@ -49,6 +55,8 @@ def driver_diagnostics(log: Path) -> dict[str, dict[str, Any]]:
     last: dict[str, m.DiagnosticStatus] = {}
     with LogReader(log) as reader:
         for item in reader.messages(topics=[DIAGNOSTICS_TOPIC]):
+            if not isinstance(item.msg, m.DiagnosticArray):
+                continue
             for status in item.msg.status:
                 last[status.name] = status
     levels = {m.OK: "OK", m.WARN: "WARN", m.ERROR: "ERROR", m.STALE: "STALE"}
@@ -84,7 +92,8 @@ def marker_map(run: SlamRun, world: World, map_to_world) -> dict[str, Any]:
         return {"mapped": 0, "errors_m": {}}
     error = landmark_error(mapped.ids, mapped.positions, [str(d.marker_id) for d in known],
                            np.array([[d.x, d.y] for d in known]), map_to_world)
-    sightings = dict(zip(mapped.ids, mapped.sightings.tolist()))
+    sightings = dict(zip(mapped.ids, mapped.sightings.tolist(), strict=True))
+    assert run.slam.landmark_constraints is not None, "a marker map comes from the grid-landmarks estimator"
     landmark_stats = run.slam.landmark_constraints.stats
     return {"mapped": len(mapped.ids), "errors_m": error.per_landmark_m, "mean_error_m": error.mean_m,
             "max_error_m": error.max_m, "not_in_world": error.extra,
@@ -217,12 +226,16 @@ def report_markdown(report: dict[str, Any]) -> str:
         f"heading RMSE {odo['rotation_rmse_deg']:.2f} deg |",
     ]
     if report["ate_rmse_without_markers_m"] is not None:
-        lines.append(f"| SLAM without the markers as landmarks, ATE RMSE | {report['ate_rmse_without_markers_m'] * 100:.1f} cm |")
+        lines.append(
+            f"| SLAM without the markers as landmarks, ATE RMSE | {report['ate_rmse_without_markers_m'] * 100:.1f} cm |"
+        )
     if report["marker_map"]["errors_m"]:
         mm = report["marker_map"]
         each = ", ".join(f"{k}: {v * 100:.1f}" for k, v in sorted(mm["errors_m"].items(), key=lambda kv: int(kv[0])))
-        lines.append(f"| marker map against the world file (mean, max; per id, cm) | {mm['mean_error_m'] * 100:.1f} cm, "
-                     f"{mm['max_error_m'] * 100:.1f} cm; {each} |")
+        lines.append(
+            f"| marker map against the world file (mean, max; per id, cm) | {mm['mean_error_m'] * 100:.1f} cm, "
+            f"{mm['max_error_m'] * 100:.1f} cm; {each} |"
+        )
     if tr["rpe"]:
         rpe = tr["rpe"]
         lines.append(f"| SLAM relative error over {rpe['step']} scans (RMSE) | "
@@ -308,6 +321,8 @@ def plot_run(grid: m.OccupancyGrid, path: Path, truth: np.ndarray, estimate: np.
     plot_trajectory(grid, path, [truth, odometry, estimate], colours=[TRUTH_BGR, ODOMETRY_BGR, SLAM_BGR], loops=loops,
                     landmarks=landmarks)
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise UserError(f"cannot read back {path}")
     scale = max(1.0, image.shape[1] / 1000.0)
     entries = [("ground truth (simulator)", TRUTH_BGR), ("wheel odometry", ODOMETRY_BGR), ("SLAM estimate", SLAM_BGR),
                ("loop closure", (0, 200, 0))] + ([("marker (landmark, 3 sigma)", (200, 0, 200))] if landmarks else [])
@@ -330,7 +345,8 @@ def draw_detections(log: Path, score: MarkerScore, frames: Trajectory, world: Wo
         return None
     camera = camera_from_info(score.camera_info)
     with LogReader(log) as reader:
-        msg = next(i.msg for i in reader.messages(topics=[IMAGE_TOPIC]) if i.msg.stamp_ns == score.best_stamp_ns)
+        images = (cast(m.CompressedImage | m.Image, i.msg) for i in reader.messages(topics=[IMAGE_TOPIC]))
+        msg = next(image for image in images if image.stamp_ns == score.best_stamp_ns)
     image = decode_image(msg)
     image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
     base, _ = poses_at(frames, np.array([msg.stamp_ns]), tolerance_ns=0)

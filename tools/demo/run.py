@@ -30,9 +30,10 @@ import signal
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -40,17 +41,17 @@ from trundle.fusion.geometry import compose, inverse
 from trundle.fusion.mapping.map_io import save_map, write_trajectory_csv
 from trundle.logs.errors import UserError
 from trundle.logs.paths import output_folder
+from trundle.tools.config.toml_text import format_config
+from trundle.tools.daemon.status import query_status
 from trundle.tools.demo import daemon_process
 from trundle.tools.demo.ground_truth import FrameTimes, Recording, frame_ground_truth, scan_ground_truth
-from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 from trundle.tools.demo.report import build_report, draw_detections, plot_run, write_report
 from trundle.tools.demo.scoring import score_markers, sensor_mount
 from trundle.tools.demo.slam import run_slam
-from trundle.tools.daemon.status import query_status
-from trundle.tools.config.toml_text import format_config
-from trundle.tools.jobs.landmark_slam import write_landmarks
-from trundle.tools.sim.robot import RobotSim
 from trundle.tools.emulators.sim_devices import SimDevices
+from trundle.tools.jobs.landmark_slam import write_landmarks
+from trundle.tools.jobs.progress import NoProgress, ProgressFactory
+from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import DEFAULT_WORLD, World, load_world
 
 LOG_NAME = "demo.mcap"
@@ -296,8 +297,10 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     plain = run_slam(recording.log, progress=progress)
     seconds["slam"] = run.processing_s
     seconds["slam_without_markers"] = plain.processing_s
+    mapped = run.slam.landmarks()
+    assert mapped is not None, "the demo's SLAM runs with its markers"
     say(f"      {run.slam.stats.keyframes} keyframes, {run.slam.stats.loop_closures} loop closures, "
-        f"{len(run.slam.landmarks().ids)} markers mapped in {run.processing_s:.0f} s")
+        f"{len(mapped.ids)} markers mapped in {run.processing_s:.0f} s")
     say(f"[3/4] perception: ArUco markers in {len(recording.frames)} camera frames")
     t = time.monotonic()
     mount = sensor_mount(recording.log, "camera")
@@ -309,7 +312,6 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     write_trajectory_csv(out / "trajectory.csv", run.trajectory.stamps_ns, run.trajectory.poses)
     map_from_world = inverse(np.array(report["trajectory"]["ate"]["alignment_xyt"]))
     keyframes = run.slam.keyframe_poses()
-    mapped = run.slam.landmarks()
     write_landmarks(out / "landmarks.csv", mapped)
     plot_run(run.grid, out / "trajectory.png", compose(map_from_world, recording.scans.poses), run.trajectory.poses,
              run.odometry.poses, [(keyframes[i], keyframes[j]) for i, j in run.slam.loop_edges()],

@@ -13,18 +13,24 @@ from typing import Any
 
 import numpy as np
 
-from trundle.fusion.evaluation.trajectory_errors import (AbsoluteError, RelativeError, Trajectory, absolute_trajectory_error, poses_at,
-                                       relative_pose_error)
+from trundle.fusion.evaluation.trajectory_errors import (
+    AbsoluteError,
+    RelativeError,
+    Trajectory,
+    absolute_trajectory_error,
+    poses_at,
+    relative_pose_error,
+)
 from trundle.fusion.geometry import compose, transform_points
 from trundle.fusion.mapping.map_io import OCCUPIED_THRESH
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.frames import BASE_FRAME, FrameTree, planar
 from trundle.logs.reader import LogReader
+from trundle.logs.topics import CAMERA_INFO_TOPIC, IMAGE_TOPIC
 from trundle.perception.images import decode_image, to_gray
 from trundle.perception.markers import MarkerDetector, marker_pose
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
-from trundle.logs.topics import CAMERA_INFO_TOPIC, IMAGE_TOPIC
 from trundle.tools.sim.camera_render import CameraPose, CameraRenderer, PinholeCamera, optical_rotation
 from trundle.tools.sim.robot import Mount
 from trundle.tools.sim.world import World
@@ -200,8 +206,10 @@ def score_markers(log: Path, frames: Trajectory, world: World, mount: Mount,
                 score.camera_info = msg
                 renderer = CameraRenderer(world, camera_from_info(msg))
                 continue
+            if not isinstance(msg, (m.CompressedImage, m.Image)):
+                continue
             base, found = poses_at(frames, np.array([msg.stamp_ns]), tolerance_ns=0)
-            if renderer is None or not found[0]:
+            if renderer is None or score.camera_info is None or not found[0]:
                 score.unmatched += 1
                 continue
             score.frames += 1

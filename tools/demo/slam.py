@@ -26,8 +26,9 @@ from trundle.logs.errors import UserError
 from trundle.logs.metadata import read_metadata
 from trundle.logs.reader import LogInfo, LogReader
 from trundle.logs.replay import replay
-from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 from trundle.logs.topics import LANDMARK_TOPIC, SCAN_TOPIC, TF_STATIC_TOPIC, WHEELS_TOPIC
+from trundle.tools.jobs.progress import NoProgress, ProgressFactory
+
 
 @dataclass(eq=False)
 class SlamRun:

@@ -13,12 +13,14 @@ closed, then back on the same port).
 from __future__ import annotations
 
 import collections
+import contextlib
 import socket
 import threading
 import time
+from collections.abc import Callable
+from functools import partial
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -151,7 +153,7 @@ class CameraEmulator:
             frame = self._file.read()
             assert frame is not None
             if frame.jpeg:
-                return bytes(frame.data)  # type: ignore[arg-type]
+                return bytes(frame.data)
             image = frame.data  # type: ignore[assignment]
         ok, buffer = cv2.imencode(".jpg", image, (cv2.IMWRITE_JPEG_QUALITY, self.quality))
         if not ok:
@@ -185,6 +187,10 @@ class CameraEmulator:
                 self._latest = (self.frames_made, data)
                 self._cond.notify_all()
 
+    def _news_for(self, connection: socket.socket, seen: int) -> bool:
+        """True once a frame newer than ``seen`` is out, the emulator stops or the client is dropped."""
+        return self._latest[0] != seen or self._stop.is_set() or connection not in self._clients
+
     def _serve(self, handler: _Handler) -> None:
         """Send every new frame to one client until it leaves or the emulator is unplugged."""
         connection = handler.connection
@@ -194,8 +200,7 @@ class CameraEmulator:
         try:
             while not self._stop.is_set() and connection in self._clients:
                 with self._cond:
-                    self._cond.wait_for(lambda: self._latest[0] != seen or self._stop.is_set()
-                                        or connection not in self._clients, timeout=0.5)
+                    self._cond.wait_for(partial(self._news_for, connection, seen), timeout=0.5)
                     if self._latest[0] == seen:
                         continue
                     seen, data = self._latest
@@ -233,10 +238,8 @@ class CameraEmulator:
             clients, self._clients = list(self._clients), set()
             self._cond.notify_all()
         for connection in clients:
-            try:
+            with contextlib.suppress(OSError):
                 connection.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
         if self._server_thread is not None:
             self._server_thread.join(2.0)
 

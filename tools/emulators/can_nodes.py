@@ -16,19 +16,24 @@ import random
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Any
 
 import can
 import canopen
 import cantools
 import numpy as np
+from canopen.sdo import SdoArray, SdoRecord, SdoVariable
 
 from trundle.drivers import cia406, odrive
 from trundle.drivers.can_bus import CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_PROT, CAN_ERR_RESTARTED
 from trundle.logs.errors import UserError
 
-SpeedSource = Callable[[float], Sequence[float]]
+if TYPE_CHECKING:
+    from trundle.tools.emulators.slcan_emulator import SlcanEmulator
+
+SpeedSource = Callable[[float], Sequence[float] | np.ndarray]
 VERSION_0_6 = odrive.Version(protocol=2, hardware=(4, 4, 58), firmware=(0, 6, 10))  # an ODrive Pro, firmware 0.6.10
 
 
@@ -191,7 +196,9 @@ class OdriveNode(EmulatedNode):
         for timer, cmd in ((self.heartbeat, odrive.HEARTBEAT), (self.estimates, odrive.GET_ENCODER_ESTIMATES),
                            (self.counts, odrive.GET_ENCODER_COUNT)):
             if timer.due(t) and (cmd != odrive.HEARTBEAT or self.heartbeat_enabled):
-                out.append(_std(odrive.arbitration_id(self.node_id, cmd), self._payload(cmd, turns, speed)))
+                payload = self._payload(cmd, turns, speed)
+                assert payload is not None  # heartbeat, estimates and counts always have one
+                out.append(_std(odrive.arbitration_id(self.node_id, cmd), payload))
         return out
 
     def on_frame(self, msg: can.Message, t: float, turns: float, speed: float) -> list[can.Message]:
@@ -221,7 +228,9 @@ class Cia406Node(EmulatedNode):
     reset-communication keeps the application objects), sends boot-up and re-enables a stopped
     heartbeat, as a real device's reset would."""
 
-    def __init__(self, node_id: int, wheel: int, *, eds: str | Path = cia406.DEFAULT_EDS, position_offset: int = 0) -> None:
+    def __init__(
+        self, node_id: int, wheel: int, *, eds: str | Path = cia406.DEFAULT_EDS, position_offset: int = 0
+    ) -> None:
         super().__init__(wheel)
         self.node_id = node_id
         self.local = canopen.LocalNode(node_id, str(eds))
@@ -241,7 +250,11 @@ class Cia406Node(EmulatedNode):
         self.network.bus = bus
 
     def _get(self, index: int, sub: int | None = None) -> int:
-        entry = self.local.sdo[index] if sub is None else self.local.sdo[index][sub]
+        entry = self.local.sdo[index]
+        if sub is not None:
+            assert isinstance(entry, (SdoArray, SdoRecord)), f"0x{index:04X} has no sub-indices"
+            entry = entry[sub]
+        assert isinstance(entry, SdoVariable), f"0x{index:04X} is not a variable"
         return int(entry.raw)
 
     def position(self) -> int:
@@ -315,7 +328,7 @@ class DbcNode(EmulatedNode):
                  velocity_signal: str | None = None, units_per_rev: float = 1.0, velocity_per_turn_s: float = 1.0,
                  period_ms: int = 20, counter_offset: int = 0) -> None:
         super().__init__(wheel)
-        self.db = dbc if isinstance(dbc, cantools.database.Database) else cantools.database.load_file(str(dbc))
+        self.db = dbc if isinstance(dbc, cantools.database.Database) else _can_database(dbc)
         self.position = self._lookup(position_signal)
         self.velocity = self._lookup(velocity_signal) if velocity_signal else None
         self.units_per_rev, self.velocity_per_turn_s = units_per_rev, velocity_per_turn_s
@@ -328,7 +341,7 @@ class DbcNode(EmulatedNode):
         return message, message.get_signal_by_name(signal_name)
 
     def _encode(self, message: cantools.database.Message, values: dict[str, float]) -> can.Message:
-        raw = {s.name: 0 for s in message.signals}
+        raw: dict[str, float] = {s.name: 0 for s in message.signals}
         raw.update(values)
         data = message.encode(raw, scaling=False, strict=False)
         return can.Message(arbitration_id=message.frame_id, data=data, is_extended_id=message.is_extended_frame)
@@ -361,7 +374,7 @@ class CanNodeRunner:
     """
 
     def __init__(self, bus: can.BusABC, nodes: list[EmulatedNode], motion: WheelMotion, *, tick_s: float = 0.001,
-                 adapter: object | None = None, seed: int = 0) -> None:
+                 adapter: SlcanEmulator | None = None, seed: int = 0) -> None:
         self.bus, self.nodes, self.motion = bus, nodes, motion
         self.tick_s = tick_s
         self.adapter = adapter
@@ -485,17 +498,27 @@ class CanNodeRunner:
                 next_tick = time.monotonic()
 
 
-def odrive_nodes(node_ids: Sequence[int], **options: object) -> list[EmulatedNode]:
+def _can_database(dbc: str | Path) -> cantools.database.Database:
+    """The CAN database in the DBC file ``dbc``."""
+    db = cantools.database.load_file(str(dbc))
+    if not isinstance(db, cantools.database.Database):
+        raise UserError(f"{dbc} is a diagnostics database, not a CAN one")
+    return db
+
+
+def odrive_nodes(node_ids: Sequence[int], **options: Any) -> list[EmulatedNode]:
     return [OdriveNode(n, w, **options) for w, n in enumerate(node_ids)]
 
 
-def cia406_nodes(node_ids: Sequence[int], **options: object) -> list[EmulatedNode]:
+def cia406_nodes(node_ids: Sequence[int], **options: Any) -> list[EmulatedNode]:
     return [Cia406Node(n, w, **options) for w, n in enumerate(node_ids)]
 
 
-def vesc_nodes(dbc: str | Path, controller_ids: Sequence[int], pole_pairs: int = 7, **options: object) -> list[EmulatedNode]:
+def vesc_nodes(
+    dbc: str | Path, controller_ids: Sequence[int], pole_pairs: int = 7, **options: Any
+) -> list[EmulatedNode]:
     """VESC controllers per the example DBC: tachometer in STATUS_5, ERPM in STATUS."""
-    db = cantools.database.load_file(str(dbc))
+    db = _can_database(dbc)
     return [DbcNode(db, w, f"VESC_Status5_id{c}.Tachometer", velocity_signal=f"VESC_Status1_id{c}.ERPM",
                     units_per_rev=6 * pole_pairs, velocity_per_turn_s=60 * pole_pairs, **options)
             for w, c in enumerate(controller_ids)]

@@ -16,9 +16,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="video file or image folder to serve (default: a synthetic moving scene)")
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     parser.add_argument("--port", type=tcp_port, default=8090, help="TCP port (default 8090; 0 picks a free one)")
-    parser.add_argument("--fps", type=number_in(0.0, 240.0, low_open=True), help="frame rate in Hz (default: the file's, or 30)")
-    parser.add_argument("--width", type=number_in(16, 8192, whole=True), default=640, help="synthetic scene width in pixels")
-    parser.add_argument("--height", type=number_in(16, 8192, whole=True), default=480, help="synthetic scene height in pixels")
+    parser.add_argument(
+        "--fps", type=number_in(0.0, 240.0, low_open=True), help="frame rate in Hz (default: the file's, or 30)"
+    )
+    parser.add_argument(
+        "--width", type=number_in(16, 8192, whole=True), default=640, help="synthetic scene width in pixels"
+    )
+    parser.add_argument(
+        "--height", type=number_in(16, 8192, whole=True), default=480, help="synthetic scene height in pixels"
+    )
     parser.add_argument("--quality", type=percent, default=85, help="JPEG quality 1-100 for encoded frames")
     parser.add_argument("--corrupt-every", type=non_negative_int, default=0, metavar="N",
                         help="send every N-th frame truncated, as a flaky USB link does (0: never)")

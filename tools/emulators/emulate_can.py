@@ -21,8 +21,15 @@ from trundle.drivers.dbc_wheels import VESC_DBC
 from trundle.drivers.lifecycle import SignalFlag
 from trundle.logs.errors import UserError
 from trundle.tools.config.arguments import number_in, positive
-from trundle.tools.emulators.can_nodes import (CanNodeRunner, EmulatedNode, VelocityScript, WheelMotion, cia406_nodes,
-                                               odrive_nodes, vesc_nodes)
+from trundle.tools.emulators.can_nodes import (
+    CanNodeRunner,
+    EmulatedNode,
+    VelocityScript,
+    WheelMotion,
+    cia406_nodes,
+    odrive_nodes,
+    vesc_nodes,
+)
 from trundle.tools.emulators.slcan_emulator import SlcanEmulator
 
 DEFAULT_NODES = {"odrive": "0,1", "cia406": "5,6", "dbc": "9,10"}
@@ -35,8 +42,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="odrive (CAN Simple), cia406 (CANopen encoder) or dbc (VESC status per the example DBC)")
     parser.add_argument("--link", required=True, type=Path, help="symlink to create for the adapter's tty")
     parser.add_argument("--nodes", help="node ids, one per wheel (default odrive 0,1; cia406 5,6; dbc 9,10)")
-    parser.add_argument("--script", default="0:0.5,0.5",
-                        help="motor speeds in turns/s from T seconds on: 'T:left,right;T:left,right' (default 0:0.5,0.5)")
+    parser.add_argument(
+        "--script",
+        default="0:0.5,0.5",
+        help="motor speeds in turns/s from T seconds on: 'T:left,right;T:left,right' (default 0:0.5,0.5)",
+    )
     parser.add_argument("--duration", type=positive,
                         help="stop this many seconds after the host opened the adapter (default: until Ctrl-C)")
     parser.add_argument("--drop", type=number_in(0.0, 1.0), default=0.0, metavar="P",
@@ -66,7 +76,9 @@ def parse_faults(specs: list[str], wheels: int) -> list[tuple[float, str, int]]:
 
 def build_nodes(protocol: str, ids: list[int], wrap: bool, firmware: str) -> list[EmulatedNode]:
     if protocol == "odrive":
-        return odrive_nodes(ids, firmware=firmware, count_ms=10 if wrap else 0, count_offset=2**31 - 4096 if wrap else 0)
+        return odrive_nodes(
+            ids, firmware=firmware, count_ms=10 if wrap else 0, count_offset=2**31 - 4096 if wrap else 0
+        )
     if protocol == "cia406":
         return cia406_nodes(ids, position_offset=2**24 - 4096 if wrap else 0)
     return vesc_nodes(VESC_DBC, ids, counter_offset=2**31 - 100 if wrap else 0)

@@ -12,6 +12,7 @@ emulator's own link is ever removed.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import termios
@@ -19,7 +20,6 @@ import tty
 from pathlib import Path
 
 from trundle.logs.errors import UserError
-
 
 PTY_SLAVES = "/dev/pts/"
 
@@ -128,8 +128,6 @@ class PtyLink:
     def _close_fds(self) -> None:
         for fd in (self._master, self._slave):
             if fd >= 0:
-                try:
+                with contextlib.suppress(OSError):
                     os.close(fd)
-                except OSError:
-                    pass
         self._master = self._slave = -1

@@ -55,7 +55,9 @@ class EmulatedMode:
 
 
 def _modes(*rows: tuple[str, float, float, int, int]) -> tuple[EmulatedMode, ...]:
-    return tuple(EmulatedMode(rp.ScanMode(i, name, us, dist, kind), n) for i, (name, us, dist, kind, n) in enumerate(rows))
+    return tuple(
+        EmulatedMode(rp.ScanMode(i, name, us, dist, kind), n) for i, (name, us, dist, kind, n) in enumerate(rows)
+    )
 
 
 @dataclass(frozen=True)

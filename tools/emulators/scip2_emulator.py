@@ -55,7 +55,7 @@ class ScipModel:
     @property
     def angles(self) -> np.ndarray:
         """Angles (rad, laser frame) of steps AMIN..AMAX: the beams a range source must cover."""
-        return self.params.step_angle(self.steps)
+        return np.asarray(self.params.step_angle(self.steps))
 
 
 def _version(product: str, firmware: str, serial: str) -> dict[str, str]:
@@ -256,7 +256,17 @@ class ScipDevice:
             info = {b"VV": self.model.version, b"PP": self.params.info(), b"II": self._state_info(now)}[name]
             return reply("00", scip2.encode_info(info))
         if name == b"%ST":
-            state = "900" if self.abnormal else "002" if self.tm else "004" if self.stream else "003" if self.laser else "000"
+            state = (
+                "900"
+                if self.abnormal
+                else "002"
+                if self.tm
+                else "004"
+                if self.stream
+                else "003"
+                if self.laser
+                else "000"
+            )
             return reply("00", scip2.with_checksum(state.encode()) + b"\n")
         if name == b"TM":
             code = text[2:3]
@@ -398,7 +408,8 @@ class ScipDevice:
 
     def _lines(self, raw: bytes) -> list[tuple[int, int]]:
         """(start, end) of every line after the echo, end at its LF."""
-        spans, start = [], raw.index(b"\n") + 1
+        spans: list[tuple[int, int]] = []
+        start = raw.index(b"\n") + 1
         while True:
             end = raw.index(b"\n", start)
             if end == start:

@@ -25,13 +25,13 @@ from typing import Any
 
 import numpy as np
 
-from trundle.tools.sim.camera_render import CameraRenderer
 from trundle.tools.emulators import scip2_emulator
-from trundle.tools.emulators.can_nodes import CanNodeRunner, WheelMotion, odrive_nodes
 from trundle.tools.emulators.camera_emulator import CameraEmulator
+from trundle.tools.emulators.can_nodes import CanNodeRunner, WheelMotion, odrive_nodes
 from trundle.tools.emulators.device_server import DeviceServer
 from trundle.tools.emulators.faults import FaultPlan
 from trundle.tools.emulators.slcan_emulator import SlcanEmulator
+from trundle.tools.sim.camera_render import CameraRenderer
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import LaserModel
 
@@ -92,7 +92,9 @@ class SimDevices:
         self.can_adapter: SlcanEmulator | None = None
         self.can_nodes: CanNodeRunner | None = None
         self.camera_emulator: CameraEmulator | None = None
-        self.activity: dict[str, collections.deque[int]] = {k: collections.deque(maxlen=1 << 20) for k in ("lrf", "can", "camera")}
+        self.activity: dict[str, collections.deque[int]] = {
+            k: collections.deque(maxlen=1 << 20) for k in ("lrf", "can", "camera")
+        }
 
     # ------------------------------------------------------------------ clock
     def sim_time(self, wall_ns: int) -> float:

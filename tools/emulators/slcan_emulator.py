@@ -24,7 +24,8 @@ import queue
 import threading
 import time
 from collections import Counter
-from typing import Any, Iterable
+from collections.abc import Iterable
+from typing import Any
 
 import can
 

@@ -98,7 +98,7 @@ def folder_names(sources: Sequence[str]) -> list[str]:
     parts = [_parts(s) for s in sources]
     depth = [1] * len(parts)
     while True:
-        names = [SEPARATOR.join(p[-d:]) for p, d in zip(parts, depth)]
+        names = [SEPARATOR.join(p[-d:]) for p, d in zip(parts, depth, strict=True)]
         groups: dict[str, list[int]] = {}
         for i, name in enumerate(names):
             groups.setdefault(name, []).append(i)
@@ -121,7 +121,8 @@ def identity(source: str) -> str:
     if is_url(source):
         fs, path = _filesystem(source)
         info = fs.info(path)
-        return f"{info.get('size')}:{info.get('ETag') or info.get('etag') or info.get('mtime') or info.get('LastModified')}"
+        version = info.get("ETag") or info.get("etag") or info.get("mtime") or info.get("LastModified")
+        return f"{info.get('size')}:{version}"
     if not Path(source).is_file():
         raise _missing(source)
     st = os.stat(source)

@@ -11,8 +11,6 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
-
 STATUSES = ("ok", "failed", "skipped", "cancelled")
 COLUMNS = ("log", "name", "status", "error", "seconds", "cpu_seconds", "size_bytes", "sha256", "robot",
            "log_start", "log_duration_s", "node")

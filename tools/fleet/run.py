@@ -94,7 +94,7 @@ def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[
         try:
             started = time.perf_counter()
             refs = {cluster.submit(Task(job, s, n, str(output), dict(options), key, force), retries, cpus_per_log): i
-                    for i, (s, n) in enumerate(zip(sources, names))}
+                    for i, (s, n) in enumerate(zip(sources, names, strict=True))}
             bar = progress("fleet", len(sources))
             pending = list(refs)
             try:
@@ -103,21 +103,25 @@ def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[
                     for ref in finished:
                         i = refs[ref]
                         result = cluster.result(ref, retries)
-                        rows[i] = result if isinstance(result, dict) else \
+                        row = result if isinstance(result, dict) else \
                             {"log": sources[i], "name": names[i], "status": "failed", "error": result}
+                        rows[i] = row
                         run.rows = [r for r in rows if r is not None]
                         if on_row is not None:
-                            on_row(rows[i], run)
+                            on_row(row, run)
                     total, busy = cluster.cpus()
                     run.cpus = total
                     done = len(sources) - len(pending)
-                    bar.update(done, f"{done - run.count('failed')} done, {run.count('failed')} failed, "
-                                     f"{min(len(pending), round(busy / cpus_per_log))} running, {len(pending)} remaining")
+                    bar.update(
+                        done,
+                        f"{done - run.count('failed')} done, {run.count('failed')} failed, "
+                        f"{min(len(pending), round(busy / cpus_per_log))} running, {len(pending)} remaining",
+                    )
             except KeyboardInterrupt:
                 run.interrupted = True
                 left = [ref for ref, i in refs.items() if rows[i] is None]
                 cluster.cancel(left)
-                try:   # tasks that finished before the cancel reached them still give their rows
+                try:  # tasks that finished before the cancel reached them still give their rows
                     finished, _ = cluster.wait(left, CANCEL_WAIT_S)
                 except KeyboardInterrupt:
                     finished = []
@@ -125,8 +129,12 @@ def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[
                     result = cluster.result(ref, retries)
                     rows[refs[ref]] = result if isinstance(result, dict) else None
                 for i in (refs[ref] for ref in left if rows[refs[ref]] is None):
-                    rows[i] = {"log": sources[i], "name": names[i], "status": "cancelled",
-                               "error": "interrupted before it finished"}
+                    rows[i] = {
+                        "log": sources[i],
+                        "name": names[i],
+                        "status": "cancelled",
+                        "error": "interrupted before it finished",
+                    }
             finally:
                 bar.close()
             run.elapsed_s = time.perf_counter() - started

@@ -77,7 +77,7 @@ def plot(job: str, rows: Sequence[Mapping[str, Any]], path: Path) -> Path | None
 
     robots = sorted({r.get("robot") or "unknown" for r in timed})
     fig, axes = plt.subplots(len(names), 1, figsize=(9, 2.2 * len(names) + 0.6), sharex=True, squeeze=False)
-    for ax, name in zip(axes[:, 0], names):
+    for ax, name in zip(axes[:, 0], names, strict=True):
         for robot in robots:
             points = sorted((_when(r), r[name]) for r in timed
                             if (r.get("robot") or "unknown") == robot and _numeric(r.get(name)))

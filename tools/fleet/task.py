@@ -17,7 +17,7 @@ import time
 import traceback
 import uuid
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +79,7 @@ def _robot(metadata: dict[str, dict[str, str]]) -> str:
 def _log_columns(path: Path) -> dict[str, Any]:
     """The robot, first message time (UTC ISO 8601) and duration (s) of the log at ``path``."""
     info = LogReader(path).info()
-    start = (datetime.fromtimestamp(info.start_ns / 1e9, tz=timezone.utc).isoformat(timespec="milliseconds")
+    start = (datetime.fromtimestamp(info.start_ns / 1e9, tz=UTC).isoformat(timespec="milliseconds")
              if info.start_ns is not None else None)
     return {"robot": _robot(info.metadata), "log_start": start, "log_duration_s": info.duration_s}
 
@@ -126,7 +126,8 @@ def process_log(task: Task) -> dict[str, Any]:
         return row
     except Exception as error:  # a bad log or a job's failure fails this row alone, never the fleet
         row.update(seconds=time.perf_counter() - started, cpu_seconds=time.process_time() - cpu_started,
-                   error=one_line(str(error) if isinstance(error, TrundleError) else f"{type(error).__name__}: {error}"))
+                   error=one_line(str(error) if isinstance(error, TrundleError)
+                                  else f"{type(error).__name__}: {error}"))
         task.error_file.parent.mkdir(parents=True, exist_ok=True)
         task.error_file.write_text(f"{task.source}\n{traceback.format_exc()}")
         return row

@@ -10,7 +10,7 @@ import csv
 import io
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -21,9 +21,13 @@ from trundle.logs.reader import LogReader
 from trundle.tools.jobs.sensor_figures import characterize_camera, characterize_encoders, characterize_laser
 from trundle.tools.jobs.sensor_report import markdown, write_plots
 
+Characterized = m.LaserScan | m.JointState | m.CompressedImage | m.Image  # the sensors characterize knows
+
 
 def read_reference(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(t_ns, value) sorted by time from a CSV with a header naming t_ns or t_s, and value; a bad file is a UserError."""
+    """(t_ns, value) sorted by time from a CSV with a header naming t_ns or t_s, and value.
+
+    A bad file is a UserError."""
     rows = list(csv.DictReader(io.StringIO(read_text(path, "reference CSV"))))
     if not rows or "value" not in rows[0] or not ({"t_ns", "t_s"} & set(rows[0])):
         raise UserError(f"reference {path} needs a header with t_ns (or t_s) and value columns")
@@ -63,9 +67,10 @@ def characterize_log(log: str | Path, topic: str, output: Path | None = None, re
     (folder, created) as ``report.md``, ``report.json`` and PNG plots.
 
     ``reference`` is the true value that laser ``beam`` (an index or ``"all"``) is compared with:
-    a CSV of values over time (see :func:`read_reference`) or one number (m, held throughout); ``stated_min`` / ``stated_max`` the device's
-    stated limits (default: from the messages); ``bits`` its A/D bits; ``min_still_s`` the
-    shortest standing-still stretch used (s). Returns the figures (JSON-able; what report.json holds).
+    a CSV of values over time (see :func:`read_reference`) or one number (m, held throughout);
+    ``stated_min`` / ``stated_max`` the device's stated limits (default: from the messages);
+    ``bits`` its A/D bits; ``min_still_s`` the shortest standing-still stretch used (s). Returns
+    the figures (JSON-able; what report.json holds).
     """
     reader = LogReader(log)
     if output:
@@ -73,19 +78,21 @@ def characterize_log(log: str | Path, topic: str, output: Path | None = None, re
     info = reader.info()
     if topic not in info.topics:
         raise UserError(f"topic {topic} is not in {log} (topics: {', '.join(sorted(info.topics))})")
-    msgs = [x.msg for x in reader.messages([topic])]
+    # a topic carries one message type, the first one's; other types are refused below
+    msgs = cast(list[Characterized], [x.msg for x in reader.messages([topic])])
     if len(msgs) < 3:
         raise UserError(f"topic {topic} has {len(msgs)} decodable messages; at least 3 are needed")
+    truth: tuple[np.ndarray, np.ndarray] | None
     if isinstance(reference, (int, float)):
         truth = constant_reference(np.array([x.stamp_ns for x in msgs], np.int64), reference)
     else:
         truth = read_reference(reference) if reference else None
     first = msgs[0]
     if isinstance(first, m.LaserScan):
-        figures, plots = characterize_laser(msgs, reader, truth, stated_min, stated_max, bits,  # type: ignore[arg-type]
-                                            min_still_s, beam)
+        figures, plots = characterize_laser(cast(list[m.LaserScan], msgs), reader, truth, stated_min, stated_max,
+                                            bits, min_still_s, beam)
     elif isinstance(first, m.JointState):
-        figures, plots = characterize_encoders(msgs)  # type: ignore[arg-type]
+        figures, plots = characterize_encoders(cast(list[m.JointState], msgs))
     elif isinstance(first, (m.CompressedImage, m.Image)):
         figures, plots = characterize_camera(np.array([x.stamp_ns for x in msgs], np.int64))
     else:

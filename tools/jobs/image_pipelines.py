@@ -25,13 +25,21 @@ import numpy as np
 
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.frames import BASE_FRAME, FrameTree
 from trundle.logs.paths import input_file
+from trundle.logs.topics import LANDMARK_TOPIC, TF_TOPIC
 from trundle.perception.color import ColorSegmentation, HsvTemplate, segment_color, template_histograms
 from trundle.perception.landmarks import marker_observation
 from trundle.perception.markers import MarkerDetector, marker_pose
-from trundle.tools.jobs.image_markers import CYAN, GREEN, MAGENTA, YELLOW, closed_line_list, ellipse_outline, image_marker
-from trundle.logs.frames import BASE_FRAME, FrameTree
-from trundle.logs.topics import LANDMARK_TOPIC, TF_TOPIC
+from trundle.tools.jobs.image_markers import (
+    CYAN,
+    GREEN,
+    MAGENTA,
+    YELLOW,
+    closed_line_list,
+    ellipse_outline,
+    image_marker,
+)
 
 Detections = tuple[int, list[tuple[str, m.Message]]]   # count and the (topic, message) pairs to write
 Triple = tuple[float, float, float]
@@ -90,8 +98,9 @@ class ColorPipeline(Pipeline):
                 self.template = template_histograms(_read_image(template, cv2.IMREAD_COLOR), mask, bins)
             except ValueError as error:
                 raise UserError(f"template: {error}") from None
-        self.options = dict(lower=lower, upper=upper, weights=weights, blur_sigma=blur_sigma, level=level,
-                            min_area=min_area, max_area=max_area, max_aspect=max_aspect, min_extent=min_extent)
+        self.options: dict[str, Any] = dict(lower=lower, upper=upper, weights=weights, blur_sigma=blur_sigma,
+                                            level=level, min_area=min_area, max_area=max_area, max_aspect=max_aspect,
+                                            min_extent=min_extent)
         self.regions = 0
 
     def process(self, topic: str, msg: m.CompressedImage | m.Image, image: np.ndarray,

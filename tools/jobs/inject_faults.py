@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -42,7 +42,8 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
     if not topics:
         raise UserError(f"{log} has no odometry (nav_msgs/Odometry or sensor_msgs/JointState topic)")
     raw = [r for r in reader.raw_messages(topics=topics) if r.data]
-    decoded = [(r, ros2.decode(r.ros_type, r.data)) for r in raw]
+    # the two types asked for: nav_msgs/Odometry and sensor_msgs/JointState
+    decoded = [(r, cast(m.Odometry | m.JointState, ros2.decode(r.ros_type, r.data))) for r in raw]
     start_ns = min(msg.stamp_ns for _, msg in decoded)
     wheels = make_odometry(info, config) if JOINT_STATE_TYPE in topics.values() else None
     replacements: dict[Key, bytes | None] = {}
@@ -50,14 +51,16 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
     for topic, ros_type in sorted(topics.items()):
         items = [(r, msg) for r, msg in decoded if r.topic == topic]
         times = np.array([(msg.stamp_ns - start_ns) * 1e-9 for _, msg in items])
+        new: list[m.Odometry] | list[m.JointState]
         if ros_type == ODOMETRY_TYPE:
-            new = _odometry(items, times, faults)
+            new = _odometry([(r, msg) for r, msg in items if isinstance(msg, m.Odometry)], times, faults)
         else:
             assert wheels is not None
-            new = _joint_states(items, times, faults, wheels.left, wheels.right,
-                                0.5 * (wheels.left_radius_m + wheels.right_radius_m), wheels.track_m)
+            new = _joint_states([(r, msg) for r, msg in items if isinstance(msg, m.JointState)], times, faults,
+                                wheels.left, wheels.right, 0.5 * (wheels.left_radius_m + wheels.right_radius_m),
+                                wheels.track_m)
         lost = dropped(times, faults)
-        for (r, _), msg, gone in zip(items, new, lost):
+        for (r, _), msg, gone in zip(items, new, lost, strict=True):
             replacements[(topic, r.log_time_ns, r.data)] = None if gone else ros2.encode(msg)[1]
         counts[topic] = {"messages": len(items), "dropped": int(lost.sum())}
 
@@ -73,7 +76,10 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
 def _odometry(items: list[tuple[Any, m.Odometry]], times: np.ndarray, faults: list[OdometryFault]) -> list[m.Odometry]:
     poses = np.array([[msg.x, msg.y, msg.theta] for _, msg in items])
     new = faulty_poses(times, poses, faults)
-    return [dataclasses.replace(msg, x=float(p[0]), y=float(p[1]), theta=float(p[2])) for (_, msg), p in zip(items, new)]
+    return [
+        dataclasses.replace(msg, x=float(p[0]), y=float(p[1]), theta=float(p[2]))
+        for (_, msg), p in zip(items, new, strict=True)
+    ]
 
 
 def _joint_states(items: list[tuple[Any, m.JointState]], times: np.ndarray, faults: list[OdometryFault],
@@ -91,7 +97,7 @@ def _joint_states(items: list[tuple[Any, m.JointState]], times: np.ndarray, faul
     new_left, new_right = lefts.copy(), rights.copy()
     new_left[good], new_right[good] = faulty_wheels(times[rows[good]], lefts[good], rights[good], faults, radius_m,
                                                     track_m)
-    for (k, i, j), a, b in zip(index, new_left, new_right):
+    for (k, i, j), a, b in zip(index, new_left, new_right, strict=True):
         position = np.array(out[k].position, np.float64)
         position[i], position[j] = a, b
         out[k] = dataclasses.replace(out[k], position=position)

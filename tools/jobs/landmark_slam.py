@@ -26,13 +26,13 @@ from typing import Any
 import numpy as np
 
 from trundle.fusion.geometry import compose, inverse, scan_to_points
-from trundle.fusion.slam.config import SlamConfig
-from trundle.fusion.slam.estimators import GRID, ESTIMATORS, EstimatorInputs, make_estimator
-from trundle.fusion.slam.landmark_slam import LandmarkMap
 from trundle.fusion.mapping.map_io import plot_trajectory, save_map, write_landmarks_csv, write_trajectory_csv
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
+from trundle.fusion.slam.config import SlamConfig
+from trundle.fusion.slam.estimators import ESTIMATORS, GRID, EstimatorInputs, make_estimator
+from trundle.fusion.slam.landmark_slam import LandmarkMap
 from trundle.logs import messages as m
-from trundle.logs.errors import UsageError, UserError
+from trundle.logs.errors import DataError, UsageError, UserError
 from trundle.logs.frames import BASE_FRAME, FrameTree
 from trundle.logs.importers import write_log
 from trundle.logs.paths import output_folder
@@ -83,7 +83,8 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
                         f"(topics: {', '.join(sorted(info.topics)) or 'none'})")
     wheels = make_odometry(info, config)
     if wheels is None and not any(i.ros_type == "nav_msgs/msg/Odometry" for i in info.topics.values()):
-        raise UserError(f"{log} has no odometry (nav_msgs/Odometry or wheel JointState): landmark SLAM predicts with it")
+        raise DataError(f"{log} has no odometry (nav_msgs/Odometry or wheel JointState): "
+                        "landmark SLAM predicts with it")
     features = topic is None  # anonymous laser corners stand in for sightings
     slam = make_estimator(estimator, EstimatorInputs(landmark_topic=topic, landmarks=config.landmarks))
     mount_config = laser_pose(info, config)
@@ -96,8 +97,8 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
     t0 = info.start_ns or 0
     started, cpu_started = time.perf_counter(), time.process_time()
     for item in reader.messages():
-        msg = item.msg
-        if frames.add(item.topic, msg):
+        msg: m.Message | None = item.msg
+        if frames.add(item.topic, item.msg):
             continue
         if isinstance(msg, m.JointState) and wheels is not None:
             msg = wheels.update(msg)
@@ -115,8 +116,8 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
                      else frames.mount(msg.frame_id, unknown_is_base=True))
             scans.append((msg.stamp_ns, scan_to_points(msg, mount), mount))
             if features:
-                landmarks = m.LandmarkList(msg.stamp_ns, BASE_FRAME, tuple(corner_observations(msg, mount)))
-                slam.process(LANDMARK_TOPIC, landmarks)
+                corners = m.LandmarkList(msg.stamp_ns, BASE_FRAME, tuple(corner_observations(msg, mount)))
+                slam.process(LANDMARK_TOPIC, corners)
                 sighting_stamps.append(msg.stamp_ns)
         if sighting_stamps and sighting_stamps[-1] == item.log_time_ns:
             bar.update((item.log_time_ns - t0) * 1e-9, f"{len(sighting_stamps)} sightings")
@@ -137,7 +138,8 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
     write_landmarks(output / "landmarks.csv", landmarks)
     plot_trajectory(map_msg, output / "trajectory.png", [poses],
                     landmarks=(landmarks.ids, landmarks.positions, landmarks.covariances))
-    items = [(TF_TOPIC, tf, t) for tf, t in _map_to_odom(stamps, poses, odometry, sighting_stamps)]
+    items: list[tuple[str, m.Message, int]] = [(TF_TOPIC, tf, t)
+                                               for tf, t in _map_to_odom(stamps, poses, odometry, sighting_stamps)]
     kept = _every(stamps, PATH_PERIOD_NS)
     items += [(MAP_TOPIC, map_msg, end_ns), (PATH_TOPIC, m.Path(end_ns, "map", stamps[kept], poses[kept]), end_ns),
               (LANDMARK_MAP_TOPIC, landmark_markers(landmarks, end_ns), end_ns)]
@@ -215,11 +217,12 @@ def landmark_markers(landmarks: LandmarkMap, stamp_ns: int) -> m.SceneMarkers:
     """The landmark map as visualization markers: a cylinder per landmark (diameter: twice its larger
     3-sigma half-axis, at least 10 cm) and its id as text above it."""
     markers = []
-    for k, (name, (x, y), cov) in enumerate(zip(landmarks.ids, landmarks.positions, landmarks.covariances)):
+    rows = zip(landmarks.ids, landmarks.positions, landmarks.covariances, strict=True)
+    for k, (name, (x, y), cov) in enumerate(rows):
         sigma = math.sqrt(max(float(np.nan_to_num(np.linalg.eigvalsh(cov)).max()), 0.0))
         width = max(6.0 * sigma, 0.1)
         markers.append(m.SceneMarker(stamp_ns, "map", "landmarks", k, m.SceneMarker.CYLINDER, float(x), float(y), 0.25,
-                                     0.0, (width, width, 0.5), (0.8, 0.1, 0.8, 0.8)))
+                                     0.0, np.array((width, width, 0.5)), (0.8, 0.1, 0.8, 0.8)))
         markers.append(m.SceneMarker(stamp_ns, "map", "landmark_ids", k, m.SceneMarker.TEXT_VIEW_FACING, float(x),
-                                     float(y), 0.7, 0.0, (0.3, 0.3, 0.3), (1.0, 1.0, 1.0, 1.0), str(name)))
+                                     float(y), 0.7, 0.0, np.array((0.3, 0.3, 0.3)), (1.0, 1.0, 1.0, 1.0), str(name)))
     return m.SceneMarkers(tuple(markers))

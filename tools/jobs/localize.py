@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from trundle.fusion.geometry import compose, relative, scan_to_points, voxel_filter
-from trundle.fusion.localization.landmark_localization import LandmarkFixer
 from trundle.fusion.localization.grid_localization import TRACKING, Localizer, grid_from_map
+from trundle.fusion.localization.landmark_localization import LandmarkFixer
 from trundle.fusion.mapping.map_io import load_map, read_landmarks_csv, write_trajectory_csv
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError

@@ -4,7 +4,8 @@ Every image (sensor_msgs/Image or CompressedImage) of the chosen topics goes thr
 of :mod:`trundle.tools.jobs.image_pipelines`; its detections are written as
 visualization_msgs/ImageMarker (stamped and framed like the image) with the image's log time. The
 images and camera infos are copied into the output too (unless ``images=False``), so it opens on
-its own, and so is ``/tf_static`` (the marker pipeline places the camera on the robot by it). A corrupt message or image is counted and skipped, never fatal.
+its own, and so is ``/tf_static`` (the marker pipeline places the camera on the robot by it). A
+corrupt message or image is counted and skipped, never fatal.
 """
 
 from __future__ import annotations
@@ -23,11 +24,11 @@ from trundle.logs import ros2
 from trundle.logs.errors import UserError
 from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader
+from trundle.logs.topics import TF_STATIC_TOPIC
 from trundle.logs.writer import Logger
 from trundle.perception.images import decode_image
 from trundle.tools.jobs.image_pipelines import PIPELINES
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
-from trundle.logs.topics import TF_STATIC_TOPIC
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
@@ -51,7 +52,8 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
                  topics: Sequence[str] | None = None, images: bool = True, camera_info: str | None = None,
                  provenance: Mapping[str, Any] | None = None,
                  progress: ProgressFactory = NoProgress) -> dict[str, Any]:
-    """Run the ``pipeline`` (``color``, ``markers`` or ``features``) over the images of ``log`` into the MCAP ``output``.
+    """Run the ``pipeline`` (``color``, ``markers`` or ``features``) over the images of ``log``
+    into the MCAP ``output``.
 
     ``options`` are the keyword arguments of the pipeline's class in
     :data:`trundle.tools.jobs.image_pipelines.PIPELINES`; ``topics`` the image topics (default:
@@ -81,7 +83,8 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
     wanted = {camera_info_topic(t) for t in topics} | ({camera_info} if camera_info else set())
     info_topics = sorted(t for t in wanted if t in info.topics and info.topics[t].ros_type == CAMERA_INFO_TYPE)
     cameras: dict[str, m.CameraInfo] = {}
-    frames, corrupt, per_frame = 0, collections.Counter(), []
+    frames, per_frame = 0, []
+    corrupt: collections.Counter[str] = collections.Counter()
     bar = progress("perceive", sum(info.topics[t].count for t in topics))
     metadata = {"perceive": json.dumps(dict(provenance or {}), default=str)}
     with Logger(output, salvage=False, metadata=metadata) as logger:
@@ -103,6 +106,8 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
                 if isinstance(msg, m.CameraInfo):
                     cameras[raw.topic] = msg
                     continue
+                if not isinstance(msg, (m.CompressedImage, m.Image)):
+                    raise TypeError(f"{type(msg).__name__} is not an image")
                 image = decode_image(msg)
             except Exception as error:  # a corrupt message or image is counted and skipped, never fatal
                 corrupt[f"{raw.topic}: {type(error).__name__}: {error}"[:160]] += 1

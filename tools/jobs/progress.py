@@ -6,7 +6,8 @@ and the demo depend on no command-line code.
 
 from __future__ import annotations
 
-from typing import Callable, Protocol
+from collections.abc import Callable
+from typing import Protocol
 
 
 class ProgressBar(Protocol):

@@ -23,7 +23,8 @@ STILL_SPEED = 1e-3  # m/s or rad/s below which the robot counts as standing stil
 def motion_speeds(reader: LogReader) -> tuple[np.ndarray, np.ndarray] | None:
     """(stamps ns, speeds m/s and rad/s) from /odom twist, else wheel speeds (rad/s) from any JointState topic;
     None without either."""
-    odom = [(x.msg.stamp_ns, abs(x.msg.vx), abs(x.msg.wz)) for x in reader.messages([ODOM_TOPIC])]
+    odom = [(o.stamp_ns, abs(o.vx), abs(o.wz)) for o in (x.msg for x in reader.messages([ODOM_TOPIC]))
+            if isinstance(o, m.Odometry)]
     if odom:
         a = np.array(odom, np.float64)
         return a[:, 0].astype(np.int64), a[:, 1:]

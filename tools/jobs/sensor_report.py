@@ -21,7 +21,9 @@ def write_plots(folder: Path, plots: dict[str, Any]) -> list[str]:
         fig, ax = plt.subplots(figsize=(8, 3.5))
         log_scale = bool(np.any(std > 0))  # a noiseless (simulated or quantised) laser has no log axis
         (ax.semilogy if log_scale else ax.plot)(np.degrees(angles), std * 1000, lw=0.8)
-        ax.axhline(np.nanmedian(std) * 1000, color="k", ls="--", lw=0.8, label=f"median {np.nanmedian(std) * 1000:.1f} mm")
+        ax.axhline(
+            np.nanmedian(std) * 1000, color="k", ls="--", lw=0.8, label=f"median {np.nanmedian(std) * 1000:.1f} mm"
+        )
         ax.set(xlabel="beam angle (deg)", ylabel=f"noise std (mm{', log' if log_scale else ''})",
                title="Per-beam noise while standing still")
         ax.legend(loc="upper right")

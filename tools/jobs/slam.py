@@ -4,13 +4,15 @@ Outputs: ``map.pgm`` + ``map.yaml`` (map_server), ``map.png``, ``trajectory.png`
 loop closures over the map, the stretches that fail the map self-check in magenta), ``scans.png``
 (every keyframe's scan endpoints at its optimised pose: doubled walls show here, not in the
 occupancy map), ``trajectory.csv`` (``t_ns,x,y,theta`` of every scan in the map frame),
-``report.json`` (with ``map_check``, see :mod:`trundle.fusion.mapping.map_check`) and ``slam.mcap`` with
-``/map``, ``/tf`` (map -> odom per scan) and ``/path``. A log with landmark sightings (``/landmarks``) puts them into the pose graph
-(the ``grid-landmarks`` estimator of :mod:`trundle.fusion.slam.estimators`) and adds ``landmarks.csv``
-(``id,x,y,sx,sy``), the landmarks on ``trajectory.png`` and ``/landmarks/map`` in ``slam.mcap``. The wheel model comes from the config's ``[odometry]`` table or the log's metadata (see
+``report.json`` (with ``map_check``, see :mod:`trundle.fusion.mapping.map_check`) and ``slam.mcap``
+with ``/map``, ``/tf`` (map -> odom per scan) and ``/path``. A log with landmark sightings
+(``/landmarks``) puts them into the pose graph (the ``grid-landmarks`` estimator of
+:mod:`trundle.fusion.slam.estimators`) and adds ``landmarks.csv`` (``id,x,y,sx,sy``), the landmarks
+on ``trajectory.png`` and ``/landmarks/map`` in ``slam.mcap``. The wheel model comes from the
+config's ``[odometry]`` table or the log's metadata (see
 :func:`trundle.tools.jobs.config.make_odometry`); ``[slam]`` holds
-:class:`trundle.fusion.slam.config.SlamConfig`; ``[laser]`` (``x_m``, ``y_m``, ``yaw_rad``) overrides the
-laser mount of the log's ``/tf_static``.
+:class:`trundle.fusion.slam.config.SlamConfig`; ``[laser]`` (``x_m``, ``y_m``, ``yaw_rad``) overrides
+the laser mount of the log's ``/tf_static``.
 """
 
 from __future__ import annotations
@@ -118,7 +120,8 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
                     highlights=[slam.keyframe_scans(a, b) for a, b in check.stretches], landmarks=drawn)
     plot_scans(map_msg, output / "scans.png", slam.keyframe_endpoints(), check.keyframe_consistency < 0.5)
     path_msg = m.Path(end_ns, "map", stamps, poses)
-    extra = [] if landmarks is None else [(LANDMARK_MAP_TOPIC, landmark_markers(landmarks, end_ns), end_ns)]
+    extra: list[tuple[str, m.Message, int]] = (
+        [] if landmarks is None else [(LANDMARK_MAP_TOPIC, landmark_markers(landmarks, end_ns), end_ns)])
     write_log(transforms + [(MAP_TOPIC, map_msg, end_ns), (PATH_TOPIC, path_msg, end_ns)] + extra, output / "slam.mcap",
               metadata={"command": "slam", "source": str(log)})
     if landmarks is not None:

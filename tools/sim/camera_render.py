@@ -72,8 +72,14 @@ class PinholeCamera:
         """The same lens on a sensor of ``width`` x ``height`` pixels: horizontal field of view and
         pixel aspect kept, principal point offset from the centre scaled (e.g. 4:3 -> 16:9 crops)."""
         s = width / self.width
-        return PinholeCamera(width, height, self.fx * s, self.fy * s, (width - 1) / 2 + (self.cx - (self.width - 1) / 2) * s,
-                             (height - 1) / 2 + (self.cy - (self.height - 1) / 2) * s)
+        return PinholeCamera(
+            width,
+            height,
+            self.fx * s,
+            self.fy * s,
+            (width - 1) / 2 + (self.cx - (self.width - 1) / 2) * s,
+            (height - 1) / 2 + (self.cy - (self.height - 1) / 2) * s,
+        )
 
 
 class CameraPose(NamedTuple):
@@ -175,7 +181,9 @@ def _build_atlas(world: World, plaster: np.ndarray, skirting_m: float) -> _Atlas
     centres_y = y0 + (np.arange(fh) + 0.5) / floor_ppm
     tile = world.floor_tile_m
     parity = (np.floor(centres_x / tile)[None, :] + np.floor(centres_y / tile)[:, None]) % 2 == 0
-    floor = np.where(parity[:, :, None], np.asarray(world.floor_bgr[0], np.uint8), np.asarray(world.floor_bgr[1], np.uint8))
+    floor = np.where(
+        parity[:, :, None], np.asarray(world.floor_bgr[0], np.uint8), np.asarray(world.floor_bgr[1], np.uint8)
+    )
 
     seg = world.segments
     lengths = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])
@@ -201,7 +209,7 @@ def _build_atlas(world: World, plaster: np.ndarray, skirting_m: float) -> _Atlas
     z = world.wall_height - (np.arange(strip_h) - 0.5) / WALL_PX_PER_M          # texel centre heights
     rows = ((z % TEXTURE_TILE_M) * TEXTURE_PX / TEXTURE_TILE_M).astype(int) % TEXTURE_PX
     skirting = np.clip((skirting_m - z) * WALL_PX_PER_M + 0.5, 0.0, 1.0).astype(np.float32)  # texel coverage
-    for i, ((px, py), w) in enumerate(zip(positions, strip_w)):
+    for i, ((px, py), w) in enumerate(zip(positions, strip_w, strict=True)):
         along = (np.arange(w) - 0.5) / WALL_PX_PER_M
         cols = ((along % TEXTURE_TILE_M) * TEXTURE_PX / TEXTURE_TILE_M).astype(int) % TEXTURE_PX
         texture = plaster[rows[:, None], cols[None, :]]
@@ -278,7 +286,7 @@ class CameraRenderer:
         image = cv2.remap(atlas.image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
         ray = np.stack([np.cos(angles), np.sin(angles)], 1)
-        for decal, mips in zip(world.decals, self._decal_mips):
+        for decal, mips in zip(world.decals, self._decal_mips, strict=True):
             self._draw_decal(image, decal, mips, hits, ray, depth, pose.z)
         if rng is not None:
             image = cv2.add(image, self._noise[rng.integers(len(self._noise))], dtype=cv2.CV_8U)

@@ -37,14 +37,14 @@ class RangeImpairment:
         raw = np.asarray(true, np.float64)
         valid = np.isfinite(raw)
         v = np.where(valid, raw, 0.0)
-        if self._last is None or self._last.shape != v.shape:
-            self._direction = np.ones_like(v)
+        if self._last is None or self._direction is None or self._last.shape != v.shape:
+            direction = np.ones_like(v)
         else:
             change = np.sign(v - self._last)
-            self._direction = np.where(change != 0, change, self._direction)
-        self._last = v.copy()
+            direction = np.where(change != 0, change, self._direction)
+        self._last, self._direction = v.copy(), direction
         out = (self.gain * v + self.bias + self.quadratic * (v - self.centre) ** 2
-               + 0.5 * self.hysteresis * self._direction + self._rng.normal(0.0, self.noise_std, v.shape))
+               + 0.5 * self.hysteresis * direction + self._rng.normal(0.0, self.noise_std, v.shape))
         if self.quantum:
             out = np.round(out / self.quantum) * self.quantum
         return np.where(valid, out, raw)

@@ -116,7 +116,7 @@ class RayHits(NamedTuple):
     along: np.ndarray
 
 
-def cast_rays(segments: np.ndarray, origins: np.ndarray, angles: np.ndarray,
+def cast_rays(segments: np.ndarray, origins: np.ndarray | tuple[float, float], angles: np.ndarray,
               max_range: float = np.inf) -> RayHits:
     """Intersect rays with segments, all rays x all segments at once.
 
@@ -316,7 +316,12 @@ def parse_world(data: dict[str, Any], where: str = "world") -> World:
         at = f"{where}: markers[{i}]"
         _check_keys(item, {"id", "x", "y", "z", "yaw", "size", "name"}, at)
         marker_id = _require(item, "id", at)
-        if not isinstance(marker_id, int) or isinstance(marker_id, bool) or not 0 <= marker_id < id_count or marker_id in ids:
+        if (
+            not isinstance(marker_id, int)
+            or isinstance(marker_id, bool)
+            or not 0 <= marker_id < id_count
+            or marker_id in ids
+        ):
             raise UserError(f"{at}: id {marker_id!r} is not in 0-{id_count - 1} or is repeated")
         ids.add(marker_id)
         markers.append(_place_decal("marker", item, at, seg, wall_height, marker_id=marker_id))
@@ -340,11 +345,21 @@ def parse_world(data: dict[str, Any], where: str = "world") -> World:
     floor_colors = floor.get("colors_bgr", [[150, 150, 150], [120, 120, 120]])
     if not (isinstance(floor_colors, list) and len(floor_colors) == 2):
         raise UserError(f"{where}: floor 'colors_bgr' must be two [b, g, r] colours")
-    return World(str(data.get("name", "world")), seg, np.array(colors, dtype=np.uint8), wall_height,
-                 tuple(markers), tuple(objects), route, (float(start[0]), float(start[1]), float(start[2])),
-                 dictionary,
-                 (_color(floor_colors[0], f"{where}: floor"), _color(floor_colors[1], f"{where}: floor")),
-                 _number(floor, "tile_m", f"{where}: floor", 0.5, positive=True), _color(data.get("ceiling_bgr", [235, 235, 235]), where), data)
+    return World(
+        str(data.get("name", "world")),
+        seg,
+        np.array(colors, dtype=np.uint8),
+        wall_height,
+        tuple(markers),
+        tuple(objects),
+        route,
+        (float(start[0]), float(start[1]), float(start[2])),
+        dictionary,
+        (_color(floor_colors[0], f"{where}: floor"), _color(floor_colors[1], f"{where}: floor")),
+        _number(floor, "tile_m", f"{where}: floor", 0.5, positive=True),
+        _color(data.get("ceiling_bgr", [235, 235, 235]), where),
+        data,
+    )
 
 
 def load_world(path: str | Path = DEFAULT_WORLD) -> World:

@@ -89,12 +89,15 @@ def parse_text(model: type[M], table: Mapping[str, Any] | None, text: Mapping[st
     """``model`` from ``table`` (checked strictly, as :func:`parse`) with ``text`` over it: values
     given as text (URL query parameters), each read as its field's type (``"5"`` is a whole
     number for an integer, a string for a name; ``yes``/``no`` for true or false), or one
-    ConfigError line."""
-    base = parse(model, table, where)
-    if not text:
-        return base
+    ConfigError line. ``table`` None: the values are all in ``text``."""
+    given: dict[str, Any] = {}
+    if table is not None:
+        base = parse(model, table, where)
+        if not text:
+            return base
+        given = base.model_dump(exclude_unset=True)
     try:
-        return model.model_validate({**base.model_dump(exclude_unset=True), **text}, strict=False)
+        return model.model_validate({**given, **text}, strict=False)
     except ValidationError as error:
         raise ConfigError(describe(error, model, where)) from None
 

@@ -15,13 +15,12 @@ import hashlib
 import importlib
 import inspect
 import json
-import math
 import types
 import typing
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from trundle import __version__
 from trundle.logs.errors import ConfigError, UserError
@@ -134,20 +133,24 @@ def _convert(job: str, name: str, kind: str, text: str) -> Any:
         return value
     if kind == "list":
         return [item for item in text.split(",") if item]
-    if kind == "bool":
-        value = {"true": True, "yes": True, "1": True, "false": False, "no": False, "0": False}.get(text.lower())
-        if value is None:
-            raise UserError(f"{where}: needs true or false, got {text!r}")
-        return value
+    return _scalar(job, name, kind, text)
+
+
+def _scalar(job: str, name: str, kind: str, text: str) -> Any:
+    """A number, true/false or text option read by the one config schema (text read as the
+    option's type: an integer refuses 1.5, a number refuses nan and words)."""
+    from pydantic import Field, create_model  # pydantic only once an option is read
+
+    from trundle.logs.schema import Schema, parse_text
+
+    annotations: dict[str, Any] = {"bool": bool, "int": int, "float": float, "text": str,
+                                   "int-or-text": Annotated[int | str, Field(union_mode="left_to_right")]}
+    fields: dict[str, Any] = {name: (annotations[kind], ...)}
+    model = create_model("JobOption", __base__=Schema, **fields)
     try:
-        if kind == "int-or-text":
-            return int(text) if text.lstrip("+-").isdigit() else text
-        value = {"float": float, "int": int, "text": str}[kind](text)
-    except ValueError:
-        raise ConfigError(f"{where} = {text!r}: expected a{' whole' if kind == 'int' else ''} number") from None
-    if kind == "float" and not math.isfinite(value):
-        raise ConfigError(f"{where} = {text!r}: expected a finite number")
-    return value
+        return getattr(parse_text(model, None, {name: text}), name)
+    except ConfigError as error:
+        raise ConfigError(f"{job} option {error}") from None
 
 
 def parse_options(job: str, items: Sequence[str]) -> dict[str, Any]:

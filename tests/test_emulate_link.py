@@ -6,7 +6,11 @@ from __future__ import annotations
 
 import os
 import pty
+import signal
 import stat
+import subprocess
+import sys
+import time
 
 import pytest
 
@@ -84,3 +88,25 @@ def test_the_emulate_command_refuses_an_existing_file(tmp_path, capsys, family):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "exists and is a file" in err
     assert target.read_text() == "precious"
+
+
+@pytest.mark.parametrize("family", [["lrf"], ["can", "--protocol", "odrive"]])
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_stopped_emulator_removes_its_link_on_sigterm_as_on_ctrl_c(tmp_path, family, sig):
+    """systemd, ``kill`` and test harnesses stop an emulator with SIGTERM: its link goes as on Ctrl-C,
+    so the next emulator on that path starts without a leftover (issue: ``emulate lrf`` left it dangling)."""
+    link = tmp_path / "dev"
+    emulator = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "emulate", *family, "--link", str(link)],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while not link.is_symlink() and time.monotonic() < deadline and emulator.poll() is None:
+            time.sleep(0.05)
+        assert link.is_symlink() and os.path.exists(os.readlink(link)), emulator.stderr
+        emulator.send_signal(sig)
+        _, err = emulator.communicate(timeout=30)
+    finally:
+        emulator.kill()
+    assert emulator.returncode == 0, err
+    assert not link.exists() and not link.is_symlink()
+    assert not list(tmp_path.iterdir())

@@ -118,8 +118,6 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"cannot emulate {args.protocol} nodes {ids}: {error}") from None
     if not args.link.parent.is_dir():
         raise UserError(f"no directory for the link: {args.link.parent}")
-    stop = SignalFlag()
-    signal.signal(signal.SIGTERM, stop.raise_)
     adapter = SlcanEmulator(str(args.link)).start()
     runner = CanNodeRunner(adapter.bus, nodes, WheelMotion(script, start_s=float("inf")), adapter=adapter)
     runner.drop_probability = args.drop
@@ -132,6 +130,9 @@ def run(args: argparse.Namespace) -> int:
     if args.protocol == "dbc":
         signals = ", ".join(f'"VESC_Status5_id{i}.Tachometer"' for i in ids)
         print(f"  with --config holding:\n  [can.dbc]\n  signals = [{signals}]\n  units_per_rev = 42", flush=True)
+    stop = SignalFlag()
+    # Ctrl-C and SIGTERM end the emulator alike: its link removed, its counts said, exit 0
+    previous = {sig: signal.signal(sig, stop.raise_) for sig in (signal.SIGINT, signal.SIGTERM)}
     runner.start()
     start = None
     try:
@@ -154,6 +155,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         runner.stop()
         adapter.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     print(f"frames sent {runner.stats['sent']}, dropped {runner.stats['dropped']}, "
           f"to host {adapter.stats['to_host']}, from host {adapter.stats['from_host']}")
     return 0

@@ -81,6 +81,8 @@ CASES = [
     (["replay", "{log}", "--rate", "inf"], "'inf' is not a finite number"),
     (["localize", "{log}", "--map", "{d}/map", "--max-range", "-1"], "--max-range: -1 must be above 0"),
     (["slam-eval", "{d}/t.csv", "{d}/t.csv", "--tolerance-ms", "-1"], "--tolerance-ms: -1 must be at least 0"),
+    (["slam-eval", "{d}/t.csv", "{d}/t.csv", "--tolerance-ms", "1e308"], "--tolerance-ms: 1e308 must be at most"),
+    (["slam-eval", "{d}/t.csv", "{d}/t.csv", "--landmarks", "{log}"], "is not a landmark file (id,x,y,sx,sy)"),
     (["match", "{d}/map/map.png", "{d}/map/map.png", "--threshold", "-1"], "--threshold: -1 must be above 0"),
     (["characterize", "{log}", "--topic", "/scan", "--bits", "-3"], "--bits: -3 must be at least 1"),
     (["import", "carmen", "x.log", "-o", "{d}/c.mcap", "--max-range", "-1"], "--max-range: -1 must be above 0"),

@@ -9,6 +9,7 @@ YAML gives ``image``, ``mode``, ``resolution``, ``origin [x, y, yaw]``, ``negate
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 from collections.abc import Sequence
@@ -236,11 +237,7 @@ def write_landmarks_csv(path: str | os.PathLike[str], ids: list[str], positions:
 
 def read_landmarks_csv(path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Ids, positions (M, 2) and standard deviations (M, 2) from an ``id,x,y,sx,sy`` file."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"no such landmark file: {path}")
-    with open(path, newline="") as f:
-        rows = list(csv.reader(f))
+    rows = list(csv.reader(io.StringIO(read_text(path, "landmark file (id,x,y,sx,sy)"), newline="")))
     if not rows or [c.strip() for c in rows[0]] != LANDMARKS_HEADER:
         raise DataError(f"{path}: not an {','.join(LANDMARKS_HEADER)} landmark file")
     try:

@@ -32,7 +32,9 @@ from trundle.fusion.evaluation.trajectory_errors import (
 )
 from trundle.fusion.mapping.map_io import read_landmarks_csv
 from trundle.logs.errors import UserError
-from trundle.tools.config.arguments import non_negative, positive, positive_int
+from trundle.tools.config.arguments import non_negative, number_in, positive, positive_int
+
+MAX_TOLERANCE_MS = 86_400_000.0  # a day: pairing poses further apart than that compares nothing
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -42,8 +44,8 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("reference", help=".relations file, t_ns,x,y,theta CSV or CARMEN log")
     p.add_argument("--step", type=positive_int, default=1,
                    help="relations and RPE between reference poses this many scans apart (default 1: consecutive)")
-    p.add_argument("--tolerance-ms", type=non_negative, default=1.0,
-                   help="largest time difference when pairing poses (default 1 ms)")
+    p.add_argument("--tolerance-ms", type=number_in(0.0, MAX_TOLERANCE_MS), default=1.0,
+                   help="largest time difference when pairing poses (default 1 ms; at most a day)")
     p.add_argument("--revisit-m", type=positive, default=3.0,
                    help="revisits: reference poses at most this far apart (default 3 m) ...")
     p.add_argument("--revisit-s", type=non_negative, default=30.0,
@@ -124,8 +126,8 @@ def run(args: argparse.Namespace) -> int:
     if args.landmarks:
         if "ate" not in report:
             raise UserError("--landmarks needs a reference trajectory (its ATE alignment places the map)")
+        reference = read_landmarks_csv(args.landmarks)  # the file the user named is checked first
         mapped = read_landmarks_csv(Path(args.result).parent / "landmarks.csv")
-        reference = read_landmarks_csv(args.landmarks)
         report["landmarks"] = asdict(landmark_error(mapped[0], mapped[1], reference[0], reference[1],
                                                     report["ate"]["alignment_xyt"]))
     print(json.dumps(report, indent=2) if args.json else _text(report))

@@ -20,6 +20,7 @@ from mcap.records import Channel, Chunk, Header, Message, Metadata, Schema, Stat
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from trundle.logs.errors import DataError
+from trundle.logs.metadata import LogMetadata, read_metadata
 from trundle.logs.paths import input_file
 
 if TYPE_CHECKING:
@@ -290,6 +291,24 @@ class LogReader:
         info.complete = scan.footer_seen and not scan.corrupt_chunks
         info.error = scan.error
         return info
+
+
+def log_origin(path: str | os.PathLike[str]) -> tuple[str, LogMetadata]:
+    """Who wrote a closed log: its MCAP header's library and its ``trundle`` metadata, read from the
+    header and the summary's metadata index only (no chunk is opened, cheap enough for a whole folder).
+    A DataError when they cannot be read (not MCAP, no summary: torn or still being written)."""
+    try:
+        with open(path, "rb") as f:
+            reader = SeekingReader(f)
+            header = reader.get_header()
+            if reader.get_summary() is None:
+                raise DataError(f"{path} has no summary (torn or unfinished)")
+            records = {record.name: dict(record.metadata) for record in reader.iter_metadata()}
+    except DataError:
+        raise
+    except Exception as error:  # OSError, mcap, struct: each its own kind
+        raise DataError(f"cannot read the header and summary of {path} ({type(error).__name__})") from None
+    return header.library, read_metadata(records)
 
 
 def read_messages(path: str | os.PathLike[str], topics: Iterable[str] | None = None) -> list[LogMessage]:

@@ -35,6 +35,7 @@ from trundle.logs.errors import DataError, UserError
 from trundle.logs.topics import TF_STATIC_TOPIC
 
 ACTIVE_SUFFIX = ".active"
+LIBRARY_PREFIX = "trundle/"  # the MCAP header's library, before the version: marks a log this logger wrote
 _SPLIT = object()  # queued by Logger.split: the writer starts a new file at the next message
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
@@ -375,7 +376,7 @@ class Logger:
         stream = open(active, "xb")  # noqa: SIM115  the file outlives this method
         fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # marks the file live for salvage_folder
         writer = Writer(stream, chunk_size=self.chunk_size, compression=COMPRESSION[self.compression])
-        writer.start(profile="ros2", library=f"trundle/{__version__}")
+        writer.start(profile="ros2", library=f"{LIBRARY_PREFIX}{__version__}")
         writer.add_metadata(log_metadata.RECORD, self.metadata)
         stream.flush()  # the header is on disk from the start: even an early kill leaves MCAP
         self._file = _OpenFile(path, stream, writer)

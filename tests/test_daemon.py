@@ -11,11 +11,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.writer import Writer
 
 from trundle.drivers.lifecycle import Backoff, Driver
 from trundle.logs import messages as m
 from trundle.logs.errors import DeviceError
 from trundle.logs.reader import LogReader
+from trundle.logs.writer import Logger
+from trundle.tools.cli.main import main
 from trundle.tools.config.robot import parse_config
 from trundle.tools.daemon.service import Daemon
 from trundle.tools.daemon.status import StatusServer, format_status, query_status
@@ -171,15 +174,37 @@ def test_split_request_starts_a_new_file_with_the_static_transforms(tmp_path):
         assert "/tf_static" in topics and topics.count("/scan") > 0
 
 
-def test_disk_guard_deletes_the_oldest_logs_first(tmp_path, monkeypatch):
-    folder = tmp_path / "logs"
+def scan_message():
+    return m.LaserScan(1, "laser", -1.0, 1.0, 0.5, 0.0, 0.1, 0.02, 30.0, np.ones(5, np.float32))
+
+
+def log_folder_of_several_owners(folder: Path) -> dict[str, Path]:
+    """A log folder as a user met it: ``aaa_precious.mcap`` put there by hand (a valid MCAP without
+    trundle's metadata, the oldest file), another robot's log, a damaged log of this robot, a text
+    file and two logs this robot's daemon wrote (its logger, its metadata), each with its own age."""
     folder.mkdir()
-    old = []
-    for i in range(3):
-        path = folder / f"old_{i}.mcap"
-        path.write_bytes(b"x" * 10)
-        os.utime(path, (1000 + i, 1000 + i))
-        old.append(path)
+    files = {name: folder / name for name in ("aaa_precious.mcap", "otherbot_20240101-000000.mcap",
+                                              "testbot_torn.mcap", "notes.txt", "testbot_20240102-000000.mcap",
+                                              "testbot_20240103-000000.mcap")}
+    with open(files["aaa_precious.mcap"], "wb") as f:
+        writer = Writer(f)
+        writer.start(profile="ros2", library="my own tool")
+        writer.add_metadata("notes", {"keep": "forever"})
+        writer.finish()
+    for name, robot in (("otherbot_20240101-000000.mcap", "otherbot"), ("testbot_20240102-000000.mcap", "testbot"),
+                        ("testbot_20240103-000000.mcap", "testbot")):
+        with Logger(files[name], metadata={"command": "daemon", "robot": {"name": robot}}) as logger:
+            logger.write("/scan", scan_message())
+    whole = files["testbot_20240103-000000.mcap"].read_bytes()
+    files["testbot_torn.mcap"].write_bytes(whole[: len(whole) - 100])  # its summary torn off
+    files["notes.txt"].write_text("field notes\n")
+    for age, path in enumerate(files.values()):
+        os.utime(path, (1000 + age, 1000 + age))
+    return files
+
+
+def test_disk_guard_deletes_only_this_robots_logs_oldest_first(tmp_path, monkeypatch, capfd):
+    files = log_folder_of_several_owners(tmp_path / "logs")
     free = {"bytes": 50e6}
     real = shutil.disk_usage
 
@@ -189,17 +214,39 @@ def test_disk_guard_deletes_the_oldest_logs_first(tmp_path, monkeypatch):
 
     monkeypatch.setattr(shutil, "disk_usage", usage)
     original_unlink = Path.unlink
+    unlinked = []
 
     def unlink(self, missing_ok=False):
         original_unlink(self, missing_ok=missing_ok)
+        unlinked.append(self.name)
         free["bytes"] += 30e6  # each deleted log frees 30 MB
 
     monkeypatch.setattr(Path, "unlink", unlink)
     with Running(config(tmp_path)) as run:
         wait_for(lambda: run.daemon.logger is not None and run.drivers["lrf"].counters["scans"] > 5)
-        assert [p.exists() for p in old] == [False, False, True]  # 50 + 2 x 30 MB >= 100 MB floor
-        assert run.daemon.disk_guard.status["deleted"] == ["old_0.mcap", "old_1.mcap"]
+        own = ["testbot_20240102-000000.mcap", "testbot_20240103-000000.mcap"]
+        assert unlinked == own  # 50 + 2 x 30 MB >= the 100 MB floor, the older first
+        assert run.daemon.disk_guard.status["deleted"] == own
+        kept = ["aaa_precious.mcap", "otherbot_20240101-000000.mcap", "testbot_torn.mcap", "notes.txt"]
+        assert [name for name, path in files.items() if path.exists()] == kept
         assert run.daemon.logger.current_path.exists()
+    said = [line for line in capfd.readouterr().err.splitlines() if "disk low" in line]
+    assert said == [f"trundle daemon: disk low: deleted 2 of this robot's logs ({', '.join(own)}) in "
+                    f"{tmp_path / 'logs'}; 3 other .mcap files kept"]
+
+
+def test_daemon_check_names_the_mcap_files_it_did_not_write(tmp_path, capsys):
+    log_folder_of_several_owners(tmp_path / "logs")
+    robot_toml = tmp_path / "robot.toml"
+    robot_toml.write_text(f'[robot]\nname = "testbot"\n[lrf]\nurl = "scip2:///dev/scripted-a"\n'
+                          f'[logger]\nfolder = "{tmp_path / "logs"}"\n')
+    assert main(["daemon", "--config", str(robot_toml), "--check"]) == 0  # a notice, not an error
+    out, err = capsys.readouterr()
+    assert err == "" and out.startswith(f"{robot_toml}: ok; devices: lrf")
+    notice, = out.splitlines()[1:]
+    assert notice == (f"note: {tmp_path / 'logs'} holds 3 .mcap files the daemon of robot 'testbot' did not write "
+                      "(aaa_precious.mcap, otherbot_20240101-000000.mcap, testbot_torn.mcap): "
+                      "the disk guard never deletes them")
 
 
 def test_disk_guard_stops_recording_and_resumes(tmp_path, monkeypatch):

@@ -41,6 +41,12 @@ def run(args: argparse.Namespace) -> int:
         devices = ", ".join(f"{d.name} ({d.family} {d.url})" for d in config.devices)
         print(f"{args.config}: ok; devices: {devices}; logs in {config.logger.folder}; "
               f"status socket {config.status.socket}")
+        from trundle.tools.daemon.disk_guard import other_logs_notice  # reads MCAP: only for --check
+
+        assert config.logger.folder is not None  # check_daemon_config
+        notice = other_logs_notice(config.logger.folder, config.robot)
+        if notice:
+            print(notice)
         return 0
     from trundle.tools.daemon.service import Daemon  # the drivers and the logger: only to run
 

@@ -8,7 +8,8 @@
   restarted after a back-off; device faults are the drivers' own business (they reconnect themselves);
 - logs everything to MCAP in the configured folder (``trundle.logs.writer.Logger``: ``.active`` files,
   flush timer, splits repeating ``/tf_static`` and camera info), with a disk guard (``disk_guard``)
-  that deletes the oldest logs or stops recording below a free-space floor, and resumes above it;
+  that deletes the oldest logs it wrote (never another file) or stops recording below a free-space floor,
+  and resumes above it;
 - runs wheel odometry on the wheels driver's messages (``trundle.fusion.odometry.diff_drive.OdometrySink``, when the
   ``[can]`` table has ``wheel_radius_m`` and ``track_m``) and online processing off the drivers'
   threads (``processing``: SLAM on ``/scan`` + ``/odom``, ArUco markers on camera images);
@@ -44,7 +45,7 @@ from trundle.logs.frames import FrameTree
 from trundle.logs.topics import DIAGNOSTICS_TOPIC, TF_STATIC_TOPIC
 from trundle.logs.writer import Logger, LoggerError, is_latched
 from trundle.tools.config.robot import RobotConfig, check_daemon_config
-from trundle.tools.daemon.disk_guard import DiskGuard
+from trundle.tools.daemon.disk_guard import DAEMON_COMMAND, DiskGuard
 from trundle.tools.daemon.live_view import LiveView
 from trundle.tools.daemon.processing import Processing
 from trundle.tools.daemon.status import StatusServer
@@ -67,7 +68,7 @@ class Daemon:
         self.logger: Logger | None = None
         self.logger_files: list[Path] = []
         self.recording_paused = ""
-        self.disk_guard = DiskGuard(config.disk, config.logger, current_log=self._current_log,
+        self.disk_guard = DiskGuard(config.disk, config.logger, config.robot, current_log=self._current_log,
                                     stop_recording=self._stop_recording, resume_recording=self._resume_recording)
         self.unrecorded = 0
         self.logger_failures = 0
@@ -279,7 +280,7 @@ class Daemon:
         while any(folder.glob(f"{path.stem}*")):
             path = folder / f"{cfg.prefix}_{stamp}-{n}.mcap"
             n += 1
-        metadata = {"command": "daemon", "robot": {"name": self.config.robot}, "config_file": self.config.source,
+        metadata = {"command": DAEMON_COMMAND, "robot": {"name": self.config.robot}, "config_file": self.config.source,
                     "devices": {d.name: {"family": d.family, "url": d.url, **d.options} for d in self.config.devices}}
         try:
             logger = Logger(path, compression=cfg.compression, chunk_size=cfg.chunk_size_kb * 1024,

@@ -79,7 +79,7 @@ def test_heading_glitch_on_odometry_poses(odometry_log, tmp_path, capsys) -> Non
 def test_dropout_removes_odometry_and_nothing_else(odometry_log, tmp_path, capsys) -> None:
     out = tmp_path / "dropout.mcap"
     code, stdout, _ = trundle(capsys, "inject-faults", str(odometry_log), "-o", str(out), "--dropout", "4:1.95")
-    assert code == 0 and "/odom 201 (20 dropped)" in stdout
+    assert code == 0 and "/odom 181 of 201 kept (20 dropped)" in stdout
     info = LogReader(out).info()
     assert info.topics["/odom"].count == 181 and info.topics["/scan"].count == 41
 
@@ -111,6 +111,8 @@ def test_random_glitches_from_the_command_line(odometry_log, tmp_path, capsys) -
     (["--slip", "1:2"], "--slip '1:2': expected T:S:FRACTION"),
     (["--slip", "1:2:-1.5"], "would reverse the wheels"),
     ([], "no fault asked for"),
+    (["--heading-glitch", "100:30"], "heading_glitch at 100 s is outside the log's odometry (0 to 20.00 s"),
+    (["--dropout=-1:2"], "dropout at -1 s is outside the log's odometry"),
 ])
 def test_user_mistakes_end_in_one_line(odometry_log, tmp_path, capsys, argv, message) -> None:
     code, _, stderr = trundle(capsys, "inject-faults", str(odometry_log), "-o", str(tmp_path / "x.mcap"), *argv)

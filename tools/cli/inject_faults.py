@@ -92,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
         value = f" {math.degrees(fault['value']):+.1f} deg" if fault["kind"] == "heading_glitch" else (
             f" {fault['value']:+.3f}" if fault["kind"] in ("slip", "scale") else "")
         print(f"{fault['kind']} at {fault['start_s']:.2f} s for {fault['duration_s']:.2f} s{value}")
-    changed = ", ".join(f"{topic} {c['messages']} ({c['dropped']} dropped)" for topic, c in report["topics"].items())
+    changed = ", ".join(f"{topic} {c['kept']} of {c['messages']} kept ({c['dropped']} dropped)"
+                        for topic, c in report["topics"].items())
     print(f"wrote {args.output}: odometry {changed}")
     return 0

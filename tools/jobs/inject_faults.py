@@ -20,7 +20,7 @@ import numpy as np
 from trundle.fusion.odometry.faults import OdometryFault, dropped, faulty_poses, faulty_wheels
 from trundle.logs import messages as m
 from trundle.logs import ros2
-from trundle.logs.errors import UserError
+from trundle.logs.errors import UsageError, UserError
 from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader
 from trundle.logs.recover import copy_log
@@ -34,7 +34,8 @@ Key = tuple[str, int, bytes]  # topic, log time, original data
 def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
                   config: JobConfig = None) -> dict[str, Any]:
     """Write ``output``: ``log`` with ``faults`` in its odometry. Returns a report: the faults and, per
-    odometry topic, the messages changed and dropped."""
+    odometry topic, the messages it had, dropped and kept. A fault that starts outside the log's
+    odometry is a UsageError (it would be reported but never injected)."""
     new_file(output, "output log")
     reader = LogReader(log)
     info = reader.info()
@@ -45,6 +46,11 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
     # the two types asked for: nav_msgs/Odometry and sensor_msgs/JointState
     decoded = [(r, cast(m.Odometry | m.JointState, ros2.decode(r.ros_type, r.data))) for r in raw]
     start_ns = min(msg.stamp_ns for _, msg in decoded)
+    span_s = (max(msg.stamp_ns for _, msg in decoded) - start_ns) * 1e-9
+    for fault in faults:
+        if not 0.0 <= fault.start_s <= span_s:
+            raise UsageError(f"{fault.kind} at {fault.start_s:g} s is outside the log's odometry "
+                             f"(0 to {span_s:.2f} s after its first reading): nothing would be injected")
     wheels = make_odometry(info, config) if JOINT_STATE_TYPE in topics.values() else None
     replacements: dict[Key, bytes | None] = {}
     counts: dict[str, dict[str, int]] = {}
@@ -62,7 +68,7 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
         lost = dropped(times, faults)
         for (r, _), msg, gone in zip(items, new, lost, strict=True):
             replacements[(topic, r.log_time_ns, r.data)] = None if gone else ros2.encode(msg)[1]
-        counts[topic] = {"messages": len(items), "dropped": int(lost.sum())}
+        counts[topic] = {"messages": len(items), "dropped": int(lost.sum()), "kept": len(items) - int(lost.sum())}
 
     def replace(topic: str, schema: str, log_time_ns: int, data: bytes) -> bytes | None:
         return replacements.get((topic, log_time_ns, bytes(data)), data)

@@ -62,20 +62,32 @@ def new_file(path: str | os.PathLike[str], what: str = "output") -> Path:
     return path
 
 
-def output_folder(path: str | os.PathLike[str], *, empty: bool = True, create: bool = True) -> Path:
+def output_folder(path: str | os.PathLike[str], *, empty: bool = True, create: bool = True,
+                  marker: str | None = None) -> Path:
     """``path`` as a folder to write results into, created (with its parents) unless ``create`` is
     False (check now, make it once the inputs are known good); an existing file, or (``empty``) a
-    folder that already holds files, is a UserError: results are never overwritten."""
+    folder that already holds files, is a UserError: results are never overwritten.
+
+    ``marker``: the name of a file the command leaves in every folder it writes (written when the
+    folder is made here). A folder holding it, made by the same command before, may be written
+    again; any other folder that holds files is refused, naming some of them."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise UserError(f"output {path} is a file, not a folder")
-    if empty and path.is_dir() and any(path.iterdir()):
+    held = sorted(p.name for p in path.iterdir()) if path.is_dir() else []
+    if held and marker is not None and marker not in held:
+        shown = ", ".join(held[:4]) + (f" and {len(held) - 4} more" if len(held) > 4 else "")
+        raise UserError(f"output folder {path} holds files this command did not write ({shown}): give a new or "
+                        "empty folder (nothing of yours is overwritten)")
+    if held and marker is None and empty:
         raise UserError(f"output folder {path} is not empty: give a new folder, or move its files away "
                         "(results are never overwritten)")
     if not create:
         return path
     try:
         path.mkdir(parents=True, exist_ok=True)
+        if marker is not None:
+            (path / marker).touch()
     except OSError as error:
         raise UserError(f"cannot create the output folder {path}: {error.strerror or error}") from None
     return path

@@ -14,10 +14,12 @@ from hypothesis import strategies as st
 
 from trundle.fusion.mapping.map_io import load_map, read_trajectory_csv
 from trundle.logs.errors import UserError
+from trundle.logs.paths import output_folder
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.demo import camera_size
 from trundle.tools.cli.main import main
 from trundle.tools.demo.report import ATE_LIMIT_M, MARKER_MAP_LIMIT_M
+from trundle.tools.demo.run import DEMO_MARKER
 from trundle.tools.sim.world import load_world
 
 DURATION_S = 8.0
@@ -118,6 +120,25 @@ def test_bad_options_are_one_line_user_errors(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and all(line.startswith("trundle demo: ") for line in err)
     assert not list(tmp_path.iterdir())
+
+
+def test_a_folder_the_demo_did_not_make_is_refused_and_left_as_it_was(tmp_path, capsys):
+    """A user's folder (their report.md, notes, a log of theirs) is never written into: one line, exit 2."""
+    mine = {"report.md": "my report", "notes.txt": "my notes", "my_run.mcap": "my log"}
+    for name, text in mine.items():
+        (tmp_path / name).write_text(text)
+    assert main(["demo", "-o", str(tmp_path), "--duration", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "holds files this command did not write (my_run.mcap, notes.txt, report.md)" in err
+    assert {p.name: p.read_text() for p in tmp_path.iterdir()} == mine
+
+
+def test_a_folder_the_demo_made_is_marked_and_may_be_written_again(demo):
+    folder, _ = demo
+    assert (folder / DEMO_MARKER).is_file()
+    assert output_folder(folder, create=False, marker=DEMO_MARKER) == folder  # `make demo` twice: allowed
+    with pytest.raises(UserError, match="holds files this command did not write"):
+        output_folder(folder, create=False, marker=".trundle-other")
 
 
 @settings(max_examples=100, deadline=None)

@@ -40,7 +40,7 @@ def short_tmp():
 
 
 def start_demo(tmp_path: Path, short_tmp: Path) -> tuple[subprocess.Popen[str], int, list[str]]:
-    """A demo in its own process, run as ``trundle demo -o .`` in a folder that holds packages of
+    """A demo in its own process, run as ``trundle demo -o demo`` in a folder that holds packages of
     its own named ``tools`` and ``trundle`` (they must shadow nothing: the daemon once started as
     ``python -m tools.cli``), temporary files under ``short_tmp``; once its robot drives,
     returns the process, its daemon's pid and the output lines so far."""
@@ -50,7 +50,7 @@ def start_demo(tmp_path: Path, short_tmp: Path) -> tuple[subprocess.Popen[str], 
         (out / package).mkdir(parents=True)
         (out / package / "__init__.py").write_text("raise ImportError('a user package, not trundle')\n")
     (out / "tools" / "cli" / "__main__.py").write_text("raise SystemExit(3)\n")
-    demo = subprocess.Popen([sys.executable, "-P", "-m", "trundle.tools.cli", "demo", "-o", ".",
+    demo = subprocess.Popen([sys.executable, "-P", "-m", "trundle.tools.cli", "demo", "-o", "demo",
                              "--duration", "60", "--camera-fps", "5"], cwd=out, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
@@ -89,7 +89,7 @@ def test_a_signal_stops_the_daemon_and_keeps_the_partial_log(tmp_path: Path, sho
     assert demo.returncode != 0 and "Traceback" not in output
     assert wait_gone(daemon), "the daemon outlived the demo"
     assert not list(short_tmp.glob("trundle-demo-*")), "temporary folder left behind"
-    out = tmp_path / "out"
+    out = tmp_path / "out" / "demo"
     assert not list(out.glob(".daemon-logs-*"))
     partial = out.resolve() / "demo.partial.mcap"
     assert f"its log so far is {partial}" in output

@@ -55,6 +55,7 @@ from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import DEFAULT_WORLD, World, load_world
 
 LOG_NAME = "demo.mcap"
+DEMO_MARKER = ".trundle-demo"  # left in every folder the demo writes: it rewrites only those
 STREAM_TIMEOUT_S = 90.0     # daemon start-up to every device streaming, on a loaded machine
 STOP_TIMEOUT_S = 60.0       # SIGTERM to a closed log
 LEAD_S = 1.0                # the robot stands this long in the log before it drives
@@ -153,8 +154,7 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
     tells it every 15 s). Writes ``out/robot.toml`` (the daemon's config), ``out/camera.yaml`` (the camera's
     calibration), ``out/daemon.log`` (its output) and ``out/demo.mcap`` (the log).
     """
-    out = out.resolve()  # the daemon runs in ``out`` and reads the config by this path
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out.resolve(), marker=DEMO_MARKER)  # the daemon runs in ``out``, reads the config by this path
     robot_time = sim.duration_s if settings.duration_s is None else min(float(settings.duration_s), sim.duration_s)
     say(f"simulated robot: {sim.world.name} world, route of {sim.path_length_m():.1f} m in {sim.duration_s:.0f} s; "
         f"recording {robot_time:.0f} s of it")
@@ -283,7 +283,7 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     """Record the simulated robot with the real daemon, then map, detect, score and write ``out``;
     return the report. ``say`` tells each stage, ``progress`` makes each long stage's display."""
     started = time.monotonic()
-    output_folder(out, empty=False, create=False)  # made by record() once the world is read
+    output_folder(out, create=False, marker=DEMO_MARKER)  # made by record() once the world is read
     world = load_world(settings.world)
     sim = RobotSim(world, seed=settings.seed)
     say("[1/4] recording: world simulator -> device emulators -> trundle daemon -> log")

@@ -11,7 +11,8 @@ URLs:
   a bus-off (bus error flag) is left by ``C`` then ``O``, as Lawicel adapters require. The
   adapter is read by our own :class:`~trundle.drivers.slcan.SlcanBus` (every available byte per
   read); ``?reader=python-can`` selects python-can's own slcan interface instead (byte-at-a-time,
-  and without status polling or bus-off recovery: it has no public call for ``F``).
+  without status polling or bus-off recovery: it has no public call for ``F``; and without the
+  port's lock, since python-can 4.6.1 opens the port itself and takes no ``exclusive``).
 - ``virtual://name`` (in-process python-can virtual bus, for tests and replay;
   ``?timestamps=device`` keeps the sender's stamps, e.g. a replayed log with
   ``preserve_timestamps``).

@@ -15,6 +15,10 @@ No device is silent: ``diagnostics`` is ERROR while the device cannot be opened 
 error and its likely cause) and WARN while it is connected but its ``usable`` counter (scans,
 wheel readings, frames) has not moved for ``silence_s``, with the driver's own guess why
 (``silence_reason``: corrupt replies, node ids never seen, ...).
+
+A port held by another program (``PortBusyError``) is retried like any open failure, since the
+other program may let go (the daemon), and kept in ``port_busy`` so a command can end on it
+instead of reconnecting in silence (``trundle record``).
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from trundle.logs import messages as m
-from trundle.logs.errors import DeviceError
+from trundle.logs.errors import DeviceError, PortBusyError
 
 
 class Sink(Protocol):
@@ -122,11 +126,14 @@ class Driver(ABC):
     ``checksum_errors``, ``frames``, ...). ``state`` is one of connecting, streaming, waiting, stopped
 and crashed (a bug escaped ``run``; ``last_error`` names it).
     ``usable`` names the counter of good output (what a silent device does not increase);
-    ``open_error`` holds why the last open failed ("" once the device opened).
+    ``open_error`` holds why the last open failed ("" once the device opened), ``port_busy`` the
+    error if that was another program holding the port. ``serial_port`` is the local serial port
+    the driver opens ("" for none), checked free by a command before it creates its output.
     """
 
     usable = "scans"
     silence_s = SILENCE_S
+    serial_port = ""
 
     def __init__(self, name: str, sink: Sink, *, hardware_id: str = "", backoff: Backoff | None = None,
                  clock: Callable[[], int] = wall_ns) -> None:
@@ -139,6 +146,7 @@ and crashed (a bug escaped ``run``; ``last_error`` names it).
         self.state = "stopped"
         self.last_error = ""
         self.open_error = ""
+        self.port_busy: PortBusyError | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._connected_once = False
@@ -179,6 +187,7 @@ and crashed (a bug escaped ``run``; ``last_error`` names it).
                     self.counters["reconnects"] += 1
                 self._connected_once = True
                 self.open_error = ""
+                self.port_busy = None
                 self._connected_at = time.monotonic()
                 if not self._usable_at:  # silence is counted from the first connection, across reconnects
                     self._usable_at = self._connected_at
@@ -193,6 +202,7 @@ and crashed (a bug escaped ``run``; ``last_error`` names it).
                 if not opened:
                     hint = open_hint(error)
                     self.open_error = f"{error}" + (f" ({hint})" if hint else "")
+                    self.port_busy = error if isinstance(error, PortBusyError) else None
             except Exception as error:
                 self.state = "crashed"
                 self.last_error = f"{type(error).__name__}: {error}"

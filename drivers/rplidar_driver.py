@@ -289,6 +289,7 @@ class RplidarDriver(Driver):
                  name: str = "lrf") -> None:
         super().__init__(name, sink, hardware_id=config.port, backoff=Backoff(0.1, config.backoff_max_s), clock=clock)
         self.config = config
+        self.serial_port = "" if "://" in config.port else config.port
         self.counters.update({k: 0 for k in self.COUNTERS})
         self.info: rp.DeviceInfo | None = None
         self.health: rp.Health | None = None

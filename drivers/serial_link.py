@@ -8,6 +8,11 @@ costs one decode per batch instead of one per packet, and a read that filled the
 buffer waits up to ``batch_s`` for the rest of the burst behind it. ``drain`` drops input until
 the line has been quiet for a while (a device left streaming by a crashed client); ``close``
 sends last words (stop streaming, stop the motor) and never raises.
+
+Every serial port trundle opens goes through :func:`open_port`, which takes the port's lock
+(pyserial's ``exclusive``: a ``flock`` on the device node), so a second program on the same port
+fails at once with ``PortBusyError`` naming the port and the lock's holder, instead of both
+programs reading half the data.
 """
 
 from __future__ import annotations
@@ -19,14 +24,65 @@ import select
 import termios
 import time
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import serial
 
-from trundle.logs.errors import DeviceError
+from trundle.logs.errors import DeviceError, PortBusyError
 
 STREAM_BATCH_S = 0.05  # the ``batch_s`` of a streaming laser: 20 reads a second, scans up to 50 ms late
 TTY_BUFFER = 4095  # the most the Linux tty layer hands over at once (N_TTY_BUF_SIZE - 1): more may be behind
 EMPTY_READS_S = 0.5  # how long a tty that says it is ready may read nothing before it counts as gone
+
+
+PROC_LOCKS = Path("/proc/locks")
+
+
+def lock_holder(port: str) -> int | None:
+    """The pid holding a ``flock`` on device path ``port`` (as listed in /proc/locks), or None if
+    none is held, the path is not a file (a ``socket://`` URL) or the kernel does not say."""
+    try:
+        st = os.stat(port)
+        locks = PROC_LOCKS.read_text().splitlines()
+    except (OSError, ValueError):
+        return None
+    inode = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    for line in locks:
+        fields = line.split()  # "1: FLOCK  ADVISORY  WRITE 1234 00:19:3 0 EOF"; waiters have "->" after "1:"
+        if len(fields) >= 6 and fields[1] == "FLOCK" and fields[5] == inode and fields[4].isdigit():
+            return int(fields[4])
+    return None
+
+
+def busy_error(port: str, holder: int | None) -> PortBusyError:
+    """The one line for ``port`` held by another program (pid ``holder`` and its command name if known)."""
+    who = "another program"
+    if holder is not None:
+        try:
+            who = f"pid {holder} ({Path(f'/proc/{holder}/comm').read_text().strip()})"
+        except OSError:
+            who = f"pid {holder}"
+    return PortBusyError(f"{port} is in use by {who}: stop it, or use another port")
+
+
+def check_free(port: str) -> None:
+    """Raise ``PortBusyError`` if another program holds the lock on serial port ``port`` (how a
+    command refuses a busy port before it creates its output)."""
+    holder = lock_holder(port)
+    if holder is not None:
+        raise busy_error(port, holder)
+
+
+def open_port(url: str, **settings: Any) -> serial.Serial:
+    """``url`` (a device path or pyserial URL) opened by pyserial with the port's lock taken;
+    ``PortBusyError`` if another program holds it. ``settings`` are pyserial's (baudrate, timeout...)."""
+    try:
+        return serial.serial_for_url(url, exclusive=True, **settings)
+    except serial.SerialException as error:
+        if error.errno in (errno.EAGAIN, errno.EWOULDBLOCK):  # pyserial's flock(LOCK_EX | LOCK_NB) failed
+            raise busy_error(url, lock_holder(url)) from None
+        raise
 
 
 class SerialLink:
@@ -38,7 +94,7 @@ class SerialLink:
         self.batch_s = batch_s
         # non-blocking reads after a select: pyserial's socket:// reports at most 1 byte waiting,
         # so reading ``in_waiting`` bytes would take a TCP stream one byte per call
-        self.port = serial.serial_for_url(url, baudrate=baudrate, timeout=0, write_timeout=1.0)
+        self.port = open_port(url, baudrate=baudrate, timeout=0, write_timeout=1.0)
         self._fd: int | None = getattr(self.port, "fd", None)  # a tty: read directly (pyserial selects again)
         self._last_read = 0.0
         self._empty_since: float | None = None

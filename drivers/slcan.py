@@ -24,6 +24,7 @@ from typing import Any
 import can
 import serial
 
+from trundle.drivers.serial_link import open_port
 from trundle.logs.errors import ProtocolError
 
 OK, ERROR = b"\r", b"\x07"
@@ -90,8 +91,9 @@ class SlcanBus(can.BusABC):
     frames stamped with host time at receipt; a garbled frame line raises
     ``ProtocolError`` (the caller counts it; the next ``recv`` goes on with the next line). Port
     failures raise ``can.CanOperationError`` (``CanInitializationError`` when opening), as
-    python-can's interfaces do. :meth:`status_flags` and :meth:`restart` are the ``F`` and
-    ``C``/``O`` commands python-can has no call for.
+    python-can's interfaces do, except a port another program holds: ``PortBusyError``.
+    :meth:`status_flags` and :meth:`restart` are the ``F`` and ``C``/``O`` commands python-can
+    has no call for.
     """
 
     def __init__(self, channel: str, bitrate: int = 500000, tty_baudrate: int = 115200,
@@ -99,7 +101,7 @@ class SlcanBus(can.BusABC):
         if bitrate not in BITRATE_COMMANDS:
             raise ValueError(f"SLCAN bit rate {bitrate} not one of {', '.join(map(str, sorted(BITRATE_COMMANDS)))}")
         try:
-            self.port = serial.serial_for_url(channel, baudrate=tty_baudrate, timeout=_READ_TIMEOUT_S)
+            self.port = open_port(channel, baudrate=tty_baudrate, timeout=_READ_TIMEOUT_S)
         except (serial.SerialException, OSError, ValueError) as error:
             raise can.CanInitializationError(f"cannot open {channel}: {error}") from error
         self._pending = bytearray()  # bytes read after the last complete line

@@ -116,6 +116,7 @@ class WheelsDriver(Driver):
                  poll_period_s: float = 0.005) -> None:
         super().__init__(name, sink, hardware_id=bus.spec.url)
         self.bus = bus
+        self.serial_port = bus.spec.channel if bus.spec.interface == "slcan" else ""
         self.protocols = protocols
         self.names = names
         n = len(names)

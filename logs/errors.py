@@ -8,7 +8,8 @@
 - ``DataError``: input data that is corrupt or unusable (a damaged log, a file of the wrong
   format, a log without the messages a job needs).
 - ``DeviceError``: a device failed: ``ProtocolError`` (it answered, but not as the protocol
-  says) or ``TransportError`` (the port, socket or bus itself).
+  says) or ``TransportError`` (the port, socket or bus itself; ``PortBusyError``: another program
+  holds the port).
 
 The command line prints any ``TrundleError`` as one line on stderr and exits non-zero, never a
 traceback. A driver's life cycle catches ``DeviceError`` and ``OSError`` only, so a programming
@@ -46,3 +47,8 @@ class ProtocolError(DeviceError):
 
 class TransportError(DeviceError):
     """The port, socket or bus underneath the device failed or cannot be opened."""
+
+
+class PortBusyError(TransportError):
+    """The port is held by another program (its lock is taken): a command ends on it at once, the
+    daemon says it and retries, since the other program may let go."""

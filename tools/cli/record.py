@@ -20,9 +20,10 @@ from typing import Any
 from trundle.drivers.devices import FAMILIES, make_driver
 from trundle.drivers.health import HealthReporter
 from trundle.drivers.lifecycle import Driver, SignalFlag
+from trundle.drivers.serial_link import check_free
 from trundle.fusion.odometry.diff_drive import OdometrySink, odometry_from_config
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.errors import PortBusyError, UserError
 from trundle.logs.frames import FrameTree
 from trundle.logs.topics import DIAGNOSTICS_TOPIC, TF_STATIC_TOPIC
 from trundle.logs.writer import Logger
@@ -112,6 +113,8 @@ def run(args: argparse.Namespace) -> int:
             drivers.append(make_driver(device.family, device.url, target, device.options))
         except UserError as error:
             raise UserError(f"{device.family} {device.url}: {error}") from None
+    for driver in drivers:
+        check_free(driver.serial_port)
     args.output.parent.mkdir(parents=True, exist_ok=True)  # the logger refuses to overwrite a recording
     compression = args.compression or ("lz4" if any(d.family == "camera" for d in devices) else "zstd")
     metadata = {"command": "record", "robot": {"name": config.robot},
@@ -123,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
                     split_duration_s=args.split_duration, metadata=metadata)
     sink.target = logger
     health = HealthReporter(say)
+    busy: PortBusyError | None = None
     try:
         stop = SignalFlag()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -141,13 +145,16 @@ def run(args: argparse.Namespace) -> int:
             status = diagnostics(drivers)
             logger.write(DIAGNOSTICS_TOPIC, status)
             health.update(status.status)
-            if logger.error is not None or (deadline is not None and time.monotonic() >= deadline):
+            busy = next((d.port_busy for d in drivers if d.port_busy is not None), None)
+            if busy or logger.error is not None or (deadline is not None and time.monotonic() >= deadline):
                 break
     finally:
         for driver in drivers:
             driver.stop()
         logger.write(DIAGNOSTICS_TOPIC, diagnostics(drivers))
         logger.close()
+    if busy is not None:  # taken by another program after the check above
+        raise busy
     for path in logger.files:
         print(f"wrote {path}")
     for topic, counts in logger.stats_dict().items():

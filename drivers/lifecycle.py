@@ -124,7 +124,7 @@ class Driver(ABC):
 
     ``counters`` always has ``reconnects`` and ``errors``; drivers add their own (``scans``,
     ``checksum_errors``, ``frames``, ...). ``state`` is one of connecting, streaming, waiting, stopped
-and crashed (a bug escaped ``run``; ``last_error`` names it).
+    and crashed (a bug escaped ``run``; ``last_error`` names it).
     ``usable`` names the counter of good output (what a silent device does not increase);
     ``open_error`` holds why the last open failed ("" once the device opened), ``port_busy`` the
     error if that was another program holding the port. ``serial_port`` is the local serial port

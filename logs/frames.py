@@ -105,7 +105,7 @@ def _slerp(q0: np.ndarray, q1: np.ndarray, f: float) -> np.ndarray:
 
 @dataclass
 class _Track:
-    """The readings of one dynamic edge, oldest first: stamps (ns), translations, quaternions."""
+    """The readings of one dynamic edge from ``parent``, oldest first: their stamps (ns) and transforms."""
 
     parent: str
     stamps: list[int] = field(default_factory=list)

@@ -39,18 +39,16 @@ class Schema(BaseModel):
 M = TypeVar("M", bound=Schema)
 
 
-def _triple(value: Any) -> Any:
-    """A TOML array of three becomes a tuple (strict mode refuses a list for a tuple)."""
-    if not isinstance(value, (list, tuple)) or len(value) != 3:
-        raise ValueError("expected three numbers")
-    return tuple(value)
+def _array_of(count: int, words: str) -> BeforeValidator:
+    """A TOML array of ``count`` items becomes a tuple (strict mode refuses a list for a tuple);
+    any other value or length is refused as ``expected <words>``."""
 
+    def as_tuple(value: Any) -> Any:
+        if not isinstance(value, (list, tuple)) or len(value) != count:
+            raise ValueError(f"expected {words}")
+        return tuple(value)
 
-def _pair(value: Any) -> Any:
-    """A TOML array of two becomes a tuple (strict mode refuses a list for a tuple)."""
-    if not isinstance(value, (list, tuple)) or len(value) != 2:
-        raise ValueError("expected two numbers")
-    return tuple(value)
+    return BeforeValidator(as_tuple)
 
 
 def _path(value: Any) -> Any:
@@ -58,10 +56,10 @@ def _path(value: Any) -> Any:
     return Path(value).expanduser() if isinstance(value, str) and value else value
 
 
-Triple = Annotated[tuple[float, float, float], BeforeValidator(_triple)]
+Triple = Annotated[tuple[float, float, float], _array_of(3, "three numbers")]
 """Three finite numbers (a TOML array), e.g. a translation in metres or roll, pitch, yaw in radians."""
 
-Pair = Annotated[tuple[float, float], BeforeValidator(_pair)]
+Pair = Annotated[tuple[float, float], _array_of(2, "two numbers")]
 """Two finite numbers (a TOML array), e.g. the lower and upper bound of a search window."""
 
 PathValue = Annotated[Path, BeforeValidator(_path)]

@@ -160,6 +160,54 @@ def test_info_says_it_in_one_line_and_json_records_it(damaged: Damaged, capsys: 
     assert json.loads(silent(capsys))["log_damage"] is None
 
 
+def chunks_of(path: Path) -> list[ChunkIndex]:
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    return summary.chunk_indexes
+
+
+def test_a_log_cut_inside_a_chunk_says_where_its_readable_part_ends(damaged: Damaged, tmp_path: Path,
+                                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    third = chunks_of(damaged.original)[2]
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(damaged.original.read_bytes()[:third.chunk_start_offset + third.chunk_length // 2])
+    assert main(["info", str(cut)]) == 0
+    assert capsys.readouterr().err == (f"trundle info: {cut} is damaged: skipped the unreadable rest after byte "
+                                       f"{third.chunk_start_offset} of {cut.stat().st_size} (messages unknown, "
+                                       "seconds of log unknown)\n")
+
+
+def test_a_crash_file_cut_between_chunks_says_it_is_unfinished(damaged: Damaged, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    third = chunks_of(damaged.original)[2]
+    crash = tmp_path / "run.mcap.active"
+    crash.write_bytes(damaged.original.read_bytes()[:third.chunk_start_offset])
+    assert main(["info", str(crash)]) == 0
+    assert capsys.readouterr().err == (f"trundle info: {crash} is damaged: it stops at byte {third.chunk_start_offset} "
+                                       "without its summary (an unfinished recording) (messages unknown, seconds of "
+                                       "log unknown)\n")
+
+
+def test_a_garbled_header_loses_every_chunk_and_the_summary_counts_them(damaged: Damaged, tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    chunks = chunks_of(damaged.original)
+    contents = [chunk_messages(damaged.original, c) for c in chunks]
+    seconds = sum(max(x.log_time for x in inside) - min(x.log_time for x in inside) for inside in contents) * 1e-9
+    data = bytearray(damaged.original.read_bytes())
+    data[8:24] = b"\xff" * 16   # the Header record's opcode and length, right after the magic
+    bad = tmp_path / "header.mcap"
+    bad.write_bytes(bytes(data))
+    assert main(["info", str(bad), "--json"]) == 1   # nothing readable: exit 1, as before
+    line = (f"{bad} is damaged: skipped {len(chunks)} unreadable chunks after byte 8 of {len(data)} "
+            f"({damaged.total} messages, {seconds:.2f} s of log)")
+    out, err = capsys.readouterr()
+    assert err == f"trundle info: {line}\n"
+    entry = json.loads(out)["log_damage"]
+    assert (entry["torn_after_byte"], entry["chunks_after_tear"], entry["messages_lost"], entry["said"]) == (
+        8, len(chunks), damaged.total, line)
+
+
 def test_slam_says_it_and_its_report_records_it(damaged: Damaged, tmp_path: Path,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["slam", str(damaged.bad), "-o", str(tmp_path / "bad")]) == 0

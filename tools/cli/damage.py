@@ -20,5 +20,10 @@ def say_damage(args: argparse.Namespace, damage: LogDamage | Mapping[str, Any] |
     report's ``log_damage`` dict or a fleet row's ``log_damage`` line); nothing for None."""
     if not damage:
         return
-    line = damage.line() if isinstance(damage, LogDamage) else damage if isinstance(damage, str) else damage["said"]
+    if isinstance(damage, LogDamage):
+        line = damage.line()
+    elif isinstance(damage, str):
+        line = damage
+    else:
+        line = damage["said"]
     print(f"trundle {args.command}: {line}", file=sys.stderr)

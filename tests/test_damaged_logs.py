@@ -35,6 +35,7 @@ from trundle.logs.reader import LogReader
 from trundle.logs.writer import Logger
 from trundle.tools.cli.main import main
 from trundle.tools.fleet.jobs import options_key
+from trundle.tools.fleet.results import write_csv
 from trundle.tools.fleet.summary import markdown
 from trundle.tools.fleet.task import Task, process_log
 
@@ -287,7 +288,7 @@ def test_perceive_says_it_and_its_summary_records_it(damaged: Damaged, tmp_path:
     assert json.loads(silent(capsys))["log_damage"] is None
 
 
-def test_fleet_rows_reports_and_summary_record_it(damaged: Damaged, tmp_path: Path) -> None:
+def test_fleet_rows_results_reports_and_summary_record_it(damaged: Damaged, tmp_path: Path) -> None:
     rows = []
     for log in (damaged.bad, damaged.original):
         row = process_log(Task("slam", str(log), log.stem, str(tmp_path), {}, options_key("slam", {})))
@@ -300,6 +301,8 @@ def test_fleet_rows_reports_and_summary_record_it(damaged: Damaged, tmp_path: Pa
     page = markdown("slam", rows, {}, None)
     assert f"| {damaged.bad} | ok | {damaged.line} |" in page.splitlines()
     assert str(damaged.original) not in page
+    with open(write_csv(rows, tmp_path / "results.csv")) as f:
+        assert [row["log_damage"] for row in csv.DictReader(f)] == [damaged.line, ""]
 
 
 def test_the_daemon_says_what_it_could_not_salvage_of_a_crash_file(damaged: Damaged, tmp_path: Path,

@@ -220,6 +220,9 @@ def test_slam_says_it_and_its_report_records_it(damaged: Damaged, tmp_path: Path
     silent(capsys)
     report = json.loads((tmp_path / "intact" / "report.json").read_text())
     assert report["log_damage"] is None and report["scans"] == damaged.per_topic["/scan"]
+    assert main(["slam", str(damaged.bad), "--estimator", "ekf", "-o", str(tmp_path / "ekf")]) == 0
+    said(capsys, "slam", damaged)
+    recorded(json.loads((tmp_path / "ekf" / "report.json").read_text())["log_damage"], damaged)
 
 
 def test_localize_says_it_and_its_report_records_it(damaged: Damaged, tmp_path: Path,

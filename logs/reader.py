@@ -3,21 +3,38 @@
 Reading is one linear pass over the records, chunk by chunk, so a file with no summary (a
 killed recorder's ``.active`` file), a truncated tail or a chunk with a bad CRC still yields
 every intact message: the bad chunk is counted and skipped, the truncated tail ends the pass.
-Messages come out in log-time order (merged across chunks).
+Messages come out in log-time order (merged across chunks). What a pass skipped is a
+:class:`LogDamage` (``LogReader.last_damage``, ``LogInfo.damage``): the one owner of how damage is
+counted, said (one line) and recorded (``log_damage`` in reports).
 """
 
 from __future__ import annotations
 
 import heapq
+import io
 import os
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO
 
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Chunk, Header, Message, Metadata, Schema, Statistics
+from mcap.records import (
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Header,
+    Message,
+    MessageIndex,
+    Metadata,
+    Schema,
+    Statistics,
+)
 from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.summary import Summary
 
 from trundle.logs.errors import DataError
 from trundle.logs.metadata import LogMetadata, read_metadata
@@ -48,6 +65,66 @@ class LogMessage:
     topic: str
     log_time_ns: int
     msg: m.Message
+
+
+def _plural(count: int, word: str) -> str:
+    return f"{count} {word}{'' if count == 1 else 's'}"
+
+
+@dataclass(frozen=True)
+class LogDamage:
+    """What one pass over a damaged log could not read (the log is intact when there is none).
+
+    ``corrupt_chunks`` chunks failed their CRC or decompression and were skipped; ``torn_after_byte``
+    is where the readable file ends when its records stop before the footer (None: read to the
+    footer), and ``chunks_after_tear`` how many chunks the summary lists beyond it (0 when the tear
+    is after the data section, None when no summary says). ``messages`` and ``seconds`` are what the
+    skipped chunks held, counted where the file says it (each chunk's MessageIndex records, the
+    summary's chunk index, else its statistics less the messages read: message count, and log-time
+    span of the chunks in s, overlapping spans counted once), plus messages whose channel record
+    was in a skipped chunk; None when nothing in the file tells. Chunks a time window leaves out on
+    purpose are not damage.
+    """
+
+    path: Path
+    size_bytes: int
+    corrupt_chunks: int
+    torn_after_byte: int | None
+    chunks_after_tear: int | None
+    messages: int | None
+    seconds: float | None
+    cause: str
+
+    def line(self, name: str | None = None) -> str:
+        """The damage in one line for a person, e.g. ``run.mcap is damaged: skipped 1 corrupt chunk
+        (37 messages, 1.20 s of log)``; ``name`` is the log as the user gave it (default: its path)."""
+        said = [f"skipped {_plural(self.corrupt_chunks, 'corrupt chunk')}"] if self.corrupt_chunks else []
+        torn = self.torn_after_byte
+        if torn is not None:
+            where = f"byte {torn} of {self.size_bytes}"
+            if self.chunks_after_tear is None and torn >= self.size_bytes:
+                said.append(f"it stops at byte {torn} without its summary (an unfinished recording)")
+            elif self.chunks_after_tear is None:
+                said.append(f"skipped the unreadable rest after {where}")
+            elif self.chunks_after_tear:
+                said.append(f"skipped {_plural(self.chunks_after_tear, 'unreadable chunk')} after {where}")
+            else:
+                said.append(f"its index after {where} is unreadable (every chunk was read)")
+        messages = "messages unknown" if self.messages is None else _plural(self.messages, "message")
+        seconds = "seconds of log unknown" if self.seconds is None else f"{self.seconds:.2f} s of log"
+        return f"{name or self.path} is damaged: {'; '.join(said)} ({messages}, {seconds})"
+
+    def as_dict(self) -> dict[str, Any]:
+        """The damage for a report's ``log_damage`` (JSON-able; unknown counts are null)."""
+        return {"file": str(self.path), "size_bytes": self.size_bytes, "corrupt_chunks": self.corrupt_chunks,
+                "torn_after_byte": self.torn_after_byte, "chunks_after_tear": self.chunks_after_tear,
+                "messages_lost": self.messages, "seconds_lost": self.seconds, "cause": self.cause,
+                "said": self.line()}
+
+
+def damage_dict(damage: LogDamage | None) -> dict[str, Any] | None:
+    """A report's ``log_damage``: the damage as a dict, None for an intact log."""
+    return None if damage is None else damage.as_dict()
 
 
 @dataclass
@@ -87,6 +164,7 @@ class LogInfo:
     error: str = ""
     topics: dict[str, TopicInfo] = field(default_factory=dict)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    damage: LogDamage | None = None
 
     @property
     def duration_s(self) -> float:
@@ -107,18 +185,73 @@ class LogInfo:
 
 
 @dataclass
+class _Lost:
+    """A corrupt chunk: where it starts (byte), its log-time span (ns) and the message counts of the
+    MessageIndex records that followed it in the file."""
+
+    offset: int
+    start_ns: int
+    end_ns: int
+    indexed: list[int] = field(default_factory=list)
+
+
+@dataclass
 class _Scan:
-    """State of one linear pass: ids seen, counters, the error that ended it."""
+    """State of one linear pass: ids seen, counters, what was skipped, the error that ended it."""
 
     schemas: dict[int, Schema] = field(default_factory=dict)
     channels: dict[int, Channel] = field(default_factory=dict)
     header: Header | None = None
     statistics: Statistics | None = None
+    summary: Summary | None = None
     chunks: int = 0
     corrupt_chunks: int = 0
     compression: set[str] = field(default_factory=set)
     footer_seen: bool = False
+    data_end_seen: bool = False
     error: str = ""
+    lost: list[_Lost] = field(default_factory=list)
+    read: int = 0      # message records read intact
+    orphans: int = 0   # of them, those whose channel record was lost
+    torn_after: int | None = None
+    finished: bool = False
+    damage: LogDamage | None = None
+
+
+def _span_s(spans: list[tuple[int, int]]) -> float:
+    """Seconds covered by the union of the ``(start_ns, end_ns)`` spans."""
+    total, reach = 0, None
+    for start, end in sorted(spans):
+        if reach is None or start > reach:
+            total += end - start
+            reach = end
+        elif end > reach:
+            total += end - reach
+            reach = end
+    return total * 1e-9
+
+
+def _index_count(f: BinaryIO, index: ChunkIndex) -> int | None:
+    """The messages of the chunk ``index`` describes, from its MessageIndex records (None when they
+    cannot be read as the index says they are)."""
+    total, size = 0, 0
+    try:
+        for channel_id, offset in index.message_index_offsets.items():
+            f.seek(offset)
+            head = f.read(9)
+            if len(head) != 9 or head[0] != Opcode.MESSAGE_INDEX:
+                return None
+            length = int.from_bytes(head[1:], "little")
+            body = f.read(min(length, index.message_index_length))
+            if len(body) != length:
+                return None
+            record = MessageIndex.read(ReadDataStream(io.BytesIO(body)))
+            if record.channel_id != channel_id:
+                return None
+            total, size = total + len(record.records), size + 9 + length
+    except Exception:  # mcap's own EndOfFile and struct errors on a garbled record
+        return None
+    return total if size == index.message_index_length else None
 
 
 class LogReader:
@@ -146,17 +279,28 @@ class LogReader:
         """Schema/Channel/Message/Metadata/Attachment records in file order, chunks opened.
 
         A Chunk record is yielded (before its contents) so callers can order by its start time;
-        chunks outside ``window`` are skipped without decompression.
+        chunks outside ``window`` are skipped without decompression. At the end ``scan.damage``
+        says what the pass could not read.
         """
         start_ns, end_ns = window
         with open(self.path, "rb") as f:
-            # Chunks hold the Schema/Channel records too: skipping one by time is safe only when
-            # the summary already told us every channel.
-            can_skip = (start_ns is not None or end_ns is not None) and self._load_summary_channels(f, scan)
+            # The summary names every channel (a corrupt chunk may hold the only Channel record) and
+            # every chunk (what a torn tail held); chunks are skipped by time only when it is there.
+            self._load_summary(f, scan)
+            can_skip = (start_ns is not None or end_ns is not None) and scan.summary is not None
             f.seek(0)
             stream = StreamReader(f, emit_chunks=True, record_size_limit=1 << 32)
+            end = len(MAGIC)   # where the last intact record ends (byte)
+            lost: _Lost | None = None   # the corrupt chunk whose MessageIndex records may follow
             try:
                 for record in stream.records:
+                    start, end = end, f.tell()
+                    if isinstance(record, MessageIndex):
+                        if lost is not None:
+                            lost.indexed.append(len(record.records))
+                        yield record
+                        continue
+                    lost = None
                     if isinstance(record, Chunk):
                         scan.chunks += 1
                         scan.compression.add(record.compression or "none")
@@ -168,6 +312,8 @@ class LogReader:
                         except Exception as error:  # zstd, lz4 and mcap each raise their own kinds
                             scan.corrupt_chunks += 1
                             scan.error = scan.error or f"corrupt chunk skipped: {type(error).__name__}"
+                            lost = _Lost(start, record.message_start_time, record.message_end_time)
+                            scan.lost.append(lost)
                             continue
                         yield record
                         for item in inner:
@@ -178,21 +324,67 @@ class LogReader:
                         yield record
                 scan.footer_seen = True
             except Exception as error:  # a torn or garbage tail: keep what came before it
+                scan.torn_after = end
                 scan.error = f"{type(error).__name__} after {scan.chunks} chunks" + (
                     f" ({error})" if str(error) else "")
+            scan.damage = self._damage(f, scan, window if can_skip else (None, None))
+            scan.finished = True
 
     @staticmethod
-    def _load_summary_channels(f: BinaryIO, scan: _Scan) -> bool:
-        """Fill ``scan`` with the summary's schemas and channels; False when there is no summary."""
+    def _load_summary(f: BinaryIO, scan: _Scan) -> None:
+        """Keep the summary in ``scan`` and take its schemas and channels (nothing when there is none)."""
         try:
             summary = SeekingReader(f).get_summary()
         except Exception:  # no or damaged footer: a linear pass must see every chunk
-            return False
+            return
         if summary is None:
-            return False
+            return
+        scan.summary = summary
         scan.schemas.update(summary.schemas)
         scan.channels.update(summary.channels)
-        return True
+
+    def _damage(self, f: BinaryIO, scan: _Scan, window: tuple[int | None, int | None]) -> LogDamage | None:
+        """What the finished pass ``scan`` skipped (None when nothing): counted from each skipped chunk's
+        MessageIndex records and the summary's chunk index where they are readable."""
+        if scan.footer_seen and not scan.lost and not scan.orphans:
+            return None
+        indexes = scan.summary.chunk_indexes if scan.summary is not None else []
+        by_offset = {index.chunk_start_offset: index for index in indexes}
+        spans: list[tuple[int, int]] = []
+        messages: int | None = scan.orphans
+        seconds_known = True
+        for lost in scan.lost:
+            index = by_offset.get(lost.offset)
+            if index is not None:
+                spans.append((index.message_start_time, index.message_end_time))
+                count = _index_count(f, index)
+            else:
+                if lost.start_ns <= lost.end_ns:
+                    spans.append((lost.start_ns, lost.end_ns))
+                else:
+                    seconds_known = False
+                count = sum(lost.indexed) if lost.indexed else None
+            messages = None if messages is None or count is None else messages + count
+        after: int | None = None
+        if scan.torn_after is not None and scan.data_end_seen:
+            after = 0
+        elif scan.torn_after is not None and scan.summary is not None:
+            start_ns, end_ns = window
+            beyond = [index for index in indexes if index.chunk_start_offset + index.chunk_length > scan.torn_after
+                      and not (start_ns is not None and index.message_end_time < start_ns)
+                      and not (end_ns is not None and index.message_start_time >= end_ns)]
+            after = len(beyond)
+            for index in beyond:
+                spans.append((index.message_start_time, index.message_end_time))
+                count = _index_count(f, index)
+                messages = None if messages is None or count is None else messages + count
+        elif scan.torn_after is not None:
+            messages, seconds_known = None, False
+        statistics = scan.summary.statistics if scan.summary is not None else None
+        if messages is None and statistics is not None and window == (None, None):
+            messages = statistics.message_count - (scan.read - scan.orphans)  # the whole file was read
+        return LogDamage(self.path, self.size_bytes, scan.corrupt_chunks, scan.torn_after, after, messages,
+                         _span_s(spans) if seconds_known else None, scan.error)
 
     @staticmethod
     def _note(scan: _Scan, record: object) -> None:
@@ -204,6 +396,11 @@ class LogReader:
             scan.header = record
         elif isinstance(record, Statistics):
             scan.statistics = record
+        elif isinstance(record, DataEnd):
+            scan.data_end_seen = True
+        elif isinstance(record, Message):
+            scan.read += 1
+            scan.orphans += record.channel_id not in scan.channels
 
     # --- public API --------------------------------------------------------------------------
 
@@ -259,9 +456,17 @@ class LogReader:
     def last_scan_corrupt_chunks(self) -> int:
         return self._last_scan.corrupt_chunks if self._last_scan else 0
 
+    @property
+    def last_damage(self) -> LogDamage | None:
+        """What the last pass skipped (None: the log is intact); only once that pass has ended."""
+        if self._last_scan is None or not self._last_scan.finished:
+            raise RuntimeError("last_damage is known only after a pass over the log has ended")
+        return self._last_scan.damage
+
     def info(self) -> LogInfo:
         """Counts, times and topics from one pass over the file (exact even for damaged files)."""
         scan = _Scan()
+        self._last_scan = scan
         info = LogInfo(self.path, self.size_bytes)
         for record in self._records(scan):
             if isinstance(record, Message):
@@ -290,6 +495,7 @@ class LogReader:
         info.chunks, info.corrupt_chunks = scan.chunks, scan.corrupt_chunks
         info.complete = scan.footer_seen and not scan.corrupt_chunks
         info.error = scan.error
+        info.damage = scan.damage
         return info
 
 

@@ -17,15 +17,19 @@ from mcap.writer import CompressionType, Writer
 
 from trundle.logs.errors import DataError, UsageError
 from trundle.logs.paths import new_file
-from trundle.logs.reader import LogReader
+from trundle.logs.reader import LogDamage, LogReader
 
 
 @dataclass(frozen=True)
 class RecoverResult:
+    """The recovered file, the messages copied into it, and what could not be salvaged (``damage``:
+    None when the input was intact)."""
+
     output: Path
     messages: int
     corrupt_chunks: int
     stopped_by: str
+    damage: LogDamage | None = None
 
 
 Replace = Callable[[str, str, int, bytes], "bytes | None"]  # topic, schema name, log time ns, data
@@ -66,7 +70,7 @@ def copy_log(src: str | os.PathLike[str], dst: str | os.PathLike[str], replace: 
         tmp.unlink()
         raise DataError(f"nothing could be recovered from {src}: {reader.last_scan_error or 'no messages'}")
     os.replace(tmp, dst)
-    return RecoverResult(dst, count, reader.last_scan_corrupt_chunks, reader.last_scan_error)
+    return RecoverResult(dst, count, reader.last_scan_corrupt_chunks, reader.last_scan_error, reader.last_damage)
 
 
 def _copy(reader: LogReader, tmp: Path, replace: Replace | None,

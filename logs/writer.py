@@ -23,7 +23,7 @@ import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, NamedTuple
+from typing import IO, TYPE_CHECKING, NamedTuple
 
 from mcap.writer import CompressionType, Writer
 
@@ -33,6 +33,10 @@ from trundle.logs import metadata as log_metadata
 from trundle.logs import ros2
 from trundle.logs.errors import DataError, UserError
 from trundle.logs.topics import TF_STATIC_TOPIC
+
+if TYPE_CHECKING:
+    from trundle.logs.reader import LogDamage
+    from trundle.logs.recover import RecoverResult
 
 ACTIVE_SUFFIX = ".active"
 LIBRARY_PREFIX = "trundle/"  # the MCAP header's library, before the version: marks a log this logger wrote
@@ -113,6 +117,8 @@ class Logger:
     ``write`` returns False (and counts a drop for that topic) when the queue is full or the
     logger has failed. ``error`` holds the first write failure; ``close`` raises it.
     ``metadata`` is the log's description, stored in every file (:mod:`trundle.logs.metadata`).
+    With ``salvage``, leftover ``.active`` files of the folder are recovered first: ``salvaged``
+    lists the files written, ``salvage_damage`` what could not be salvaged from each damaged one.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, compression: str = "zstd",
@@ -143,7 +149,9 @@ class Logger:
         self.latched_topics = frozenset(latched_topics)
         self.stats: dict[str, TopicStats] = collections.defaultdict(TopicStats)
         self.files: list[Path] = []
-        self.salvaged: list[Path] = salvage_folder(self.base_path.parent) if salvage else []
+        salvaged = salvage_folder(self.base_path.parent) if salvage else []
+        self.salvaged: list[Path] = [result.output for result in salvaged]
+        self.salvage_damage: list[LogDamage] = [result.damage for result in salvaged if result.damage is not None]
         taken = self._taken()
         if taken:
             raise UserError(f"{taken[0]} exists: give another name, or move it away (a log is never overwritten)")
@@ -399,8 +407,9 @@ class Logger:
         return {topic: {"written": s.written, "dropped": s.dropped} for topic, s in sorted(self.stats.items())}
 
 
-def salvage_folder(folder: Path) -> list[Path]:
-    """Recover every leftover ``*.mcap.active`` in ``folder`` to ``*.mcap``; returns the new files."""
+def salvage_folder(folder: Path) -> list[RecoverResult]:
+    """Recover every leftover ``*.mcap.active`` in ``folder`` to ``*.mcap``; returns what each recovery
+    wrote and could not salvage."""
     from trundle.logs.recover import recover
 
     recovered = []
@@ -411,11 +420,11 @@ def salvage_folder(folder: Path) -> list[Path]:
         if target.exists():
             target = target.with_name(f"{target.stem}.recovered.mcap")
         try:
-            recover(active, target)
+            result = recover(active, target)
         except (DataError, UserError):  # nothing readable in it, or the target appeared meanwhile
             continue
         active.unlink()
-        recovered.append(target)
+        recovered.append(result)
     return recovered
 
 

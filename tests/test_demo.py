@@ -54,6 +54,7 @@ def test_demo_writes_every_output_and_passes_its_checks(demo):
                  "camera_detections.png", "report.md"):
         assert (out / name).is_file(), name
     assert not list(out.glob("*.active")) and not list(out.glob(".daemon-logs-*"))
+    assert report["log_damage"] is None   # its own log was read and is intact
     assert "Open local file" in (out / "report.md").read_text()
     for name in ("map.png", "trajectory.png", "camera_detections.png"):
         assert cv2.imread(str(out / name)) is not None, name

@@ -11,6 +11,7 @@ import argparse
 import json
 from pathlib import Path
 
+from trundle.tools.cli.damage import say_damage
 from trundle.tools.config.arguments import finite, non_negative_int, positive, positive_int
 from trundle.tools.jobs.characterize import characterize_log
 from trundle.tools.jobs.sensor_report import markdown
@@ -54,6 +55,7 @@ def run(args: argparse.Namespace) -> int:
     figures = characterize_log(args.log, args.topic, args.output, args.reference, beam=args.beam,
                                stated_min=args.stated_min, stated_max=args.stated_max, bits=args.bits,
                                min_still_s=args.min_still)
+    say_damage(args, figures["log_damage"])
     if args.json:
         print(json.dumps(figures))
     elif args.output:

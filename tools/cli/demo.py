@@ -13,6 +13,7 @@ import signal
 from pathlib import Path
 
 from trundle.logs.errors import UserError
+from trundle.tools.cli.damage import say_damage
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.arguments import non_negative_int, number_in, percent, positive
 from trundle.tools.demo.report import ATE_LIMIT_M
@@ -66,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
                             seed=args.seed)
     out = args.output
     report = run_demo(out, settings, say=lambda text: print(text, flush=True), progress=Progress)
+    say_damage(args, report["log_damage"])
     checks = report["checks"]
     print(f"\nSLAM trajectory error {report['ate_rmse_m'] * 100:.1f} cm RMSE over {report['path_length_m']:.1f} m "
           f"(limit {ATE_LIMIT_M * 100:.0f} cm; wheel odometry alone "

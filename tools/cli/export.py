@@ -15,6 +15,7 @@ from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader
+from trundle.tools.cli.damage import say_damage
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -82,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
                     writer.writeheader()
                 writer.writerow(row)
             count += 1
+    say_damage(args, reader.last_damage)
     if count == 0:
         raise UserError(f"no messages on topic {args.topic} that trundle can decode")
     return 0

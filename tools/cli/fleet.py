@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from trundle.logs.errors import UserError
+from trundle.tools.cli.damage import say_damage
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.arguments import non_negative_int, positive, positive_int
 
@@ -78,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     for row in fleet.rows:
         if row["status"] == "failed":
             print(f"failed {row['log']}: {row['error']}")
+        say_damage(args, row.get("log_damage"))
     print(f"wrote {args.output}/<name>/ and " + ", ".join(p.name for p in fleet.files))
     if fleet.interrupted:
         print(f"trundle fleet: interrupted; cancelled {fleet.count('cancelled')} logs, the results so far are in "

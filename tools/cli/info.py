@@ -7,6 +7,7 @@ import json
 from datetime import UTC, datetime
 
 from trundle.logs.reader import LogReader
+from trundle.tools.cli.damage import say_damage
 from trundle.tools.jobs.info import as_dict
 
 
@@ -36,11 +37,12 @@ def _size(n: int) -> str:
 
 def run(args: argparse.Namespace) -> int:
     info = LogReader(args.file).info()
+    say_damage(args, info.damage)
     if args.json:
         print(json.dumps(as_dict(info), indent=2))
         return 0 if info.message_count or info.complete else 1
     state = (
-        "complete" if info.complete else f"INCOMPLETE: {info.error} (read what was intact; `trundle recover` fixes it)"
+        "complete" if info.complete else "INCOMPLETE (read what was intact, see stderr; `trundle recover` fixes it)"
     )
     lines = [
         f"Files:             {info.path.name}",

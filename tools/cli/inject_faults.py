@@ -20,6 +20,7 @@ from pathlib import Path
 from trundle.fusion.odometry.faults import OdometryFault, random_glitches
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
+from trundle.tools.cli.damage import say_damage
 from trundle.tools.config.arguments import finite, non_negative_int, positive
 from trundle.tools.config.robot import load_config
 from trundle.tools.jobs.inject_faults import inject_faults
@@ -85,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
                   if t.ros_type in ("nav_msgs/msg/Odometry", "sensor_msgs/msg/JointState")
                   and t.first_ns is not None and t.last_ns is not None), default=0.0)
     report = inject_faults(args.log, args.output, faults_from_args(args, span_s), load_config(args.config))
+    say_damage(args, report["log_damage"])
     if args.json:
         print(json.dumps(report, indent=2))
         return 0

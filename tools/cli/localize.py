@@ -20,6 +20,7 @@ import numpy as np
 
 from trundle.logs.paths import new_file
 from trundle.logs.topics import SCAN_TOPIC
+from trundle.tools.cli.damage import say_damage
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.arguments import positive
 from trundle.tools.config.robot import load_config
@@ -47,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     report = localize_log(args.log, args.map, load_config(args.config), scan_topic=args.scan_topic,
                           max_range_m=args.max_range, use_odometry=not args.no_odometry,
                           trajectory_csv=args.output, progress=Progress)
+    say_damage(args, report["log_damage"])
     if args.json:
         print(json.dumps(report, indent=2))
         return 0

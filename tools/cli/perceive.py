@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from trundle.logs.errors import UserError
+from trundle.tools.cli.damage import say_damage
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.arguments import non_negative, non_negative_int, number_in, positive, positive_int
 from trundle.tools.jobs.perceive import perceive_log
@@ -122,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
     summary = perceive_log(Path(args.file), Path(args.output), args.pipeline, pipeline_options(args),
                            topics=args.topics, images=not args.no_images, camera_info=args.camera_info,
                            provenance=vars(args), progress=Progress)
+    say_damage(args, summary["log_damage"])
     _print(summary, args.json)
     return 0 if summary["frames"] else 1
 

@@ -27,6 +27,7 @@ from trundle.logs.errors import PortBusyError, UserError
 from trundle.logs.frames import FrameTree
 from trundle.logs.topics import DIAGNOSTICS_TOPIC, TF_STATIC_TOPIC
 from trundle.logs.writer import Logger
+from trundle.tools.cli.damage import say_damage
 from trundle.tools.config.arguments import positive
 from trundle.tools.config.robot import Device, RobotConfig, load_config
 
@@ -124,6 +125,8 @@ def run(args: argparse.Namespace) -> int:
     logger = Logger(args.output, compression=compression,
                     split_bytes=int(args.split_size * 1e6) if args.split_size else None,
                     split_duration_s=args.split_duration, metadata=metadata)
+    for damage in logger.salvage_damage:  # crash files of an earlier recording, recovered by the logger
+        say_damage(args, damage)
     sink.target = logger
     health = HealthReporter(say)
     busy: PortBusyError | None = None

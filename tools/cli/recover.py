@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from trundle.logs.recover import recover
+from trundle.tools.cli.damage import say_damage
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -27,6 +28,7 @@ def run(args: argparse.Namespace) -> int:
     src = Path(args.input)
     dst = Path(args.output) if args.output else default_output(src)
     result = recover(src, dst)
+    say_damage(args, result.damage)
     note = f"; stopped by {result.stopped_by}" if result.stopped_by else ""
     corrupt = f"; skipped {result.corrupt_chunks} corrupt chunks" if result.corrupt_chunks else ""
     print(f"recovered {result.messages} messages into {result.output}{corrupt}{note}")

@@ -8,6 +8,7 @@ import time
 
 from trundle.logs.reader import LogMessage, LogReader
 from trundle.logs.replay import replay
+from trundle.tools.cli.damage import say_damage
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.arguments import non_negative
 
@@ -21,6 +22,7 @@ def register(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     info = LogReader(args.file).info()
+    say_damage(args, info.damage)
     counts: collections.Counter[str] = collections.Counter()
     first: dict[str, int] = {}
     last: dict[str, int] = {}

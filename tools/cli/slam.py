@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from trundle.fusion.slam.estimators import choices
+from trundle.tools.cli.damage import say_damage
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.robot import load_config
 from trundle.tools.jobs.slam import slam_log
@@ -33,6 +34,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the slam job on the command's log and print its summary; exit code 0."""
     report = slam_log(args.log, args.output, load_config(args.config), local_only=args.no_loop_closure,
                       progress=Progress, estimator=args.estimator)
+    say_damage(args, report["log_damage"])
     print(f"odometry: {report['odometry_source']}")
     if report["odometry_source"] == "none":
         print(f"warning: {args.log} has no odometry (no wheel states, no odometry messages): the map was made "

@@ -295,6 +295,8 @@ class Daemon:
             latched = list(self._latched.items())
         for topic, msg in latched:
             logger.write(topic, msg)
+        for damage in logger.salvage_damage:  # crash files of an earlier run, recovered by the logger
+            print(f"trundle daemon: recovered a crash file: {damage.line()}", file=sys.stderr, flush=True)
         self.logger = logger
         self.recording_paused = ""
 

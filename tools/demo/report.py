@@ -19,7 +19,7 @@ from trundle.fusion.evaluation.trajectory_errors import Trajectory, landmark_err
 from trundle.fusion.mapping.map_io import plot_trajectory
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
-from trundle.logs.reader import LogReader
+from trundle.logs.reader import LogReader, damage_dict
 from trundle.logs.topics import DIAGNOSTICS_TOPIC, IMAGE_TOPIC
 from trundle.perception.images import decode_image
 from trundle.tools.demo.ground_truth import Recording
@@ -166,6 +166,7 @@ def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, s
         "drivers": driver_diagnostics(recording.log),
         "log": {"file": recording.log.name, "size_bytes": recording.log.stat().st_size, "duration_s": info.duration_s,
                 "topics": {t: i.count for t, i in sorted(info.topics.items())}},
+        "log_damage": damage_dict(info.damage),
         "ground_truth_unmatched": recording.unmatched,
         "robot_time_s": recording.robot_time_s,
         "cpu_s": recording.cpu_s,

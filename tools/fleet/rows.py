@@ -13,12 +13,13 @@ from typing import Any
 
 STATUSES = ("ok", "failed", "skipped", "cancelled")
 COLUMNS = ("log", "name", "status", "error", "seconds", "cpu_seconds", "size_bytes", "sha256", "robot",
-           "log_start", "log_duration_s", "node")
+           "log_start", "log_duration_s", "log_damage", "node")
 """The columns every row has, in this order: the log as given, its output folder (relative to
 OUT), the status, a one-line error, the wall and CPU seconds of the job on its worker, the
 input's size (bytes) and SHA-256, the robot (the log's ``robot`` or ``host`` metadata), the log's
-first message time (UTC, ISO 8601) and duration (s), and the Ray node that ran it."""
-DROPPED = {"log"}   # report keys that repeat a column (the log's path)
+first message time (UTC, ISO 8601) and duration (s), what its damage skipped (the one line of
+:meth:`trundle.logs.reader.LogDamage.line`; empty for an intact log), and the Ray node that ran it."""
+DROPPED = {"log", "log_damage"}   # report keys that repeat a column (the log's path, its damage)
 
 
 def one_line(text: str, limit: int = 300) -> str:

@@ -1,5 +1,5 @@
-"""The fleet summary over the rows: ``summary.md`` (counts, failed logs, checks that failed,
-figures per robot) and ``summary.png`` (the headline figures of each log over the log's start
+"""The fleet summary over the rows: ``summary.md`` (counts, failed logs, damaged logs, checks that
+failed, figures per robot) and ``summary.png`` (the headline figures of each log over the log's start
 time, one series per robot: e.g. a laser whose noise drifts up, SLAM runs whose residual jumps).
 
 Headline figures are the numeric columns the job's report has, those matching the job's
@@ -114,6 +114,12 @@ def markdown(job: str, rows: Sequence[Mapping[str, Any]], run: Mapping[str, Any]
         lines += ["## Logs without a result", "", "| log | status | error |", "|---|---|---|"]
         lines += [f"| {_cell(r['log'])} | {r['status']} | {_cell(r.get('error'))} |" for r in failed[:LISTED]]
         lines += [f"| ... {len(failed) - LISTED} more in results.csv | | |"] if len(failed) > LISTED else []
+        lines.append("")
+    damaged = [r for r in rows if r.get("log_damage")]
+    if damaged:
+        lines += ["## Damaged logs (read what was intact)", "", "| log | status | what was skipped |", "|---|---|---|"]
+        lines += [f"| {_cell(r['log'])} | {r['status']} | {_cell(r['log_damage'])} |" for r in damaged[:LISTED]]
+        lines += [f"| ... {len(damaged) - LISTED} more in results.csv | | |"] if len(damaged) > LISTED else []
         lines.append("")
     done = [r for r in rows if r["status"] in ("ok", "skipped")]
     checks = failed_checks(done)

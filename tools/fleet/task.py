@@ -76,12 +76,14 @@ def _robot(metadata: dict[str, dict[str, str]]) -> str:
     return robot if robot and not robot.lstrip().startswith("{") else trundle.get("host", "")
 
 
-def _log_columns(path: Path) -> dict[str, Any]:
-    """The robot, first message time (UTC ISO 8601) and duration (s) of the log at ``path``."""
+def _log_columns(path: Path, source: str) -> dict[str, Any]:
+    """The robot, first message time (UTC ISO 8601), duration (s) and damage (one line naming
+    ``source``, None when intact) of the log at ``path`` (the local copy of ``source``)."""
     info = LogReader(path).info()
     start = (datetime.fromtimestamp(info.start_ns / 1e9, tz=UTC).isoformat(timespec="milliseconds")
              if info.start_ns is not None else None)
-    return {"robot": _robot(info.metadata), "log_start": start, "log_duration_s": info.duration_s}
+    return {"robot": _robot(info.metadata), "log_start": start, "log_duration_s": info.duration_s,
+            "log_damage": info.damage.line(source) if info.damage is not None else None}
 
 
 def _install(work: Path, target: Path) -> None:
@@ -112,7 +114,7 @@ def process_log(task: Task) -> dict[str, Any]:
             if not task.force and done and done.get("key") == task.key and done.get("sha256") == digest:
                 (task.folder / MARKER).write_text(json.dumps({**done, "identity": fingerprint}, indent=2))
                 return {**done["row"], "status": "skipped"}
-            row.update(size_bytes=path.stat().st_size, sha256=digest, **_log_columns(path))
+            row.update(size_bytes=path.stat().st_size, sha256=digest, **_log_columns(path, task.source))
             report = run_job(task.job, path, work, task.options)
         row.update(status="ok", seconds=time.perf_counter() - started, cpu_seconds=time.process_time() - cpu_started,
                    **flatten(report))

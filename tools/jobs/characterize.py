@@ -17,7 +17,7 @@ import numpy as np
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.paths import output_folder, read_text
-from trundle.logs.reader import LogReader
+from trundle.logs.reader import LogReader, damage_dict
 from trundle.tools.jobs.sensor_figures import characterize_camera, characterize_encoders, characterize_laser
 from trundle.tools.jobs.sensor_report import markdown, write_plots
 
@@ -70,7 +70,8 @@ def characterize_log(log: str | Path, topic: str, output: Path | None = None, re
     a CSV of values over time (see :func:`read_reference`) or one number (m, held throughout);
     ``stated_min`` / ``stated_max`` the device's stated limits (default: from the messages);
     ``bits`` its A/D bits; ``min_still_s`` the shortest standing-still stretch used (s). Returns
-    the figures (JSON-able; what report.json holds).
+    the figures (JSON-able; what report.json holds) and ``log_damage``: what the log's damage
+    skipped (None when intact).
     """
     reader = LogReader(log)
     if output:
@@ -80,6 +81,7 @@ def characterize_log(log: str | Path, topic: str, output: Path | None = None, re
         raise UserError(f"topic {topic} is not in {log} (topics: {', '.join(sorted(info.topics))})")
     # a topic carries one message type, the first one's; other types are refused below
     msgs = cast(list[Characterized], [x.msg for x in reader.messages([topic])])
+    damage = damage_dict(reader.last_damage)
     if len(msgs) < 3:
         raise UserError(f"topic {topic} has {len(msgs)} decodable messages; at least 3 are needed")
     truth: tuple[np.ndarray, np.ndarray] | None
@@ -97,7 +99,7 @@ def characterize_log(log: str | Path, topic: str, output: Path | None = None, re
         figures, plots = characterize_camera(np.array([x.stamp_ns for x in msgs], np.int64))
     else:
         raise UserError(f"{topic} carries {info.topics[topic].ros_type}: not a laser, encoder or camera topic")
-    figures = _jsonable(figures)
+    figures = {**_jsonable(figures), "log_damage": damage}
     if output:
         output_folder(output, empty=False)
         names = write_plots(output, plots)

@@ -9,17 +9,18 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from trundle.logs.reader import LogInfo, LogReader
+from trundle.logs.reader import LogInfo, LogReader, damage_dict
 
 
 def as_dict(info: LogInfo) -> dict[str, Any]:
-    """``info`` as a JSON-able dict: sizes in bytes, times in ns, duration in s, rates in Hz."""
+    """``info`` as a JSON-able dict: sizes in bytes, times in ns, duration in s, rates in Hz; ``log_damage``
+    what the read skipped (None: intact)."""
     return {
         "file": str(info.path), "size_bytes": info.size_bytes, "profile": info.profile,
         "library": info.library, "compression": sorted(info.compression), "duration_s": info.duration_s,
         "start_ns": info.start_ns, "end_ns": info.end_ns, "messages": info.message_count,
         "chunks": info.chunks, "corrupt_chunks": info.corrupt_chunks, "complete": info.complete,
-        "error": info.error, "metadata": info.metadata,
+        "error": info.error, "log_damage": damage_dict(info.damage), "metadata": info.metadata,
         "topics": {name: {"type": t.ros_type, "encoding": t.encoding, "count": t.count, "rate_hz": t.rate_hz,
                           "latched": t.latched}
                    for name, t in sorted(info.topics.items())},

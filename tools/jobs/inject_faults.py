@@ -22,7 +22,7 @@ from trundle.logs import messages as m
 from trundle.logs import ros2
 from trundle.logs.errors import UsageError, UserError
 from trundle.logs.paths import new_file
-from trundle.logs.reader import LogReader
+from trundle.logs.reader import LogReader, damage_dict
 from trundle.logs.recover import copy_log
 from trundle.tools.jobs.config import JobConfig, make_odometry
 
@@ -33,9 +33,10 @@ Key = tuple[str, int, bytes]  # topic, log time, original data
 
 def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
                   config: JobConfig = None) -> dict[str, Any]:
-    """Write ``output``: ``log`` with ``faults`` in its odometry. Returns a report: the faults and, per
-    odometry topic, the messages it had, dropped and kept. A fault that starts outside the log's
-    odometry is a UsageError (it would be reported but never injected)."""
+    """Write ``output``: ``log`` with ``faults`` in its odometry. Returns a report: what the log's damage
+    skipped (``log_damage``, None when intact), the faults and, per odometry topic, the messages it had,
+    dropped and kept. A fault that starts outside the log's odometry is a UsageError (it would be
+    reported but never injected)."""
     new_file(output, "output log")
     reader = LogReader(log)
     info = reader.info()
@@ -76,7 +77,8 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
     records = {"faults": {"faults": json.dumps([f.as_dict() for f in faults]), "source": str(log),
                           "start_ns": str(start_ns)}}
     copy_log(log, output, replace, records)
-    return {"log": str(log), "output": str(output), "faults": [f.as_dict() for f in faults], "topics": counts}
+    return {"log": str(log), "log_damage": damage_dict(reader.last_damage), "output": str(output),
+            "faults": [f.as_dict() for f in faults], "topics": counts}
 
 
 def _odometry(items: list[tuple[Any, m.Odometry]], times: np.ndarray, faults: list[OdometryFault]) -> list[m.Odometry]:

@@ -36,7 +36,7 @@ from trundle.logs.errors import DataError, UsageError, UserError
 from trundle.logs.frames import BASE_FRAME, FrameTree
 from trundle.logs.importers import write_log
 from trundle.logs.paths import output_folder
-from trundle.logs.reader import LogInfo, LogReader
+from trundle.logs.reader import LogInfo, LogReader, damage_dict
 from trundle.logs.topics import LANDMARK_MAP_TOPIC, LANDMARK_TOPIC, MAP_TOPIC, ODOM_TOPIC, PATH_TOPIC, TF_TOPIC
 from trundle.perception.scan_features import corner_observations
 from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, odometry_source, robot_config
@@ -65,7 +65,7 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
                       progress: ProgressFactory = NoProgress) -> dict[str, Any]:
     """Landmark SLAM over ``log`` by the ``estimator`` (``ekf`` or ``landmark-graph``, see
     :mod:`trundle.fusion.slam.estimators`); outputs into ``output`` (see the module docstring).
-    Returns the report (also ``report.json``)."""
+    Returns the report (also ``report.json``; ``log_damage``: what the log's damage skipped, None when intact)."""
     config = robot_config(config)
     landmark_estimators = [name for name in ESTIMATORS if name not in GRID]
     if estimator not in landmark_estimators:
@@ -146,7 +146,8 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
     write_log(items, output / "slam.mcap", metadata={"command": "slam", "source": str(log), "estimator": estimator})
     duration = info.duration_s
     report = {
-        "log": str(log), "estimator": estimator, "sightings": "laser corners" if features else topic,
+        "log": str(log), "log_damage": damage_dict(reader.last_damage),
+        "estimator": estimator, "sightings": "laser corners" if features else topic,
         "odometry_source": odometry_source(info, config, wheels) or "none",
         "duration_s": duration, "processing_s": processing_s, "cpu_s": cpu_s,
         "real_time_factor": duration / processing_s if processing_s > 0 else None,

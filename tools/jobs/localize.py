@@ -26,7 +26,7 @@ from trundle.fusion.mapping.map_io import load_map, read_landmarks_csv, write_tr
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.frames import FrameTree
-from trundle.logs.reader import LogReader
+from trundle.logs.reader import LogReader, damage_dict
 from trundle.logs.topics import LANDMARK_TOPIC, SCAN_TOPIC
 from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, robot_config
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
@@ -49,7 +49,8 @@ def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic
     ``config`` is the robot config (``[odometry]``, ``[laser]`` tables); returns farther than
     ``max_range_m`` (m) are ignored; ``use_odometry=False`` ignores the log's odometry (scans
     alone). The tracked poses go to ``trajectory_csv`` (``t_ns,x,y,theta``) if given; ``progress``
-    shows the log seconds done. Returns the report: scans at which the pose converged and
+    shows the log seconds done. Returns the report: what the log's damage skipped (``log_damage``, None
+    when intact), scans at which the pose converged and
     kidnappings were detected (0-based), searches, false alarms, final pose (m, m, rad), match
     scores and timings (s).
     """
@@ -113,7 +114,8 @@ def localize_log(log: Path, map_path: Path, config: JobConfig = None, scan_topic
     if trajectory_csv is not None:
         write_trajectory_csv(trajectory_csv, np.array(stamps, np.int64), np.array(poses).reshape(-1, 3))
     return {
-        "log": str(log), "map": str(yaml_path), "scans": st.scans, "odometry": odometry is not None,
+        "log": str(log), "log_damage": damage_dict(reader.last_damage), "map": str(yaml_path),
+        "scans": st.scans, "odometry": odometry is not None,
         "converged_at_scans": st.converged_at, "kidnaps_detected_at_scans": st.kidnaps_at,
         "false_alarms": st.false_alarms, "global_searches": st.global_searches, "tracked_scans": len(stamps),
         "landmark_fixes": fixes, "landmark_fixes_rejected": st.fixes_rejected,

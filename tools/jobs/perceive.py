@@ -23,7 +23,7 @@ from trundle.logs import messages as m
 from trundle.logs import ros2
 from trundle.logs.errors import UserError
 from trundle.logs.paths import new_file
-from trundle.logs.reader import LogReader
+from trundle.logs.reader import LogReader, damage_dict
 from trundle.logs.topics import TF_STATIC_TOPIC
 from trundle.logs.writer import Logger
 from trundle.perception.images import decode_image
@@ -61,8 +61,9 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
     ``camera_info`` is the CameraInfo topic of every image topic (default: each one's
     ``<camera namespace>/camera_info``); ``provenance`` (e.g. the command's arguments) is kept as
     JSON in the output's ``perceive`` metadata; ``progress`` shows the messages done. Returns the
-    summary: frames, corrupt messages, detections per frame, the pipeline's totals and the
-    messages written per topic. Outputs that overwrite the input are a UserError.
+    summary: what the log's damage skipped (``log_damage``, None when intact), frames, corrupt
+    messages, detections per frame, the pipeline's totals and the messages written per topic.
+    Outputs that overwrite the input are a UserError.
     """
     if pipeline not in PIPELINES:
         raise UserError(f"unknown pipeline {pipeline!r} (choose from {', '.join(PIPELINES)})")
@@ -120,7 +121,8 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
             frames += 1
             bar.update(frames + sum(corrupt.values()), f"{frames} frames")
         bar.close()
-    return {"log": str(log), "output": str(output), "pipeline": pipeline, "image_topics": topics,
+    return {"log": str(log), "log_damage": damage_dict(reader.last_damage), "output": str(output),
+            "pipeline": pipeline, "image_topics": topics,
             "frames": frames, "corrupt_messages": sum(corrupt.values()), "corrupt_reasons": dict(corrupt),
             "detections_per_frame": _stats(per_frame), **detector.summary(),
             "written": {t: s.written for t, s in sorted(logger.stats.items())},

@@ -34,7 +34,7 @@ from trundle.logs import messages as m
 from trundle.logs.errors import UsageError, UserError
 from trundle.logs.importers import write_log
 from trundle.logs.paths import output_folder
-from trundle.logs.reader import LogReader
+from trundle.logs.reader import LogReader, damage_dict
 from trundle.logs.topics import LANDMARK_MAP_TOPIC, MAP_TOPIC, PATH_TOPIC, TF_TOPIC
 from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, odometry_source, robot_config
 from trundle.tools.jobs.landmark_slam import landmark_markers, landmark_slam_log, landmark_topic, write_landmarks
@@ -63,7 +63,8 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     ``grid-landmarks``, ``ekf``, ``landmark-graph``; the last two by :mod:`trundle.tools.jobs.landmark_slam`),
     or ``graph`` / None: the pose graph that fits the log (the grid SLAM, with the log's landmark
     sightings as constraints; a log with sightings but no scans gets the landmark graph).
-    Returns the report (also written as ``report.json``): the odometry it used (``odometry_source``:
+    Returns the report (also written as ``report.json``): what the log's damage skipped (``log_damage``,
+    None for an intact log; see :class:`trundle.logs.reader.LogDamage`), the odometry it used (``odometry_source``:
     wheel encoders, odometry messages or ``none``), counts, timings (s), residuals (m), path length
     (m), map size and the SLAM options used.
     """
@@ -131,7 +132,8 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     landmark_counts = counts.pop("landmarks", None)
     duration = info.duration_s
     report = {
-        "log": str(log), "odometry_source": odometry, "duration_s": duration,
+        "log": str(log), "log_damage": damage_dict(reader.last_damage), "odometry_source": odometry,
+        "duration_s": duration,
         "processing_s": processing_s, "cpu_s": cpu_s,
         "real_time_factor": duration / processing_s if processing_s > 0 else None,
         **counts,

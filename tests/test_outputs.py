@@ -1,18 +1,23 @@
 """Outputs are never overwritten and nothing is left behind: a repeated command loses no
 recording, a bad URL makes no empty log, a second daemon on the same config writes nothing,
-`recover IN DIR` writes into DIR and leaves no temporary file."""
+`recover IN DIR` writes into DIR and leaves no temporary file. An output appears whole or not at
+all; JSON is strict."""
 
 from __future__ import annotations
 
 import hashlib
+import json
+import os
 import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.test_daemon import Running, ScriptedDriver, config, wait_for
 from trundle.logs.errors import DataError, UserError
+from trundle.logs.outputs import write_json, write_text, writing_file, writing_files, writing_folder
 from trundle.logs.reader import LogReader
 from trundle.logs.recover import recover
 from trundle.tools.cli.main import main
@@ -112,3 +117,59 @@ def test_a_recorder_killed_mid_import_is_not_needed(tmp_path):
     loggers = [r for r in results if isinstance(r, Logger)]
     assert len(loggers) == 1
     loggers[0].close()
+
+
+# ---------------------------------------------------------------- one output helper: whole or nothing
+
+
+def test_an_output_appears_whole_or_not_at_all(tmp_path) -> None:
+    target = tmp_path / "result.txt"
+    with writing_file(target) as tmp:
+        assert tmp == tmp_path / f".result.txt.{os.getpid()}.partial"
+        tmp.write_text("done")
+        assert not target.exists()
+    assert target.read_text() == "done" and os.listdir(tmp_path) == ["result.txt"]
+    with pytest.raises(KeyboardInterrupt), writing_file(tmp_path / "cut.txt") as tmp:
+        tmp.write_text("half")
+        raise KeyboardInterrupt
+    assert os.listdir(tmp_path) == ["result.txt"]
+    with (pytest.raises(UserError, match="appeared while it was being written: it is kept"),
+          writing_file(tmp_path / "raced.txt") as tmp):
+        tmp.write_text("mine")
+        (tmp_path / "raced.txt").write_text("theirs")
+    assert (tmp_path / "raced.txt").read_text() == "theirs"
+    assert sorted(os.listdir(tmp_path)) == ["raced.txt", "result.txt"]
+    with pytest.raises(ValueError), writing_files(tmp_path / "a.csv", tmp_path / "b.csv") as (a, b):
+        a.write_text("a")
+        b.write_text("b")
+        raise ValueError("the second result failed")
+    assert sorted(os.listdir(tmp_path)) == ["raced.txt", "result.txt"]
+
+
+def test_a_results_folder_loses_only_what_the_failed_run_wrote(tmp_path) -> None:
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("the user's")
+    with pytest.raises(KeyboardInterrupt), writing_folder(kept, empty=False):
+        write_text(kept / "report.md", "# half a report")
+        raise KeyboardInterrupt
+    assert os.listdir(kept) == ["notes.txt"]
+    new = tmp_path / "a" / "b" / "new"
+    with pytest.raises(DataError), writing_folder(new):
+        write_json(new / "report.json", {"x": 1})
+        raise DataError("the last step failed")
+    assert sorted(os.listdir(tmp_path)) == ["kept"]
+
+
+def test_json_is_strict_with_non_finite_numbers_as_null(tmp_path) -> None:
+    path = write_json(tmp_path / "r.json", {"nan": float("nan"), "inf": np.float32("inf"), "n": np.int64(3),
+                                            "a": np.array([1.5, -np.inf]), "t": (1, float("-inf")), "p": tmp_path})
+    assert strict_json(path.read_text()) == {"nan": None, "inf": None, "n": 3, "a": [1.5, None], "t": [1, None],
+                                             "p": str(tmp_path)}
+
+
+def strict_json(text: str) -> object:
+    """``text`` parsed by a strict parser: NaN, Infinity and -Infinity are refused."""
+    def refuse(constant: str) -> object:
+        raise ValueError(f"not strict JSON: {constant}")
+    return json.loads(text, parse_constant=refuse)

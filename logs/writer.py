@@ -420,7 +420,7 @@ def salvage_folder(folder: Path) -> list[Path]:
             target = target.with_name(f"{target.stem}.recovered.mcap")
         try:
             recover(active, target)
-        except (DataError, UserError):  # nothing readable in it, or the target appeared meanwhile
+        except (DataError, UserError, OutputError):  # nothing readable, the target appeared, or a full disk
             continue
         active.unlink()
         recovered.append(target)

@@ -8,9 +8,9 @@ CompressedImage/Image: camera). Writes report.md, report.json and PNG plots into
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
+from trundle.logs.outputs import json_text
 from trundle.tools.config.arguments import finite, non_negative_int, positive, positive_int
 from trundle.tools.jobs.characterize import characterize_log
 from trundle.tools.jobs.sensor_report import markdown
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
                                stated_min=args.stated_min, stated_max=args.stated_max, bits=args.bits,
                                min_still_s=args.min_still)
     if args.json:
-        print(json.dumps(figures))
+        print(json_text(figures))
     elif args.output:
         print(f"wrote {args.output / 'report.md'}, {args.output / 'report.json'}")
     else:

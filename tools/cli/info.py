@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 from datetime import UTC, datetime
 
+from trundle.logs.outputs import json_text
 from trundle.logs.reader import LogReader
 from trundle.tools.jobs.info import as_dict
 
@@ -37,7 +37,7 @@ def _size(n: int) -> str:
 def run(args: argparse.Namespace) -> int:
     info = LogReader(args.file).info()
     if args.json:
-        print(json.dumps(as_dict(info), indent=2))
+        print(json_text(as_dict(info), indent=2))
         return 0 if info.message_count or info.complete else 1
     state = (
         "complete" if info.complete else f"INCOMPLETE: {info.error} (read what was intact; `trundle recover` fixes it)"

@@ -7,6 +7,9 @@
   and ``UsageError`` (the command line).
 - ``DataError``: input data that is corrupt or unusable (a damaged log, a file of the wrong
   format, a log without the messages a job needs).
+- ``OutputError``: an output could not be written (a read-only folder, a full disk, a quota): not
+  the user's mistake, said in one line naming the path and the cause, exit code 1; nothing
+  half-written is left behind (:mod:`trundle.logs.outputs`).
 - ``DeviceError``: a device failed: ``ProtocolError`` (it answered, but not as the protocol
   says) or ``TransportError`` (the port, socket or bus itself; ``PortBusyError``: another program
   holds the port).
@@ -35,6 +38,18 @@ class UsageError(UserError):
 
 class DataError(TrundleError):
     """Input data that is corrupt or unusable: a damaged log, a file of the wrong format."""
+
+
+class OutputError(TrundleError):
+    """An output could not be written (read-only folder, full disk, quota): names the path and the cause.
+
+    ``path`` is the file being written and ``cause`` the OSError, when known, so a writer of a
+    temporary file can say it again under the name the user gave."""
+
+    def __init__(self, message: str, path: str | None = None, cause: OSError | None = None) -> None:
+        super().__init__(message)
+        self.path = path
+        self.cause = cause
 
 
 class DeviceError(TrundleError):

@@ -25,6 +25,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from trundle.logs.outputs import json_text
+
 RECORD = "trundle"  # the MCAP metadata record's name
 WHEEL_KEYS = ("wheel_radius_m", "track_m", "wheels", "odometry_wheels", "wheel_variance_per_m")
 LASER_KEYS = ("laser_x_m", "laser_y_m", "laser_yaw_rad")
@@ -33,7 +35,7 @@ STRUCTURED = ("robot", "devices")
 
 def _text(value: object) -> str:
     """A metadata value as stored: strings as they are, anything else as JSON."""
-    return value if isinstance(value, str) else json.dumps(value, sort_keys=True, default=str)
+    return value if isinstance(value, str) else json_text(value, sort_keys=True)
 
 
 def encode(fields: Mapping[str, object]) -> dict[str, str]:

@@ -1,10 +1,12 @@
 """Paths a user gives, checked before use so a mistake is said for what it is: a missing file,
 a folder where a file belongs (or the reverse), a device such as ``/dev/zero`` that would be
-read forever, a binary file where text belongs, an output that would overwrite a result.
+read forever, a binary file where text belongs, an output that would overwrite a result or that
+a read-only folder would refuse.
 """
 
 from __future__ import annotations
 
+import errno
 import os
 import stat
 from pathlib import Path
@@ -59,6 +61,22 @@ def new_file(path: str | os.PathLike[str], what: str = "output") -> Path:
         raise UserError(f"{what} {path} is a folder: give a file name in it")
     if path.exists() or path.is_symlink():
         raise UserError(f"{what} {path} exists: give another name, or move it away (it is never overwritten)")
+    writable(path)
+    return path
+
+
+def writable(path: str | os.PathLike[str]) -> Path:
+    """``path``, a file or folder to write, if the folder it goes in (its nearest existing one) can
+    be written; a read-only or forbidden folder is an OutputError at once, before any work."""
+    from trundle.logs.outputs import output_error  # the owner of output failures
+
+    path = Path(path)
+    folder = path if path.is_dir() else path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):
+        cause = errno.EROFS if os.statvfs(folder).f_flag & os.ST_RDONLY else errno.EACCES
+        raise output_error(OSError(cause, os.strerror(cause), str(folder)), path)
     return path
 
 
@@ -82,6 +100,7 @@ def output_folder(path: str | os.PathLike[str], *, empty: bool = True, create: b
     if held and marker is None and empty:
         raise UserError(f"output folder {path} is not empty: give a new folder, or move its files away "
                         "(results are never overwritten)")
+    writable(path)
     if not create:
         return path
     try:
@@ -89,5 +108,9 @@ def output_folder(path: str | os.PathLike[str], *, empty: bool = True, create: b
         if marker is not None:
             (path / marker).touch()
     except OSError as error:
+        from trundle.logs.outputs import is_output_failure, output_error  # the owner of output failures
+
+        if is_output_failure(error):
+            raise output_error(error, path) from None
         raise UserError(f"cannot create the output folder {path}: {error.strerror or error}") from None
     return path

@@ -16,7 +16,7 @@ from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from trundle.logs.errors import DataError, UsageError
-from trundle.logs.paths import new_file
+from trundle.logs.outputs import writing_file
 from trundle.logs.reader import LogDamage, LogReader
 
 
@@ -59,17 +59,10 @@ def copy_log(src: str | os.PathLike[str], dst: str | os.PathLike[str], replace: 
     dst = Path(dst)
     if dst.resolve() == reader.path.resolve():
         raise UsageError("the output must be a different file from the input")
-    new_file(dst, "output log")
-    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
-    try:
+    with writing_file(dst, "output log") as tmp:
         count, channel_ids = _copy(reader, tmp, replace, metadata)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    if count == 0 and not channel_ids:
-        tmp.unlink()
-        raise DataError(f"nothing could be recovered from {src}: {reader.last_scan_error or 'no messages'}")
-    os.replace(tmp, dst)
+        if count == 0 and not channel_ids:
+            raise DataError(f"nothing could be recovered from {src}: {reader.last_scan_error or 'no messages'}")
     return RecoverResult(dst, count, reader.last_scan_corrupt_chunks, reader.last_scan_error, reader.last_damage)
 
 

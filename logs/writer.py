@@ -13,6 +13,7 @@ repeated at the start of every split. Each topic counts messages written and dro
 from __future__ import annotations
 
 import collections
+import contextlib
 import fcntl
 import glob
 import os
@@ -31,7 +32,8 @@ from trundle import __version__
 from trundle.logs import messages as m
 from trundle.logs import metadata as log_metadata
 from trundle.logs import ros2
-from trundle.logs.errors import DataError, UserError
+from trundle.logs.errors import DataError, OutputError, UserError
+from trundle.logs.outputs import PARTIAL_SUFFIX
 from trundle.logs.topics import TF_STATIC_TOPIC
 
 if TYPE_CHECKING:
@@ -59,7 +61,7 @@ CHUNK_INDEX_BYTES = 1 + 8 + 8 + 8 + 8 + 8 + 4 + 8 + 4 + 4 + 8 + 8  # + 10 per ch
 SUMMARY_FIXED_BYTES = 1024  # statistics, data end, summary offsets, metadata index, footer, magic
 
 
-class LoggerError(UserError):
+class LoggerError(OutputError):
     """The logger could not write (disk full, file size limit, permissions): it has stopped."""
 
 
@@ -129,7 +131,7 @@ class Logger:
         if compression not in COMPRESSION:
             raise UserError(f"unknown compression {compression!r} (choose zstd, lz4 or none)")
         self.base_path = Path(path)
-        if self.base_path.suffix != ".mcap":
+        if self.base_path.suffix not in (".mcap", PARTIAL_SUFFIX):  # a .partial is an output's temporary name
             self.base_path = self.base_path.with_name(self.base_path.name + ".mcap")
         if not self.base_path.parent.is_dir():
             raise UserError(f"output folder does not exist: {self.base_path.parent}")
@@ -300,7 +302,7 @@ class Logger:
     def _fail(self, error: OSError) -> None:
         where = self._file.active_path if self._file else self.base_path
         self.error = LoggerError(f"cannot write {where}: {error.strerror or error}; "
-                                 f"the file keeps what was flushed (trundle recover {where})")
+                                 f"the file keeps what was flushed (trundle recover {where})", str(where), error)
         self._file = None
 
     def _write_item(self, item: _Item) -> None:
@@ -382,11 +384,17 @@ class Logger:
         active = path.with_name(path.name + ACTIVE_SUFFIX)
         # exclusive: never truncates another writer's file; closed by _finish_file, not here
         stream = open(active, "xb")  # noqa: SIM115  the file outlives this method
-        fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # marks the file live for salvage_folder
-        writer = Writer(stream, chunk_size=self.chunk_size, compression=COMPRESSION[self.compression])
-        writer.start(profile="ros2", library=f"{LIBRARY_PREFIX}{__version__}")
-        writer.add_metadata(log_metadata.RECORD, self.metadata)
-        stream.flush()  # the header is on disk from the start: even an early kill leaves MCAP
+        try:
+            fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # marks the file live for salvage_folder
+            writer = Writer(stream, chunk_size=self.chunk_size, compression=COMPRESSION[self.compression])
+            writer.start(profile="ros2", library=f"{LIBRARY_PREFIX}{__version__}")
+            writer.add_metadata(log_metadata.RECORD, self.metadata)
+            stream.flush()  # the header is on disk from the start: even an early kill leaves MCAP
+        except BaseException:  # e.g. a full disk: no header, so nothing to recover; the empty file goes
+            with contextlib.suppress(OSError):
+                stream.close()
+            active.unlink(missing_ok=True)
+            raise
         self._file = _OpenFile(path, stream, writer)
 
     def _finish_file(self) -> None:
@@ -421,7 +429,7 @@ def salvage_folder(folder: Path) -> list[RecoverResult]:
             target = target.with_name(f"{target.stem}.recovered.mcap")
         try:
             result = recover(active, target)
-        except (DataError, UserError):  # nothing readable in it, or the target appeared meanwhile
+        except (DataError, UserError, OutputError):  # nothing readable, the target appeared, or a full disk
             continue
         active.unlink()
         recovered.append(result)

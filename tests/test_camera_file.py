@@ -302,7 +302,9 @@ def test_a_camera_not_plugged_in_is_waited_for_and_said(tmp_path: Path, capsys: 
         main(["record", "--camera", "v4l2:///dev/video-none", "--duration", "3", "-o", str(tmp_path / "x.mcap")]) == 1
     )
     err = capsys.readouterr().err.splitlines()
-    assert err[-1].startswith("trundle record: camera: recorded no frames: no camera at /dev/video-none (unplugged?")
+    assert err[-2].startswith("trundle record: camera: recorded no frames: no camera at /dev/video-none (unplugged?")
+    assert err[-1].startswith("trundle record: no device recorded anything: no log was kept")
+    assert not list(tmp_path.iterdir())
 
 
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -362,7 +362,7 @@ def test_command_errors_are_one_line(tmp_path, capsys, monkeypatch, log) -> None
     assert capsys.readouterr().err.startswith(f"trundle fleet: cannot reach the Ray cluster at 127.0.0.1:{port}: ")
     (tmp_path / "file").write_text("")
     assert main(["fleet", "info", str(log), "-o", str(tmp_path / "file")]) == 2
-    assert capsys.readouterr().err == f"trundle fleet: Not a directory: {tmp_path / 'file' / '.fleet'}\n"
+    assert capsys.readouterr().err == f"trundle fleet: output {tmp_path / 'file'} is a file, not a folder\n"
     import importlib.util
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real(name, *a))

@@ -18,7 +18,6 @@ import pytest
 from trundle.drivers.health import HealthReporter
 from trundle.drivers.lrf import driver_from_url
 from trundle.logs import messages as m
-from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
 from trundle.tools.config.toml_text import format_config
 from trundle.tools.emulators.device_server import DeviceServer
@@ -57,11 +56,12 @@ def test_record_says_why_a_device_gives_nothing(flags, cause, tmp_path, capsys):
     assert main(argv) == 1
     err = capsys.readouterr().err.splitlines()
     family = flags[0].lstrip("-")
-    assert len(err) == 2 and all(line.startswith(f"trundle record: {family}: ") for line in err), err
+    assert len(err) == 3 and all(line.startswith(f"trundle record: {family}: ") for line in err[:2]), err
     assert "ERROR: " in err[0] and cause in err[0]  # said while recording
     assert "recorded no " in err[1] and cause in err[1]  # and at the end, with the exit code
-    status = [x.msg for x in LogReader(tmp_path / "run.mcap").messages(["/diagnostics"])][-2].status[0]
-    assert status.level == m.ERROR and cause in status.message  # the same in the log
+    assert err[2] == (f"trundle record: no device recorded anything: no log was kept ({tmp_path / 'run.mcap'} "
+                      "not written)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]  # a log of diagnostics alone is not kept
 
 
 def test_replies_without_valid_scans_are_a_warning_naming_the_faults(tmp_path):

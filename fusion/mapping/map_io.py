@@ -21,6 +21,7 @@ from ruamel.yaml import YAML, YAMLError
 
 from trundle.logs.errors import DataError, UserError
 from trundle.logs.messages import OccupancyGrid
+from trundle.logs.outputs import encode_image, write_image, writing_file, writing_files
 from trundle.logs.paths import input_file, read_text
 
 OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.25
@@ -36,16 +37,18 @@ def map_image(grid: OccupancyGrid) -> np.ndarray:
     return image[::-1].copy()
 
 
-def save_map(grid: OccupancyGrid, base: str | os.PathLike[str]) -> tuple[Path, Path, Path]:
-    """Write ``base.pgm``, ``base.yaml`` (map_server) and ``base.png``; returns the three paths."""
+def save_map(grid: OccupancyGrid, base: str | os.PathLike[str], replace: bool = False) -> tuple[Path, Path, Path]:
+    """Write ``base.pgm``, ``base.yaml`` (map_server) and ``base.png``, the three or none
+    (:func:`trundle.logs.outputs.writing_files`; ``replace`` for a folder the command owns); returns them."""
     base = Path(base)
     image = map_image(grid)
     pgm, yaml, png = base.with_suffix(".pgm"), base.with_suffix(".yaml"), base.with_suffix(".png")
-    if not cv2.imwrite(str(pgm), image) or not cv2.imwrite(str(png), image):
-        raise UserError(f"cannot write map images next to {base}")
-    yaml.write_text(f"image: {pgm.name}\nmode: trinary\nresolution: {grid.resolution:.6g}\n"
-                    f"origin: [{grid.origin_x:.6g}, {grid.origin_y:.6g}, {grid.origin_theta:.6g}]\n"
-                    f"negate: 0\noccupied_thresh: {OCCUPIED_THRESH}\nfree_thresh: {FREE_THRESH}\n")
+    with writing_files(pgm, yaml, png, replace=replace) as (pgm_tmp, yaml_tmp, png_tmp):
+        pgm_tmp.write_bytes(encode_image(image, ".pgm", pgm))
+        png_tmp.write_bytes(encode_image(image, ".png", png))
+        yaml_tmp.write_text(f"image: {pgm.name}\nmode: trinary\nresolution: {grid.resolution:.6g}\n"
+                            f"origin: [{grid.origin_x:.6g}, {grid.origin_y:.6g}, {grid.origin_theta:.6g}]\n"
+                            f"negate: 0\noccupied_thresh: {OCCUPIED_THRESH}\nfree_thresh: {FREE_THRESH}\n")
     return pgm, yaml, png
 
 
@@ -100,9 +103,11 @@ def load_map(yaml_path: str | os.PathLike[str], stamp_ns: int = 0, frame_id: str
                          float(origin[2]) if len(origin) > 2 else 0.0, values[::-1])
 
 
-def write_trajectory_csv(path: str | os.PathLike[str], stamps_ns: np.ndarray, poses: np.ndarray) -> None:
-    """``t_ns,x,y,theta`` per row (metres, radians), header first."""
-    with open(path, "w", newline="") as f:
+def write_trajectory_csv(path: str | os.PathLike[str], stamps_ns: np.ndarray, poses: np.ndarray,
+                         replace: bool = False) -> None:
+    """``t_ns,x,y,theta`` per row (metres, radians), header first; a new file (``replace``: or one of
+    a folder the command owns), complete or not at all (:func:`trundle.logs.outputs.writing_file`)."""
+    with writing_file(path, replace=replace) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["t_ns", "x", "y", "theta"])
         for t, (x, y, theta) in zip(np.asarray(stamps_ns, np.int64), np.asarray(poses, np.float64), strict=True):
@@ -128,7 +133,16 @@ def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajector
                     loops: Sequence[tuple[np.ndarray, np.ndarray]] = (), min_size: int = 1000,
                     highlights: Sequence[np.ndarray] = (),
                     landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Path:
-    """PNG of the map with trajectories (each (N, 3), map frame) drawn over it, scaled up to ``min_size`` px.
+    """PNG of :func:`trajectory_image` at the new file ``path``; returns it."""
+    return write_image(path, trajectory_image(grid, trajectories, colours, loops, min_size, highlights, landmarks))
+
+
+def trajectory_image(grid: OccupancyGrid, trajectories: list[np.ndarray],
+                     colours: list[tuple[int, int, int]] | None = None,
+                     loops: Sequence[tuple[np.ndarray, np.ndarray]] = (), min_size: int = 1000,
+                     highlights: Sequence[np.ndarray] = (),
+                     landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """The map with trajectories (each (N, 3), map frame) drawn over it, scaled up to ``min_size`` px (BGR).
 
     ``colours`` are BGR per trajectory (default red, then blue, green); ``loops`` are pairs of
     positions drawn as thin lines (loop-closure constraints); ``highlights`` are stretches of path
@@ -188,10 +202,7 @@ def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajector
             cv2.drawMarker(image, (int(c[0]), int(c[1])), magenta, cv2.MARKER_CROSS, 4 * scale + 6, 1)
             cv2.putText(image, str(name), (int(c[0]) + 6, int(c[1]) - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4, magenta, 1,
                         cv2.LINE_AA)
-    path = Path(path)
-    if not cv2.imwrite(str(path), image):
-        raise UserError(f"cannot write {path}")
-    return path
+    return image
 
 
 def plot_scans(grid: OccupancyGrid, path: str | os.PathLike[str], points: list[np.ndarray],
@@ -215,19 +226,17 @@ def plot_scans(grid: OccupancyGrid, path: str | os.PathLike[str], points: list[n
                     0, 255).astype(np.uint8)
     image = cv2.cvtColor(shade, cv2.COLOR_GRAY2BGR)
     image[flagged] = (255, 0, 255)
-    path = Path(path)
-    if not cv2.imwrite(str(path), image[::-1]):
-        raise UserError(f"cannot write {path}")
-    return path
+    return write_image(path, image[::-1])
 
 
 LANDMARKS_HEADER = ["id", "x", "y", "sx", "sy"]
 
 
 def write_landmarks_csv(path: str | os.PathLike[str], ids: list[str], positions: np.ndarray,
-                        sigmas: np.ndarray) -> None:
-    """``id,x,y,sx,sy`` per landmark: map-frame position (m) and its standard deviations in x and y (m)."""
-    with open(path, "w", newline="") as f:
+                        sigmas: np.ndarray, replace: bool = False) -> None:
+    """``id,x,y,sx,sy`` per landmark: map-frame position (m) and its standard deviations in x and y (m);
+    a new file (``replace``: or one of a folder the command owns), complete or not at all."""
+    with writing_file(path, replace=replace) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(LANDMARKS_HEADER)
         for name, (x, y), (sx, sy) in zip(ids, np.asarray(positions, np.float64).reshape(-1, 2),

@@ -31,6 +31,7 @@ from trundle.fusion.optimization.levenberg_marquardt import (
 )
 from trundle.fusion.optimization.robust_kernels import check_kernel, robust_loss
 from trundle.logs.errors import UserError
+from trundle.logs.outputs import write_text
 
 
 class PoseGraph:
@@ -302,7 +303,7 @@ class PoseGraph:
             lines.append(f"EDGE_SE2 {i} {j} {numbers}")
         if self.fixed:
             lines.append("FIX " + " ".join(str(k) for k in sorted(self.fixed)))
-        Path(path).write_text("\n".join(lines) + "\n", encoding="ascii")
+        write_text(path, "\n".join(lines) + "\n", replace=True)
 
 
 read_g2o = PoseGraph.read_g2o

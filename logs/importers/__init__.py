@@ -15,6 +15,7 @@ from pathlib import Path
 
 from trundle.logs import messages as m
 from trundle.logs.errors import DataError, UsageError, UserError
+from trundle.logs.outputs import PARTIAL_SUFFIX
 from trundle.logs.paths import input_file
 from trundle.logs.topics import TF_STATIC_TOPIC
 from trundle.logs.writer import Logger
@@ -27,11 +28,13 @@ def write_log(items: Iterable[Item], out: str | os.PathLike[str], *, metadata: d
     """Write ``(topic, message, log_time_ns)`` items to the MCAP file ``out``; returns messages per topic.
 
     Waits for the logger's queue instead of dropping, so an import is always complete.
-    ``metadata`` is the log's description (:mod:`trundle.logs.metadata`).
+    ``metadata`` is the log's description (:mod:`trundle.logs.metadata`). ``out`` is written as
+    given: a command writes it through :func:`trundle.logs.outputs.writing_file` (whose temporary
+    name it may be), so a failure leaves nothing under the name the user gave.
     """
     out = Path(out)
-    if out.suffix != ".mcap":
-        raise UsageError(f"output must be an .mcap file, got {out}")
+    if out.suffix != PARTIAL_SUFFIX:
+        mcap_output(out)
     counts: dict[str, int] = {}
     logger = Logger(out, compression=compression, metadata=metadata, latched_topics=(TF_STATIC_TOPIC,), salvage=False)
     try:
@@ -46,6 +49,14 @@ def write_log(items: Iterable[Item], out: str | os.PathLike[str], *, metadata: d
     finally:
         logger.close()
     return counts
+
+
+def mcap_output(out: str | os.PathLike[str]) -> Path:
+    """``out`` as the name of an MCAP log to write; any other extension is a UsageError."""
+    out = Path(out)
+    if out.suffix != ".mcap":
+        raise UsageError(f"output must be an .mcap file, got {out}")
+    return out
 
 
 def open_text(path: str | os.PathLike[str]) -> list[str]:

@@ -17,7 +17,6 @@ Writes bench-results/can.json. Run: ``.venv/bin/python tools/bench/bench_can.py 
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
 import platform
@@ -38,6 +37,7 @@ import can  # noqa: E402
 
 from trundle.drivers import odrive  # noqa: E402
 from trundle.drivers.can_bus import CanBus  # noqa: E402
+from trundle.logs.outputs import write_json  # noqa: E402
 from trundle.logs.topics import CAN_RX_TOPIC, WHEELS_TOPIC  # noqa: E402
 
 PAYLOAD = struct.Struct("<II")  # sequence, send time (monotonic us, low 32 bits)
@@ -296,7 +296,7 @@ def main() -> int:
     print(f"  sent {d['sent']} ({d['frames_per_s']:.0f}/s), driver saw {d['driver_frames']}, lost {d['lost']}, "
           f"decode errors {d['decode_errors']}, joint states {d['joint_states']}, cpu {d['host_cpu_percent']:.0f}%")
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(results, indent=2))
+    write_json(args.output, results, replace=True)
     print(f"wrote {args.output}")
     return 0
 

@@ -21,7 +21,6 @@ Run: python tools/bench/bench_features.py [--repeat N] [--accuracy [--markdown d
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from functools import partial
 from pathlib import Path
@@ -29,6 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from trundle.logs.outputs import write_json
 from trundle.perception.feature_eval import corner_error, matching_score, repeatability
 from trundle.perception.features import METHODS, Features, available, detect_and_describe
 from trundle.perception.image_matching import match_features
@@ -205,7 +205,7 @@ def main() -> None:
     report.write("features", {k: v for k, v in figures.items() if k != "accuracy"})
     if args.accuracy:
         path = report.RESULTS / "features_accuracy.json"
-        path.write_text(json.dumps(figures["accuracy"], indent=1))
+        write_json(path, figures["accuracy"], indent=1, replace=True)
         print(f"wrote {path}")
 
 

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import platform
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+from trundle.logs.outputs import write_json
 
 RESULTS = Path("bench-results")
 
@@ -33,7 +34,7 @@ def write(name: str, figures: dict[str, Any]) -> Path:
     payload = {"benchmark": name, "machine": {"python": platform.python_version(), "cpu": platform.processor()
                                               or platform.machine()}, "figures": figures}
     path = RESULTS / f"{name}.json"
-    path.write_text(json.dumps(payload, indent=2))
+    write_json(path, payload, replace=True)
     width = max(map(len, figures), default=0)
     for key, value in figures.items():
         print(f"{key:<{width}}  {value:.4g}" if isinstance(value, float) else f"{key:<{width}}  {value}")

@@ -8,9 +8,9 @@ CompressedImage/Image: camera). Writes report.md, report.json and PNG plots into
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
+from trundle.logs.outputs import json_text
 from trundle.tools.cli.damage import say_damage
 from trundle.tools.config.arguments import finite, non_negative_int, positive, positive_int
 from trundle.tools.jobs.characterize import characterize_log
@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
                                min_still_s=args.min_still)
     say_damage(args, figures["log_damage"])
     if args.json:
-        print(json.dumps(figures))
+        print(json_text(figures))
     elif args.output:
         print(f"wrote {args.output / 'report.md'}, {args.output / 'report.json'}")
     else:

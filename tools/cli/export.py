@@ -3,18 +3,19 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import csv
 import dataclasses
-import json
 import sys
+from collections.abc import Iterable
+from typing import TextIO
 
 import numpy as np
 
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.outputs import json_text, writing_file
 from trundle.logs.paths import new_file
-from trundle.logs.reader import LogReader
+from trundle.logs.reader import LogMessage, LogReader
 from trundle.tools.cli.damage import say_damage
 
 
@@ -64,26 +65,39 @@ def flatten(msg: m.Message) -> dict[str, object]:
     return row
 
 
+def write_rows(items: Iterable[LogMessage], out: TextIO, form: str) -> int:
+    """Each message of ``items`` as one CSV row or NDJSON line on ``out``; returns how many."""
+    count = 0
+    writer = None
+    for item in items:
+        if form == "ndjson":
+            record = {"topic": item.topic, "log_time_ns": item.log_time_ns, **_plain_message(item.msg)}
+            out.write(json_text(record) + "\n")
+        else:
+            row = {"log_time_ns": item.log_time_ns, **flatten(item.msg)}
+            if writer is None:
+                writer = csv.DictWriter(out, fieldnames=list(row), extrasaction="ignore")
+                writer.writeheader()
+            writer.writerow(row)
+        count += 1
+    return count
+
+
 def run(args: argparse.Namespace) -> int:
+    """Write the topic's rows to ``-o`` (all of them or, on any failure, nothing) or to stdout."""
     reader = LogReader(args.file)
     if args.output:
         new_file(args.output, "-o")
     items = reader.messages([args.topic])
-    count = 0
-    with open(args.output, "w", newline="") if args.output else contextlib.nullcontext(sys.stdout) as out:
-        writer = None
-        for item in items:
-            if args.format == "ndjson":
-                record = {"topic": item.topic, "log_time_ns": item.log_time_ns, **_plain_message(item.msg)}
-                out.write(json.dumps(record) + "\n")
-            else:
-                row = {"log_time_ns": item.log_time_ns, **flatten(item.msg)}
-                if writer is None:
-                    writer = csv.DictWriter(out, fieldnames=list(row), extrasaction="ignore")
-                    writer.writeheader()
-                writer.writerow(row)
-            count += 1
+    empty = UserError(f"no messages on topic {args.topic} that trundle can decode")
+    if args.output:
+        with writing_file(args.output, "-o") as tmp, open(tmp, "w", newline="") as out:
+            count = write_rows(items, out, args.format)
+            if count == 0:
+                raise empty  # nothing is kept under -o
+    else:
+        count = write_rows(items, sys.stdout, args.format)
     say_damage(args, reader.last_damage)
     if count == 0:
-        raise UserError(f"no messages on topic {args.topic} that trundle can decode")
+        raise empty
     return 0

@@ -23,9 +23,11 @@ import numpy as np
 from trundle.fusion.mapping.map_io import write_landmarks_csv, write_trajectory_csv
 from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.logs.errors import UserError
+from trundle.logs.importers import mcap_output
 from trundle.logs.importers.breezyslam import import_breezyslam
 from trundle.logs.importers.carmen import ODOMETRY_SOURCES, choose_odometry, import_carmen, read_carmen, scan_poses
 from trundle.logs.importers.mrclam import ROBOT_SUBJECTS, import_mrclam
+from trundle.logs.outputs import writing_files
 from trundle.logs.paths import new_file
 from trundle.tools.config.arguments import finite, non_negative_int, number_in, positive
 
@@ -69,8 +71,13 @@ def _summary(counts: dict[str, int], output: Path) -> None:
     print(f"wrote {output}: {listing}")
 
 
+def _outputs(args: argparse.Namespace, *extra: Path | None) -> list[Path]:
+    """The log ``-o`` and the ``extra`` files asked for, written together (all or none, never half)."""
+    return [mcap_output(args.output), *(p for p in extra if p)]
+
+
 def run_carmen(args: argparse.Namespace) -> int:
-    new_file(args.output, "-o")
+    new_file(mcap_output(args.output), "-o")
     if args.reference:
         new_file(args.reference, "--reference")
     log = read_carmen(args.input)
@@ -84,10 +91,11 @@ def run_carmen(args: argparse.Namespace) -> int:
     else:
         odometry, description = choose_odometry(log, args.odometry)
         laser_odometry = None
-    counts = import_carmen(args.input, args.output, odometry=odometry, laser_odometry=laser_odometry,
-                           max_range_m=args.max_range, log=log, description=description)
-    if args.reference:
-        write_trajectory_csv(args.reference, stamps, poses)
+    with writing_files(*_outputs(args, args.reference)) as temps:
+        counts = import_carmen(args.input, temps[0], odometry=odometry, laser_odometry=laser_odometry,
+                               max_range_m=args.max_range, log=log, description=description)
+        if args.reference:
+            write_trajectory_csv(temps[1], stamps, poses)
     _summary(counts, args.output)
     print(f"odometry: {description}")
     if odometry == "none":
@@ -98,26 +106,30 @@ def run_carmen(args: argparse.Namespace) -> int:
 
 
 def run_breezyslam(args: argparse.Namespace) -> int:
-    new_file(args.output, "-o")
-    _summary(import_breezyslam(args.input, args.output), args.output)
+    new_file(mcap_output(args.output), "-o")
+    with writing_files(*_outputs(args)) as temps:
+        counts = import_breezyslam(args.input, temps[0])
+    _summary(counts, args.output)
     return 0
 
 
 def run_mrclam(args: argparse.Namespace) -> int:
-    new_file(args.output, "-o")
+    new_file(mcap_output(args.output), "-o")
     for option, path in (("--reference", args.reference), ("--landmarks-reference", args.landmarks_reference)):
         if path:
             new_file(path, option)
-    counts, run, dropped = import_mrclam(args.input, args.robot, args.output)
-    if args.reference:
-        if run.groundtruth is None or run.groundtruth_ns is None:
-            raise UserError(f"--reference: no Robot{args.robot}_Groundtruth.dat in {args.input}")
-        write_trajectory_csv(args.reference, run.groundtruth_ns, run.groundtruth)
-    if args.landmarks_reference:
-        surveyed = sorted(s for s in run.landmarks if s not in ROBOT_SUBJECTS)
-        write_landmarks_csv(args.landmarks_reference, [str(s) for s in surveyed],
-                            np.array([run.landmarks[s][:2] for s in surveyed]),
-                            np.array([run.landmarks[s][2:] for s in surveyed]))
+    with writing_files(*_outputs(args, args.reference, args.landmarks_reference)) as temps:
+        counts, run, dropped = import_mrclam(args.input, args.robot, temps[0])
+        extra = iter(temps[1:])
+        if args.reference:
+            if run.groundtruth is None or run.groundtruth_ns is None:
+                raise UserError(f"--reference: no Robot{args.robot}_Groundtruth.dat in {args.input}")
+            write_trajectory_csv(next(extra), run.groundtruth_ns, run.groundtruth)
+        if args.landmarks_reference:
+            surveyed = sorted(s for s in run.landmarks if s not in ROBOT_SUBJECTS)
+            write_landmarks_csv(next(extra), [str(s) for s in surveyed],
+                                np.array([run.landmarks[s][:2] for s in surveyed]),
+                                np.array([run.landmarks[s][2:] for s in surveyed]))
     _summary(counts, args.output)
     print(f"dropped {dropped['robot_sightings']} sightings of other robots and {dropped['unknown_barcodes']} of "
           f"barcodes not in Barcodes.dat")

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 from datetime import UTC, datetime
 
+from trundle.logs.outputs import json_text
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.damage import say_damage
 from trundle.tools.jobs.info import as_dict
@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     info = LogReader(args.file).info()
     say_damage(args, info.damage)
     if args.json:
-        print(json.dumps(as_dict(info), indent=2))
+        print(json_text(as_dict(info), indent=2))
         return 0 if info.message_count or info.complete else 1
     state = (
         "complete" if info.complete else "INCOMPLETE (read what was intact, see stderr; `trundle recover` fixes it)"

@@ -13,12 +13,12 @@ seconds after the first odometry reading. Faults (each option may be repeated):
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 
 from trundle.fusion.odometry.faults import OdometryFault, random_glitches
 from trundle.logs.errors import UserError
+from trundle.logs.outputs import json_text
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.damage import say_damage
 from trundle.tools.config.arguments import finite, non_negative_int, positive
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     report = inject_faults(args.log, args.output, faults_from_args(args, span_s), load_config(args.config))
     say_damage(args, report["log_damage"])
     if args.json:
-        print(json.dumps(report, indent=2))
+        print(json_text(report, indent=2))
         return 0
     for fault in report["faults"]:
         value = f" {math.degrees(fault['value']):+.1f} deg" if fault["kind"] == "heading_glitch" else (

@@ -13,11 +13,11 @@ localisation from two mapped landmarks, and kidnap recovery.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
+from trundle.logs.outputs import json_text
 from trundle.logs.paths import new_file
 from trundle.logs.topics import SCAN_TOPIC
 from trundle.tools.cli.damage import say_damage
@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
                           trajectory_csv=args.output, progress=Progress)
     say_damage(args, report["log_damage"])
     if args.json:
-        print(json.dumps(report, indent=2))
+        print(json_text(report, indent=2))
         return 0
     converged, kidnaps = report["converged_at_scans"], report["kidnaps_detected_at_scans"]
     first = f"converged at scan {converged[0] + 1}" if converged else "never converged"

@@ -5,7 +5,8 @@ Each command lives in ``tools/cli/<name>.py`` (``-`` in the name as ``_``; ``imp
 ``func`` to a callable taking the parsed arguments and returning the exit code. Only the module of
 the command being run is imported: ``trundle --help`` and ``trundle --version`` import none, so
 the command line starts at once. A user's mistake raises ``UserError`` (or an OSError about a
-path) and ends as one line on stderr with a non-zero exit code.
+path) and ends as one line on stderr with exit code 2; an output the disk refused (read-only,
+full: ``OutputError``) ends as one line with exit code 1.
 """
 
 from __future__ import annotations
@@ -16,9 +17,10 @@ import sys
 from typing import NoReturn
 
 from trundle import __version__
-from trundle.logs.errors import TrundleError
+from trundle.logs.errors import OutputError, TrundleError
 
 EXIT_USER_ERROR = 2
+EXIT_OUTPUT_ERROR = 1  # an output the disk refused (read-only, full): not the user's mistake
 
 # command -> one-line help; the order of `trundle --help`
 COMMANDS = {
@@ -80,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except TrundleError as error:
         print(f"trundle {args.command}: {error}", file=sys.stderr)
-        return EXIT_USER_ERROR
+        return EXIT_OUTPUT_ERROR if isinstance(error, OutputError) else EXIT_USER_ERROR
     except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as error:
         where = f": {error.filename}" if error.filename else ""
         print(f"trundle {args.command}: {error.strerror or error}{where}", file=sys.stderr)

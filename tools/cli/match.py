@@ -8,7 +8,6 @@ writes the two images side by side with inlier matches in green and rejected one
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import cv2
 import numpy as np
 
 from trundle.logs.errors import UserError
+from trundle.logs.outputs import json_text, write_image
 from trundle.logs.paths import input_file, new_file
 from trundle.perception.features import DESCRIPTORS, EDGES, METHODS, available
 from trundle.perception.image_matching import PairMatch, match_images
@@ -95,15 +95,10 @@ def run(args: argparse.Namespace) -> int:
                "descriptor": args.descriptor or (args.features if args.features in DESCRIPTORS else "sift"),
                **result.summary()}
     if out is not None:
-        try:
-            written = cv2.imwrite(str(out), draw(image1, image2, result))
-        except cv2.error as error:
-            raise UserError(f"cannot write picture {out}: {str(error).strip().splitlines()[-1]}") from None
-        if not written:
-            raise UserError(f"cannot write picture {out}")
+        write_image(out, draw(image1, image2, result))
         summary["picture"] = str(out)
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(json_text(summary, indent=2))
         return 0
     counts = ", ".join(f"{name} {n}" for name, n in summary["matches"].items())
     print(f"features:  {summary['features']} + {summary['descriptor']} descriptor ({summary['metric']})")

@@ -21,11 +21,11 @@ on its own. A summary (text, or one JSON object with ``--json``) ends the run.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
 from trundle.logs.errors import UserError
+from trundle.logs.outputs import json_text
 from trundle.tools.cli.damage import say_damage
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.arguments import non_negative, non_negative_int, number_in, positive, positive_int
@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
 def _print(summary: dict[str, Any], as_json: bool) -> None:
     """The job's summary as one JSON object, or as lines of text."""
     if as_json:
-        print(json.dumps(summary, indent=2))
+        print(json_text(summary, indent=2))
         return
     lines = [f"{summary['pipeline']} pipeline over {', '.join(summary['image_topics'])}",
              f"frames: {summary['frames']} processed, {summary['corrupt_messages']} corrupt messages skipped"]

@@ -23,10 +23,12 @@ from trundle.drivers.lifecycle import Driver, SignalFlag
 from trundle.drivers.serial_link import check_free
 from trundle.fusion.odometry.diff_drive import OdometrySink, odometry_from_config
 from trundle.logs import messages as m
-from trundle.logs.errors import PortBusyError, UserError
+from trundle.logs.errors import OutputError, PortBusyError, UserError
 from trundle.logs.frames import FrameTree
+from trundle.logs.outputs import is_output_failure, output_error
+from trundle.logs.paths import output_folder, writable
 from trundle.logs.topics import DIAGNOSTICS_TOPIC, TF_STATIC_TOPIC
-from trundle.logs.writer import Logger
+from trundle.logs.writer import Logger, LoggerError
 from trundle.tools.cli.damage import say_damage
 from trundle.tools.config.arguments import positive
 from trundle.tools.config.robot import Device, RobotConfig, load_config
@@ -94,6 +96,17 @@ class _Deferred:
         return self.target(topic, msg, log_time_ns)
 
 
+def _recorded_nothing(drivers: list[Driver]) -> bool:
+    """True when no device gave usable data: a log would hold diagnostics alone."""
+    return not any(d.counters[d.usable] for d in drivers)
+
+
+def _discard(paths: list[Path]) -> None:
+    """Remove the files of a recording that holds nothing recorded."""
+    for path in paths:
+        path.unlink(missing_ok=True)
+
+
 def say(text: str) -> None:
     print(f"trundle record: {text}", file=sys.stderr, flush=True)
 
@@ -116,15 +129,20 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"{device.family} {device.url}: {error}") from None
     for driver in drivers:
         check_free(driver.serial_port)
-    args.output.parent.mkdir(parents=True, exist_ok=True)  # the logger refuses to overwrite a recording
+    output_folder(writable(args.output).parent, empty=False)  # the logger refuses to overwrite a recording
     compression = args.compression or ("lz4" if any(d.family == "camera" for d in devices) else "zstd")
     metadata = {"command": "record", "robot": {"name": config.robot},
                 "devices": {d.name: {"family": d.family, "url": d.url, **d.options} for d in devices}}
     if config.source:
         metadata["config_file"] = config.source
-    logger = Logger(args.output, compression=compression,
-                    split_bytes=int(args.split_size * 1e6) if args.split_size else None,
-                    split_duration_s=args.split_duration, metadata=metadata)
+    try:
+        logger = Logger(args.output, compression=compression,
+                        split_bytes=int(args.split_size * 1e6) if args.split_size else None,
+                        split_duration_s=args.split_duration, metadata=metadata)
+    except OSError as error:
+        if is_output_failure(error):
+            raise output_error(error, args.output) from None
+        raise
     for damage in logger.salvage_damage:  # crash files of an earlier recording, recovered by the logger
         say_damage(args, damage)
     sink.target = logger
@@ -155,10 +173,21 @@ def run(args: argparse.Namespace) -> int:
         for driver in drivers:
             driver.stop()
         logger.write(DIAGNOSTICS_TOPIC, diagnostics(drivers))
-        logger.close()
+        try:
+            logger.close()
+        except LoggerError as error:
+            if not _recorded_nothing(drivers):
+                raise  # the .active keeps what was flushed: the message says how to recover it
+            _discard(logger.files + ([Path(error.path)] if error.path else []))
+            raise OutputError(f"cannot write {args.output}: "
+                              f"{error.cause.strerror if error.cause else error} (no device had recorded "
+                              "anything: nothing was kept)") from None
+    nothing = _recorded_nothing(drivers)
+    if nothing:  # a log of diagnostics alone is no recording: not kept (said below)
+        _discard(logger.files)
     if busy is not None:  # taken by another program after the check above
         raise busy
-    for path in logger.files:
+    for path in [] if nothing else logger.files:
         print(f"wrote {path}")
     for topic, counts in logger.stats_dict().items():
         print(f"  {topic:<24} written {counts['written']:>7}  dropped {counts['dropped']:>5}")
@@ -168,4 +197,6 @@ def run(args: argparse.Namespace) -> int:
     for driver in silent:
         why = driver.open_error or driver.silence_reason() or driver.last_error or "no data"
         say(f"{driver.name}: recorded no {driver.usable.replace('_', ' ')}: {why}")
+    if nothing:
+        say(f"no device recorded anything: no log was kept ({args.output} not written)")
     return 1 if silent else 0

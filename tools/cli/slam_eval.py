@@ -14,7 +14,6 @@ scored too, in the frame of the ATE alignment.
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import asdict
 from pathlib import Path
 
@@ -32,6 +31,7 @@ from trundle.fusion.evaluation.trajectory_errors import (
 )
 from trundle.fusion.mapping.map_io import read_landmarks_csv
 from trundle.logs.errors import UserError
+from trundle.logs.outputs import json_text
 from trundle.tools.config.arguments import non_negative, number_in, positive, positive_int
 
 MAX_TOLERANCE_MS = 86_400_000.0  # a day: pairing poses further apart than that compares nothing
@@ -130,5 +130,5 @@ def run(args: argparse.Namespace) -> int:
         mapped = read_landmarks_csv(Path(args.result).parent / "landmarks.csv")
         report["landmarks"] = asdict(landmark_error(mapped[0], mapped[1], reference[0], reference[1],
                                                     report["ate"]["alignment_xyt"]))
-    print(json.dumps(report, indent=2) if args.json else _text(report))
+    print(json_text(report, indent=2) if args.json else _text(report))
     return 0

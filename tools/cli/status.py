@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 from pathlib import Path
 
 from trundle.logs.errors import UserError
+from trundle.logs.outputs import json_text
 from trundle.tools.config.robot import default_socket_path, load_config
 from trundle.tools.daemon.status import format_status, query_status
 
@@ -52,5 +52,5 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"no trundle daemon status socket at {', '.join(map(str, candidates))} "
                             "(is the daemon running? give --config robot.toml or --socket)")
     status = query_status(path)
-    print(json.dumps(status, indent=2) if args.json else format_status(status))
+    print(json_text(status, indent=2) if args.json else format_status(status))
     return 0

@@ -5,7 +5,6 @@ reader) and the pictures of the run (trajectories over the map, marker detection
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import asdict
@@ -16,9 +15,9 @@ import cv2
 import numpy as np
 
 from trundle.fusion.evaluation.trajectory_errors import Trajectory, landmark_error, poses_at
-from trundle.fusion.mapping.map_io import plot_trajectory
+from trundle.fusion.mapping.map_io import trajectory_image
 from trundle.logs import messages as m
-from trundle.logs.errors import UserError
+from trundle.logs.outputs import write_image, write_json, write_text
 from trundle.logs.reader import LogReader, damage_dict
 from trundle.logs.topics import DIAGNOSTICS_TOPIC, IMAGE_TOPIC
 from trundle.perception.images import decode_image
@@ -295,18 +294,10 @@ def report_markdown(report: dict[str, Any]) -> str:
 
 
 def write_report(out: Path, report: dict[str, Any]) -> None:
-    """Write ``report`` to ``out/report.json`` and, for a reader, ``out/report.md``."""
-    (out / "report.json").write_text(json.dumps(report, indent=1, default=_json_default) + "\n")
-    (out / "report.md").write_text(report_markdown(report))
-
-
-def _json_default(value: Any) -> Any:
-    """NumPy scalars and arrays as the JSON values they hold (``json.dumps`` knows no NumPy)."""
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"{type(value).__name__} is not JSON")
+    """Write ``report`` to ``out/report.json`` (strict JSON: a figure that is not a number is null)
+    and, for a reader, ``out/report.md``; both replace the demo's earlier ones."""
+    write_json(out / "report.json", report, indent=1, replace=True)
+    write_text(out / "report.md", report_markdown(report), replace=True)
 
 
 # ---------------------------------------------------------------------------------- pictures
@@ -319,11 +310,8 @@ def plot_run(grid: m.OccupancyGrid, path: Path, truth: np.ndarray, estimate: np.
              landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Path:
     """The trajectory-over-map plot (map frame): ground truth, SLAM estimate, wheel odometry and the
     mapped markers (landmarks with their 3-sigma ellipses), with a legend."""
-    plot_trajectory(grid, path, [truth, odometry, estimate], colours=[TRUTH_BGR, ODOMETRY_BGR, SLAM_BGR], loops=loops,
-                    landmarks=landmarks)
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise UserError(f"cannot read back {path}")
+    image = trajectory_image(grid, [truth, odometry, estimate], colours=[TRUTH_BGR, ODOMETRY_BGR, SLAM_BGR],
+                             loops=loops, landmarks=landmarks)
     scale = max(1.0, image.shape[1] / 1000.0)
     entries = [("ground truth (simulator)", TRUTH_BGR), ("wheel odometry", ODOMETRY_BGR), ("SLAM estimate", SLAM_BGR),
                ("loop closure", (0, 200, 0))] + ([("marker (landmark, 3 sigma)", (200, 0, 200))] if landmarks else [])
@@ -333,9 +321,7 @@ def plot_run(grid: m.OccupancyGrid, path: Path, truth: np.ndarray, estimate: np.
         cv2.line(image, (int(10 * scale), mid), (int(40 * scale), mid), colour, max(2, int(2 * scale)))
         cv2.putText(image, text, (int(48 * scale), y), cv2.FONT_HERSHEY_SIMPLEX, 0.5 * scale, (40, 40, 40),
                     max(1, int(scale)), cv2.LINE_AA)
-    if not cv2.imwrite(str(path), image):
-        raise UserError(f"cannot write {path}")
-    return path
+    return write_image(path, image, replace=True)
 
 
 def draw_detections(log: Path, score: MarkerScore, frames: Trajectory, world: World, mount: Mount, path: Path
@@ -369,6 +355,4 @@ def draw_detections(log: Path, score: MarkerScore, frames: Trajectory, world: Wo
             at = (int(np.clip(x - 40, 2, max(image.shape[1] - width - 4, 2))), int(max(14, y - 20)))
             cv2.putText(image, text, at, cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
             cv2.putText(image, text, at, cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
-    if not cv2.imwrite(str(path), image):
-        raise UserError(f"cannot write {path}")
-    return path
+    return write_image(path, image, replace=True)

@@ -40,6 +40,7 @@ import numpy as np
 from trundle.fusion.geometry import compose, inverse
 from trundle.fusion.mapping.map_io import save_map, write_trajectory_csv
 from trundle.logs.errors import UserError
+from trundle.logs.outputs import write_text
 from trundle.logs.paths import output_folder
 from trundle.tools.config.toml_text import format_config
 from trundle.tools.daemon.status import query_status
@@ -169,9 +170,9 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
             devices.t0_ns = time.time_ns() + int(3600e9)  # the robot waits at its start for the daemon
             frame_times = FrameTimes(devices)
             calibration = out / "camera.yaml"
-            calibration.write_text(devices.camera.calibration_yaml("trundle_demo"))
+            write_text(calibration, devices.camera.calibration_yaml("trundle_demo"), replace=True)
             config = out / "robot.toml"
-            config.write_text(format_config(daemon_config(devices, folder, socket_path, calibration)))
+            write_text(config, format_config(daemon_config(devices, folder, socket_path, calibration)), replace=True)
             say(f"emulators up: laser {devices.urls['lrf']}, encoders {devices.urls['can']}, "
                 f"camera {devices.urls['camera']}")
             daemon_log = out / "daemon.log"
@@ -288,8 +289,9 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     sim = RobotSim(world, seed=settings.seed)
     say("[1/4] recording: world simulator -> device emulators -> trundle daemon -> log")
     recording = record(out, sim, settings, say, progress)
-    write_trajectory_csv(out / "ground_truth.csv", recording.scans.stamps_ns, recording.scans.poses)
-    write_trajectory_csv(out / "frames_ground_truth.csv", recording.frames.stamps_ns, recording.frames.poses)
+    write_trajectory_csv(out / "ground_truth.csv", recording.scans.stamps_ns, recording.scans.poses, replace=True)
+    write_trajectory_csv(out / "frames_ground_truth.csv", recording.frames.stamps_ns, recording.frames.poses,
+                         replace=True)
     seconds = {"record": time.monotonic() - started}
     say(f"[2/4] SLAM: replaying {len(recording.scans)} scans, the wheel encoders and the daemon's marker sightings "
         f"of {recording.log.name}, and again without the markers")
@@ -308,11 +310,11 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     seconds["markers"] = time.monotonic() - t
     say("[4/4] report")
     report = build_report(settings.as_json(), recording, run, score, world, seconds, plain)
-    save_map(run.grid, out / "map")
-    write_trajectory_csv(out / "trajectory.csv", run.trajectory.stamps_ns, run.trajectory.poses)
+    save_map(run.grid, out / "map", replace=True)
+    write_trajectory_csv(out / "trajectory.csv", run.trajectory.stamps_ns, run.trajectory.poses, replace=True)
     map_from_world = inverse(np.array(report["trajectory"]["ate"]["alignment_xyt"]))
     keyframes = run.slam.keyframe_poses()
-    write_landmarks(out / "landmarks.csv", mapped)
+    write_landmarks(out / "landmarks.csv", mapped, replace=True)
     plot_run(run.grid, out / "trajectory.png", compose(map_from_world, recording.scans.poses), run.trajectory.poses,
              run.odometry.poses, [(keyframes[i], keyframes[j]) for i, j in run.slam.loop_edges()],
              (mapped.ids, mapped.positions, mapped.covariances))

@@ -8,21 +8,20 @@ mixing integers and floats), or text (anything else).
 from __future__ import annotations
 
 import csv
-import json
-import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from trundle import __version__
+from trundle.logs.outputs import write_json, writing_file
 from trundle.tools.fleet.rows import columns
 
 
 def _replace(path: Path, write: Any) -> Path:
-    """Write ``path`` through a temporary file renamed over it, so a reader never sees half a table."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    write(tmp)
-    os.replace(tmp, path)
+    """Write ``path`` (the run's own, replaced each run) through a temporary file, so a reader never
+    sees half a table (:func:`trundle.logs.outputs.writing_file`)."""
+    with writing_file(path, replace=True) as tmp:
+        write(tmp)
     return path
 
 
@@ -73,5 +72,4 @@ def write_parquet(rows: Sequence[Mapping[str, Any]], path: Path) -> Path | None:
 
 def write_run(figures: Mapping[str, Any], path: Path) -> Path:
     """The run's own figures (job, options, counts, seconds, CPUs, logs per minute) as JSON."""
-    return _replace(path, lambda tmp: tmp.write_text(json.dumps({**figures, "trundle_version": __version__},
-                                                                indent=2, default=str)))
+    return write_json(path, {**figures, "trundle_version": __version__}, replace=True)

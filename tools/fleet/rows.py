@@ -6,10 +6,11 @@ so a figure a job adds to its report is a column with no change here. Lists beco
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping
 from typing import Any
+
+from trundle.logs.outputs import json_text
 
 STATUSES = ("ok", "failed", "skipped", "cancelled")
 COLUMNS = ("log", "name", "status", "error", "seconds", "cpu_seconds", "size_bytes", "sha256", "robot",
@@ -35,7 +36,7 @@ def _scalar(value: Any) -> Any:
         return value
     if isinstance(value, float):
         return value if math.isfinite(value) else None
-    return json.dumps(value, default=str)
+    return json_text(value)
 
 
 def flatten(report: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

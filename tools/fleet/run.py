@@ -17,6 +17,8 @@ from pathlib import Path
 from typing import Any
 
 from trundle.logs.errors import UserError
+from trundle.logs.outputs import is_output_failure, output_error
+from trundle.logs.paths import output_folder
 from trundle.tools.fleet.cluster import Cluster
 from trundle.tools.fleet.inputs import expand, folder_names
 from trundle.tools.fleet.jobs import options_key
@@ -50,9 +52,15 @@ class FleetRun:
 @contextmanager
 def _lock(output: Path) -> Iterator[None]:
     """Hold OUT/.fleet/lock for the run, so two runs never write one output folder."""
-    state = output / STATE
-    state.mkdir(parents=True, exist_ok=True)
-    with open(state / "lock", "w") as f:
+    state = output_folder(output, empty=False) / STATE
+    try:
+        state.mkdir(exist_ok=True)
+        lock = open(state / "lock", "w")  # noqa: SIM115  held by the with below
+    except OSError as error:
+        if is_output_failure(error):
+            raise output_error(error, state) from None
+        raise
+    with lock as f:
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:

@@ -16,6 +16,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from trundle.logs.outputs import save_figure, write_text
 from trundle.tools.fleet.rows import COLUMNS, columns
 
 PREFERRED = {
@@ -90,7 +91,7 @@ def plot(job: str, rows: Sequence[Mapping[str, Any]], path: Path) -> Path | None
         axes[0, 0].legend(fontsize=7, loc="best", title="robot", title_fontsize=7)
     fig.autofmt_xdate()
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100, replace=True)
     plt.close(fig)
     return path
 
@@ -150,5 +151,5 @@ def write_summary(job: str, rows: Sequence[Mapping[str, Any]], run: Mapping[str,
     """Write ``summary.md`` (and ``summary.png`` when there are figures to plot) into ``folder``."""
     picture = plot(job, [r for r in rows if r["status"] in ("ok", "skipped")], folder / "summary.png")
     page = folder / "summary.md"
-    page.write_text(markdown(job, rows, run, picture.name if picture else None))
+    write_text(page, markdown(job, rows, run, picture.name if picture else None), replace=True)
     return [page] + ([picture] if picture else [])

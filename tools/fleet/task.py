@@ -10,6 +10,7 @@ worker was lost.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import shutil
@@ -22,7 +23,8 @@ from pathlib import Path
 from typing import Any
 
 from trundle import __version__
-from trundle.logs.errors import TrundleError, UserError
+from trundle.logs.errors import OutputError, TrundleError, UserError
+from trundle.logs.outputs import write_json, write_text
 from trundle.logs.reader import LogReader
 from trundle.tools.fleet.inputs import identity, local_copy
 from trundle.tools.fleet.jobs import REPORT, run_job
@@ -112,17 +114,16 @@ def process_log(task: Task) -> dict[str, Any]:
         with local_copy(task.source) as path:
             digest = sha256(path)
             if not task.force and done and done.get("key") == task.key and done.get("sha256") == digest:
-                (task.folder / MARKER).write_text(json.dumps({**done, "identity": fingerprint}, indent=2))
+                write_json(task.folder / MARKER, {**done, "identity": fingerprint}, replace=True)
                 return {**done["row"], "status": "skipped"}
             row.update(size_bytes=path.stat().st_size, sha256=digest, **_log_columns(path, task.source))
             report = run_job(task.job, path, work, task.options)
         row.update(status="ok", seconds=time.perf_counter() - started, cpu_seconds=time.process_time() - cpu_started,
                    **flatten(report))
         if not (work / REPORT).exists():
-            (work / REPORT).write_text(json.dumps(report, indent=2, default=str))
-        (work / MARKER).write_text(json.dumps({"key": task.key, "identity": fingerprint, "sha256": digest,
-                                               "job": task.job, "options": task.options, "version": __version__,
-                                               "row": row}, indent=2, default=str))
+            write_json(work / REPORT, report)
+        write_json(work / MARKER, {"key": task.key, "identity": fingerprint, "sha256": digest, "job": task.job,
+                                   "options": task.options, "version": __version__, "row": row})
         _install(work, task.folder)
         task.error_file.unlink(missing_ok=True)
         return row
@@ -130,8 +131,9 @@ def process_log(task: Task) -> dict[str, Any]:
         row.update(seconds=time.perf_counter() - started, cpu_seconds=time.process_time() - cpu_started,
                    error=one_line(str(error) if isinstance(error, TrundleError)
                                   else f"{type(error).__name__}: {error}"))
-        task.error_file.parent.mkdir(parents=True, exist_ok=True)
-        task.error_file.write_text(f"{task.source}\n{traceback.format_exc()}")
+        with contextlib.suppress(OSError, OutputError):  # a full disk: the row holds the error all the same
+            task.error_file.parent.mkdir(parents=True, exist_ok=True)
+            write_text(task.error_file, f"{task.source}\n{traceback.format_exc()}", replace=True)
         return row
     finally:
         shutil.rmtree(work, ignore_errors=True)

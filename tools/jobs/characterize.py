@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 from pathlib import Path
 from typing import Any, cast
 
@@ -16,6 +15,7 @@ import numpy as np
 
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
+from trundle.logs.outputs import plain, write_json, write_text, writing_folder
 from trundle.logs.paths import output_folder, read_text
 from trundle.logs.reader import LogReader, damage_dict
 from trundle.tools.jobs.sensor_figures import characterize_camera, characterize_encoders, characterize_laser
@@ -45,19 +45,6 @@ def read_reference(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def constant_reference(stamps_ns: np.ndarray, value: float) -> tuple[np.ndarray, np.ndarray]:
     """A reference that is ``value`` at every one of ``stamps_ns`` (a target at a known, fixed distance)."""
     return np.asarray(stamps_ns, np.int64), np.full(len(stamps_ns), float(value))
-
-
-def _jsonable(value: Any) -> Any:
-    """``value`` with numpy scalars as Python numbers and non-finite floats as None (JSON null)."""
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    if isinstance(value, np.generic):
-        return _jsonable(value.item())
-    return value
 
 
 def characterize_log(log: str | Path, topic: str, output: Path | None = None, reference: Path | float | None = None,
@@ -99,10 +86,10 @@ def characterize_log(log: str | Path, topic: str, output: Path | None = None, re
         figures, plots = characterize_camera(np.array([x.stamp_ns for x in msgs], np.int64))
     else:
         raise UserError(f"{topic} carries {info.topics[topic].ros_type}: not a laser, encoder or camera topic")
-    figures = {**_jsonable(figures), "log_damage": damage}
+    figures = {**plain(figures), "log_damage": damage}
     if output:
-        output_folder(output, empty=False)
-        names = write_plots(output, plots)
-        (output / "report.json").write_text(json.dumps(figures, indent=2))
-        (output / "report.md").write_text(markdown(figures, topic, names))
+        with writing_folder(output, empty=False):  # every file or, on any failure, none
+            names = write_plots(output, plots)
+            write_json(output / "report.json", figures)
+            write_text(output / "report.md", markdown(figures, topic, names))
     return figures

@@ -11,7 +11,6 @@ wheel angles comes from the config's ``[odometry]`` table or the log (as for ``t
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 from typing import Any, cast
 
@@ -21,6 +20,7 @@ from trundle.fusion.odometry.faults import OdometryFault, dropped, faulty_poses,
 from trundle.logs import messages as m
 from trundle.logs import ros2
 from trundle.logs.errors import UsageError, UserError
+from trundle.logs.outputs import json_text
 from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader, damage_dict
 from trundle.logs.recover import copy_log
@@ -74,7 +74,7 @@ def inject_faults(log: Path, output: Path, faults: list[OdometryFault],
     def replace(topic: str, schema: str, log_time_ns: int, data: bytes) -> bytes | None:
         return replacements.get((topic, log_time_ns, bytes(data)), data)
 
-    records = {"faults": {"faults": json.dumps([f.as_dict() for f in faults]), "source": str(log),
+    records = {"faults": {"faults": json_text([f.as_dict() for f in faults]), "source": str(log),
                           "start_ns": str(start_ns)}}
     copy_log(log, output, replace, records)
     return {"log": str(log), "log_damage": damage_dict(reader.last_damage), "output": str(output),

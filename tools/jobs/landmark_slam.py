@@ -17,7 +17,6 @@ MarkerArray: a cylinder per landmark, its id as text).
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -35,6 +34,7 @@ from trundle.logs import messages as m
 from trundle.logs.errors import DataError, UsageError, UserError
 from trundle.logs.frames import BASE_FRAME, FrameTree
 from trundle.logs.importers import write_log
+from trundle.logs.outputs import write_json, writing_file, writing_folder
 from trundle.logs.paths import output_folder
 from trundle.logs.reader import LogInfo, LogReader, damage_dict
 from trundle.logs.topics import LANDMARK_MAP_TOPIC, LANDMARK_TOPIC, MAP_TOPIC, ODOM_TOPIC, PATH_TOPIC, TF_TOPIC
@@ -132,18 +132,11 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
     grid = _map(scans, stamps, poses, landmarks)
     end_ns = int(stamps.max())
     map_msg = grid.to_message(end_ns, "map")
-    output_folder(output)
-    save_map(map_msg, output / "map")
-    write_trajectory_csv(output / "trajectory.csv", stamps, poses)
-    write_landmarks(output / "landmarks.csv", landmarks)
-    plot_trajectory(map_msg, output / "trajectory.png", [poses],
-                    landmarks=(landmarks.ids, landmarks.positions, landmarks.covariances))
     items: list[tuple[str, m.Message, int]] = [(TF_TOPIC, tf, t)
                                                for tf, t in _map_to_odom(stamps, poses, odometry, sighting_stamps)]
     kept = _every(stamps, PATH_PERIOD_NS)
     items += [(MAP_TOPIC, map_msg, end_ns), (PATH_TOPIC, m.Path(end_ns, "map", stamps[kept], poses[kept]), end_ns),
               (LANDMARK_MAP_TOPIC, landmark_markers(landmarks, end_ns), end_ns)]
-    write_log(items, output / "slam.mcap", metadata={"command": "slam", "source": str(log), "estimator": estimator})
     duration = info.duration_s
     report = {
         "log": str(log), "log_damage": damage_dict(reader.last_damage),
@@ -156,7 +149,15 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
         "path_length_m": float(np.sum(np.hypot(*np.diff(poses[:, :2], axis=0).T))) if len(poses) > 1 else 0.0,
         "map": {"resolution": float(map_msg.resolution), "width": map_msg.width, "height": map_msg.height},
     }
-    (output / "report.json").write_text(json.dumps(report, indent=2, default=float))
+    with writing_folder(output):  # every file or, on any failure, none
+        save_map(map_msg, output / "map")
+        write_trajectory_csv(output / "trajectory.csv", stamps, poses)
+        write_landmarks(output / "landmarks.csv", landmarks)
+        plot_trajectory(map_msg, output / "trajectory.png", [poses],
+                        landmarks=(landmarks.ids, landmarks.positions, landmarks.covariances))
+        with writing_file(output / "slam.mcap") as tmp:
+            write_log(items, tmp, metadata={"command": "slam", "source": str(log), "estimator": estimator})
+        write_json(output / "report.json", report)
     return report
 
 
@@ -208,10 +209,11 @@ def _map_to_odom(stamps: np.ndarray, poses: np.ndarray, odometry: list[tuple[int
     return out
 
 
-def write_landmarks(path: Path, landmarks: LandmarkMap) -> None:
-    """``landmarks.csv``: id, map position and the standard deviations of x and y (m)."""
+def write_landmarks(path: Path, landmarks: LandmarkMap, replace: bool = False) -> None:
+    """``landmarks.csv``: id, map position and the standard deviations of x and y (m) (``replace``: in a
+    folder the command owns)."""
     sigmas = np.sqrt(np.maximum(np.nan_to_num(np.diagonal(landmarks.covariances, axis1=1, axis2=2)), 0.0))
-    write_landmarks_csv(path, landmarks.ids, landmarks.positions, sigmas.reshape(-1, 2))
+    write_landmarks_csv(path, landmarks.ids, landmarks.positions, sigmas.reshape(-1, 2), replace)
 
 
 def landmark_markers(landmarks: LandmarkMap, stamp_ns: int) -> m.SceneMarkers:

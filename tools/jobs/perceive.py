@@ -11,7 +11,6 @@ corrupt message or image is counted and skipped, never fatal.
 from __future__ import annotations
 
 import collections
-import json
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -22,6 +21,7 @@ import numpy as np
 from trundle.logs import messages as m
 from trundle.logs import ros2
 from trundle.logs.errors import UserError
+from trundle.logs.outputs import json_text, writing_file
 from trundle.logs.paths import new_file
 from trundle.logs.reader import LogReader, damage_dict
 from trundle.logs.topics import TF_STATIC_TOPIC
@@ -63,7 +63,8 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
     JSON in the output's ``perceive`` metadata; ``progress`` shows the messages done. Returns the
     summary: what the log's damage skipped (``log_damage``, None when intact), frames, corrupt
     messages, detections per frame, the pipeline's totals and the messages written per topic.
-    Outputs that overwrite the input are a UserError.
+    Outputs that overwrite the input are a UserError; on any failure (Ctrl-C included) nothing is
+    left under ``output`` (:func:`trundle.logs.outputs.writing_file`).
     """
     if pipeline not in PIPELINES:
         raise UserError(f"unknown pipeline {pipeline!r} (choose from {', '.join(PIPELINES)})")
@@ -87,8 +88,8 @@ def perceive_log(log: Path, output: Path, pipeline: str, options: Mapping[str, A
     frames, per_frame = 0, []
     corrupt: collections.Counter[str] = collections.Counter()
     bar = progress("perceive", sum(info.topics[t].count for t in topics))
-    metadata = {"perceive": json.dumps(dict(provenance or {}), default=str)}
-    with Logger(output, salvage=False, metadata=metadata) as logger:
+    metadata = {"perceive": json_text(dict(provenance or {}))}
+    with writing_file(output) as tmp, Logger(tmp, salvage=False, metadata=metadata) as logger:
         def write(topic: str, ros_type: str, data: bytes, log_time_ns: int) -> None:
             """Queue one encoded message, waiting while the logger is behind (so none is dropped)."""
             while logger.queue_length >= MAX_QUEUED and logger.error is None:

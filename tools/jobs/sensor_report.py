@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from trundle.logs.outputs import save_figure
+
 
 def write_plots(folder: Path, plots: dict[str, Any]) -> list[str]:
     """The PNGs of ``plots`` (per-beam noise, sensitivity) in ``folder``; returns their file names."""
@@ -28,7 +30,7 @@ def write_plots(folder: Path, plots: dict[str, Any]) -> list[str]:
                title="Per-beam noise while standing still")
         ax.legend(loc="upper right")
         fig.tight_layout()
-        fig.savefig(folder / "beam_noise.png", dpi=110)
+        save_figure(fig, folder / "beam_noise.png", dpi=110)
         plt.close(fig)
         names.append("beam_noise.png")
     if "sensitivity" in plots:
@@ -41,7 +43,7 @@ def write_plots(folder: Path, plots: dict[str, Any]) -> list[str]:
         ax.plot(lim, lim, "k--", lw=0.8)
         ax.set(xlabel="true value (m)", ylabel="measured (m)", title="Sensitivity")
         fig.tight_layout()
-        fig.savefig(folder / "sensitivity.png", dpi=110)
+        save_figure(fig, folder / "sensitivity.png", dpi=110)
         plt.close(fig)
         names.append("sensitivity.png")
     return names

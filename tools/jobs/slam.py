@@ -17,7 +17,6 @@ the laser mount of the log's ``/tf_static``.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -33,6 +32,7 @@ from trundle.fusion.slam.stats import summary
 from trundle.logs import messages as m
 from trundle.logs.errors import UsageError, UserError
 from trundle.logs.importers import write_log
+from trundle.logs.outputs import write_json, writing_file, writing_folder
 from trundle.logs.paths import output_folder
 from trundle.logs.reader import LogReader, damage_dict
 from trundle.logs.topics import LANDMARK_MAP_TOPIC, MAP_TOPIC, PATH_TOPIC, TF_TOPIC
@@ -107,26 +107,16 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
         raise UserError(f"{log}: no scans on {slam_config.scan.topic}")
 
     stamps, poses = slam.trajectory()
-    output_folder(output)
     end_ns = int(stamps.max())
     map_msg = grid.to_message(end_ns, "map")
-    save_map(map_msg, output / "map")
-    write_trajectory_csv(output / "trajectory.csv", stamps, poses)
     keyframes = slam.keyframe_poses()
     loops = [(keyframes[i], keyframes[j]) for i, j in slam.loop_edges()]
     check = slam.check_map()
     landmarks = slam.landmarks()
     drawn = None if landmarks is None else (landmarks.ids, landmarks.positions, landmarks.covariances)
-    plot_trajectory(map_msg, output / "trajectory.png", [poses], loops=loops,
-                    highlights=[slam.keyframe_scans(a, b) for a, b in check.stretches], landmarks=drawn)
-    plot_scans(map_msg, output / "scans.png", slam.keyframe_endpoints(), check.keyframe_consistency < 0.5)
     path_msg = m.Path(end_ns, "map", stamps, poses)
     extra: list[tuple[str, m.Message, int]] = (
         [] if landmarks is None else [(LANDMARK_MAP_TOPIC, landmark_markers(landmarks, end_ns), end_ns)])
-    write_log(transforms + [(MAP_TOPIC, map_msg, end_ns), (PATH_TOPIC, path_msg, end_ns)] + extra, output / "slam.mcap",
-              metadata={"command": "slam", "source": str(log)})
-    if landmarks is not None:
-        write_landmarks(output / "landmarks.csv", landmarks)
 
     counts = slam.report()
     landmark_counts = counts.pop("landmarks", None)
@@ -145,5 +135,16 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     }
     if landmarks is not None:
         report["landmarks"] = {"topic": topic, "mapped": len(landmarks.ids), **landmark_counts}
-    (output / "report.json").write_text(json.dumps(report, indent=2, default=float))
+    with writing_folder(output):  # every file or, on any failure, none
+        save_map(map_msg, output / "map")
+        write_trajectory_csv(output / "trajectory.csv", stamps, poses)
+        plot_trajectory(map_msg, output / "trajectory.png", [poses], loops=loops,
+                        highlights=[slam.keyframe_scans(a, b) for a, b in check.stretches], landmarks=drawn)
+        plot_scans(map_msg, output / "scans.png", slam.keyframe_endpoints(), check.keyframe_consistency < 0.5)
+        with writing_file(output / "slam.mcap") as tmp:
+            write_log(transforms + [(MAP_TOPIC, map_msg, end_ns), (PATH_TOPIC, path_msg, end_ns)] + extra, tmp,
+                      metadata={"command": "slam", "source": str(log)})
+        if landmarks is not None:
+            write_landmarks(output / "landmarks.csv", landmarks)
+        write_json(output / "report.json", report)
     return report

@@ -6,6 +6,7 @@ import argparse
 import json
 from datetime import UTC, datetime
 
+from trundle.logs.locks import writer_of
 from trundle.logs.reader import LogReader
 from trundle.tools.jobs.info import as_dict
 
@@ -36,12 +37,17 @@ def _size(n: int) -> str:
 
 def run(args: argparse.Namespace) -> int:
     info = LogReader(args.file).info()
+    live = writer_of(info.path)  # a file still being written is not damaged: recover has nothing to do
+    ok = 0 if info.message_count or info.complete or live else 1
     if args.json:
-        print(json.dumps(as_dict(info), indent=2))
-        return 0 if info.message_count or info.complete else 1
-    state = (
-        "complete" if info.complete else f"INCOMPLETE: {info.error} (read what was intact; `trundle recover` fixes it)"
-    )
+        print(json.dumps({**as_dict(info), "being_written_by": live}, indent=2))
+        return ok
+    if live is not None:
+        state = f"being written by {live} (what it has flushed so far)"
+    elif info.complete:
+        state = "complete"
+    else:
+        state = f"INCOMPLETE: {info.error} (read what was intact; `trundle recover` fixes it)"
     lines = [
         f"Files:             {info.path.name}",
         f"Bag size:          {_size(info.size_bytes)}",
@@ -62,4 +68,4 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"{head}Topic: {name:<{width}} | Type: {t.ros_type:<{type_width}} | Count: {t.count:>7} | "
                      f"Rate: {t.rate_hz:8.2f} Hz | Serialization Format: {t.encoding}{latched}")
     print("\n".join(lines))
-    return 0 if info.message_count or info.complete else 1
+    return ok

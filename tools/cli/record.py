@@ -124,6 +124,8 @@ def run(args: argparse.Namespace) -> int:
     logger = Logger(args.output, compression=compression,
                     split_bytes=int(args.split_size * 1e6) if args.split_size else None,
                     split_duration_s=args.split_duration, metadata=metadata)
+    for salvaged in logger.salvaged:  # crash files a killed recorder or daemon left next to the output
+        say(salvaged.line())
     sink.target = logger
     health = HealthReporter(say)
     busy: PortBusyError | None = None

@@ -9,7 +9,7 @@ from trundle.logs.recover import recover
 
 
 def register(p: argparse.ArgumentParser) -> None:
-    p.add_argument("input", help="damaged MCAP (e.g. run.mcap.active)")
+    p.add_argument("input", help="damaged MCAP (e.g. run.mcap.active, trundle's crash file: removed once recovered)")
     p.add_argument("output", nargs="?", help="output file (default: IN without .active, or IN.recovered.mcap)")
     p.set_defaults(func=run)
 
@@ -26,8 +26,5 @@ def default_output(src: Path) -> Path:
 def run(args: argparse.Namespace) -> int:
     src = Path(args.input)
     dst = Path(args.output) if args.output else default_output(src)
-    result = recover(src, dst)
-    note = f"; stopped by {result.stopped_by}" if result.stopped_by else ""
-    corrupt = f"; skipped {result.corrupt_chunks} corrupt chunks" if result.corrupt_chunks else ""
-    print(f"recovered {result.messages} messages into {result.output}{corrupt}{note}")
+    print(recover(src, dst).line())
     return 0

@@ -21,7 +21,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from mcap.records import Attachment, Channel, Message, Metadata, Schema
+from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from trundle.logs import metadata as log_metadata
@@ -99,12 +100,24 @@ def _identity(path: Path) -> dict[str, object]:
     return {"name": path.name, "size_bytes": st.st_size, "mtime_ns": st.st_mtime_ns}
 
 
+def _output_names(src: Path) -> tuple[Path, ...]:
+    """Where a recovery of ``src`` goes by default, in order of preference: ``X.mcap`` for the crash
+    file ``X.mcap.active``, then ``X.recovered.mcap``."""
+    recovered = src.with_name(f"{src.name.split('.mcap')[0]}.recovered.mcap")
+    return (src.with_name(src.name.removesuffix(ACTIVE_SUFFIX)), recovered) if is_crash_file(src) else (recovered,)
+
+
+def default_output(src: Path) -> Path:
+    """The first of :func:`_output_names` that does not exist yet (else the last: refused as taken)."""
+    names = _output_names(src)
+    return next((name for name in names if not name.exists()), names[-1])
+
+
 def recovered_into(active: Path) -> Path | None:
     """The log that already holds ``active``'s content (a recovery whose removal of the crash file
     did not happen), looked for under the names a recovery gives it; None if there is none."""
     origin = _identity(active)
-    base = active.with_name(active.name.removesuffix(ACTIVE_SUFFIX))
-    for candidate in (base, base.with_name(f"{base.stem}.recovered.mcap")):
+    for candidate in _output_names(active):
         if not candidate.is_file():
             continue
         try:
@@ -116,24 +129,27 @@ def recovered_into(active: Path) -> Path | None:
     return None
 
 
+def _logger_started(path: Path) -> bool:
+    """True when the MCAP header of ``path`` names trundle's logger (a crash file trundle wrote)."""
+    try:
+        with open(path, "rb") as f:
+            header = next(StreamReader(f).records, None)
+    except Exception:  # noqa: BLE001 -- OSError, mcap, struct, each its own kind: not a log trundle started
+        return False
+    return isinstance(header, Header) and header.library.startswith(LIBRARY_PREFIX)
+
+
 def salvage_folder(folder: Path) -> list[RecoverResult]:
     """Recover every crash file trundle's logger left in ``folder`` (``*.mcap.active`` that no live
-    process holds) to ``*.mcap`` (or ``*.recovered.mcap`` when that name is taken) and remove it; a
-    crash file already recovered, one another program wrote and one nothing can be read from are left
-    alone. Returns what was recovered, one result per crash file."""
+    process holds) to its :func:`default_output` and remove it; a crash file already recovered, one
+    another program wrote and one nothing can be read from are left alone. Returns what was
+    recovered, one result per crash file."""
     recovered = []
     for active in sorted(folder.glob("*.mcap" + ACTIVE_SUFFIX)):
-        if writer_of(active) is not None or recovered_into(active) is not None:
+        if writer_of(active) is not None or recovered_into(active) is not None or not _logger_started(active):
             continue
-        target = active.with_name(active.name.removesuffix(ACTIVE_SUFFIX))
-        if target.exists():
-            target = target.with_name(f"{target.stem}.recovered.mcap")
         try:
-            reader = LogReader(active)
-            header = next(iter(reader.records()), None)
-            if not getattr(header, "library", "").startswith(LIBRARY_PREFIX):
-                continue
-            result = recover(active, target)
+            result = recover(active, default_output(active))
         except (DataError, UserError):  # nothing readable in it, or the target appeared meanwhile
             continue
         recovered.append(result)

@@ -10,6 +10,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from mcap.writer import Writer
 
 from tests.test_daemon import Running, config
 from tests.test_logger_crash import start_child
@@ -95,6 +96,25 @@ def test_a_crash_file_recovered_but_not_removed_is_not_recovered_again(
     capfd.readouterr()
     assert daemon_lines(tmp_path, capfd) == []
     assert active.exists() and not (tmp_path / "logs" / "run.recovered.mcap").exists()
+
+
+def test_an_active_file_another_program_wrote_is_left_alone(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """Not trundle's crash file (its MCAP header names another writer): the daemon neither recovers nor
+    removes it, and `trundle recover` copies it but keeps it."""
+    (tmp_path / "logs").mkdir()
+    foreign = tmp_path / "logs" / "theirs.mcap.active"
+    with open(foreign, "wb") as f:
+        writer = Writer(f)
+        writer.start(profile="ros2", library="someone else")
+        channel = writer.register_channel("/chatter", "cdr", 0)
+        writer.add_message(channel, 1, b"\x00\x01\x00\x00", 1)
+        writer.finish()
+    kept = foreign.read_bytes()
+    assert daemon_lines(tmp_path, capfd) == []
+    assert foreign.read_bytes() == kept and not (tmp_path / "logs" / "theirs.mcap").exists()
+    assert main(["recover", str(foreign)]) == 0
+    assert capfd.readouterr().out.endswith(f"into {tmp_path / 'logs' / 'theirs.mcap'}\n")  # no "removed"
+    assert foreign.read_bytes() == kept
 
 
 def test_info_and_recover_on_a_live_recorders_file_say_so_and_write_nothing(

@@ -5,22 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from trundle.logs.recover import recover
+from trundle.logs.recover import default_output, recover
 
 
 def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", help="damaged MCAP (e.g. run.mcap.active, trundle's crash file: removed once recovered)")
     p.add_argument("output", nargs="?", help="output file (default: IN without .active, or IN.recovered.mcap)")
     p.set_defaults(func=run)
-
-
-def default_output(src: Path) -> Path:
-    if src.name.endswith(".mcap.active"):
-        candidate = src.with_name(src.name[: -len(".active")])
-        if not candidate.exists():
-            return candidate
-    stem = src.name.split(".mcap")[0]
-    return src.with_name(f"{stem}.recovered.mcap")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -24,46 +24,21 @@ import select
 import termios
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import serial
 
 from trundle.logs.errors import DeviceError, PortBusyError
+from trundle.logs.locks import holder_name, lock_holder
 
 STREAM_BATCH_S = 0.05  # the ``batch_s`` of a streaming laser: 20 reads a second, scans up to 50 ms late
 TTY_BUFFER = 4095  # the most the Linux tty layer hands over at once (N_TTY_BUF_SIZE - 1): more may be behind
 EMPTY_READS_S = 0.5  # how long a tty that says it is ready may read nothing before it counts as gone
 
 
-PROC_LOCKS = Path("/proc/locks")
-
-
-def lock_holder(port: str) -> int | None:
-    """The pid holding a ``flock`` on device path ``port`` (as listed in /proc/locks), or None if
-    none is held, the path is not a file (a ``socket://`` URL) or the kernel does not say."""
-    try:
-        st = os.stat(port)
-        locks = PROC_LOCKS.read_text().splitlines()
-    except (OSError, ValueError):
-        return None
-    inode = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
-    for line in locks:
-        fields = line.split()  # "1: FLOCK  ADVISORY  WRITE 1234 00:19:3 0 EOF"; waiters have "->" after "1:"
-        if len(fields) >= 6 and fields[1] == "FLOCK" and fields[5] == inode and fields[4].isdigit():
-            return int(fields[4])
-    return None
-
-
 def busy_error(port: str, holder: int | None) -> PortBusyError:
     """The one line for ``port`` held by another program (pid ``holder`` and its command name if known)."""
-    who = "another program"
-    if holder is not None:
-        try:
-            who = f"pid {holder} ({Path(f'/proc/{holder}/comm').read_text().strip()})"
-        except OSError:
-            who = f"pid {holder}"
-    return PortBusyError(f"{port} is in use by {who}: stop it, or use another port")
+    return PortBusyError(f"{port} is in use by {holder_name(holder)}: stop it, or use another port")
 
 
 def check_free(port: str) -> None:

@@ -10,6 +10,8 @@ MCAP metadata is a map of strings, so structured values are stored as JSON. Keys
   ``laser_x_m``, ``laser_y_m``, ``laser_yaw_rad`` (metres, radians);
 - ``devices``: JSON object, device name -> ``{"family": ..., "url": ..., <driver options>}``;
 - ``odometry``: the odometry source a log was made with (importers: ``odom``, ``laser``, ``none``);
+- ``recovered_from``: JSON object, the crash file a recovered log was made from: its ``name``,
+  ``size_bytes`` and ``mtime_ns`` (:mod:`trundle.logs.recover`: a crash file is recovered once);
 - anything else a writer adds (``source``, ``config_file``, ``malformed_lines``, ...): JSON
   when it is not a string (and read back as such when it is a JSON object or array).
 

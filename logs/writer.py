@@ -8,6 +8,9 @@ thread wakes once per ``batch_s`` at most while messages flow (a message wakes i
 batch gather, then writes them all), not once per message. Files split
 by size and/or duration; latched topics (``/tf_static``, ``*/camera_info`` and any named) are
 repeated at the start of every split. Each topic counts messages written and dropped.
+An ``.active`` file is ``flock``ed while written, so a live writer is known for sure
+(:mod:`trundle.logs.locks`); a new logger recovers the crash files dead ones left in its folder
+(:func:`trundle.logs.recover.salvage_folder`, ``Logger.salvaged``).
 """
 
 from __future__ import annotations
@@ -32,12 +35,11 @@ from trundle import __version__
 from trundle.logs import messages as m
 from trundle.logs import metadata as log_metadata
 from trundle.logs import ros2
-from trundle.logs.errors import DataError, OutputError, UserError
+from trundle.logs.errors import OutputError, UserError
 from trundle.logs.outputs import PARTIAL_SUFFIX
 from trundle.logs.topics import TF_STATIC_TOPIC
 
 if TYPE_CHECKING:
-    from trundle.logs.reader import LogDamage
     from trundle.logs.recover import RecoverResult
 
 ACTIVE_SUFFIX = ".active"
@@ -149,11 +151,12 @@ class Logger:
             {"trundle_version": __version__, "host": platform.node(), **(metadata or {})}
         )
         self.latched_topics = frozenset(latched_topics)
+        from trundle.logs.recover import salvage_folder  # recover reads this module's names
+
         self.stats: dict[str, TopicStats] = collections.defaultdict(TopicStats)
         self.files: list[Path] = []
-        salvaged = salvage_folder(self.base_path.parent) if salvage else []
-        self.salvaged: list[Path] = [result.output for result in salvaged]
-        self.salvage_damage: list[LogDamage] = [result.damage for result in salvaged if result.damage is not None]
+        # crash files other (dead) loggers left here, each recovered once (trundle.logs.recover)
+        self.salvaged: list[RecoverResult] = salvage_folder(self.base_path.parent) if salvage else []
         taken = self._taken()
         if taken:
             raise UserError(f"{taken[0]} exists: give another name, or move it away (a log is never overwritten)")
@@ -385,7 +388,9 @@ class Logger:
         # exclusive: never truncates another writer's file; closed by _finish_file, not here
         stream = open(active, "xb")  # noqa: SIM115  the file outlives this method
         try:
-            fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # marks the file live for salvage_folder
+            # marks the file live (trundle.logs.locks) until closed; blocking: a reader checking the lock
+            # holds it for a moment
+            fcntl.flock(stream.fileno(), fcntl.LOCK_EX)
             writer = Writer(stream, chunk_size=self.chunk_size, compression=COMPRESSION[self.compression])
             writer.start(profile="ros2", library=f"{LIBRARY_PREFIX}{__version__}")
             writer.add_metadata(log_metadata.RECORD, self.metadata)
@@ -413,36 +418,3 @@ class Logger:
     def stats_dict(self) -> dict[str, dict[str, int]]:
         """Per-topic ``{"written": n, "dropped": n}`` (for status and diagnostics)."""
         return {topic: {"written": s.written, "dropped": s.dropped} for topic, s in sorted(self.stats.items())}
-
-
-def salvage_folder(folder: Path) -> list[RecoverResult]:
-    """Recover every leftover ``*.mcap.active`` in ``folder`` to ``*.mcap``; returns what each recovery
-    wrote and could not salvage."""
-    from trundle.logs.recover import recover
-
-    recovered = []
-    for active in sorted(folder.glob("*.mcap" + ACTIVE_SUFFIX)):
-        if _in_use(active):
-            continue
-        target = active.with_name(active.name[: -len(ACTIVE_SUFFIX)])
-        if target.exists():
-            target = target.with_name(f"{target.stem}.recovered.mcap")
-        try:
-            result = recover(active, target)
-        except (DataError, UserError, OutputError):  # nothing readable, the target appeared, or a full disk
-            continue
-        active.unlink()
-        recovered.append(result)
-    return recovered
-
-
-def _in_use(path: Path) -> bool:
-    """True while a live logger holds the file's lock (the lock dies with its process)."""
-    try:
-        with open(path, "rb") as f:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return True
-    except OSError:
-        return False
-    return False

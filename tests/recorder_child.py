@@ -1,12 +1,14 @@
 """A recorder process for crash tests: 40 Hz laser scans + 100 Hz joint states into a Logger.
 
 Usage: python recorder_child.py OUT.mcap [--fsize-limit BYTES]
-Prints "ready" once logging has started; runs until killed (or until the logger fails).
+Prints "ready" once logging has started; runs until killed (or until the logger fails); SIGTERM
+closes the log normally (renamed to OUT.mcap).
 """
 
 from __future__ import annotations
 
 import resource
+import signal
 import sys
 import time
 
@@ -23,11 +25,13 @@ def main() -> int:
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
     rng = np.random.default_rng(0)
     logger = Logger(out, compression="zstd", flush_period_s=0.5)
+    stop: list[int] = []
+    signal.signal(signal.SIGTERM, lambda signum, frame: stop.append(signum))
     print("ready", flush=True)
     start = time.monotonic()
     tick = 0
     deadline = time.monotonic() + 120  # never outlive a crashed test run
-    while logger.error is None and time.monotonic() < deadline:
+    while logger.error is None and not stop and time.monotonic() < deadline:
         now = time.time_ns()
         if tick % 5 == 0:  # 40 Hz of the 200 Hz loop
             logger.write("/scan", m.LaserScan(now, "laser", -2.35, 2.35, 0.00436, 2.5e-5, 0.025, 0.02, 30.0,

@@ -45,8 +45,9 @@ def test_demo_writes_every_output_and_passes_its_checks(demo):
         assert "too busy for real time" in (out / "report.md").read_text()
         for accuracy in (f"ate_rmse_m <= {ATE_LIMIT_M}", "SLAM ATE with markers no worse than without"):
             checks.pop(accuracy)
-    assert all(checks.values()), report["checks"]
-    assert code == (0 if all(report["checks"].values()) else 1)
+    # None: not checked (the map self-check of a run too short to compare anything), which fails nothing
+    assert all(ok is not False for ok in checks.values()), report["checks"]
+    assert code == (0 if all(ok is not False for ok in report["checks"].values()) else 1)
     assert set(report["checks"]) >= {f"every marker mapped within {MARKER_MAP_LIMIT_M * 100:.0f} cm",
                                      "SLAM ATE with markers no worse than without"}
     for name in ("demo.mcap", "robot.toml", "camera.yaml", "daemon.log", "map.png", "map.pgm", "map.yaml",

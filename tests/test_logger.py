@@ -158,7 +158,7 @@ def test_leftover_active_file_is_salvaged_at_start(tmp_path: Path) -> None:
     src.unlink()
     logger = Logger(tmp_path / "new.mcap")
     logger.close()
-    assert logger.salvaged == [tmp_path / "old.mcap"]
+    assert [s.output for s in logger.salvaged] == [tmp_path / "old.mcap"]
     assert not (tmp_path / "old.mcap.active").exists()
     assert 0 < sum(1 for _ in LogReader(tmp_path / "old.mcap").messages()) < 51
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+import trundle
 from trundle.logs.errors import DataError
 from trundle.logs.reader import LogReader
 from trundle.logs.recover import recover
@@ -22,7 +23,7 @@ PARALLEL = 5
 
 
 def start_child(out: Path, *extra: str) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONPATH=str(CHILD.parents[1]))
+    env = dict(os.environ, PYTHONPATH=str(Path(trundle.__file__).parents[1]))  # this test's trundle
     proc = subprocess.Popen([sys.executable, str(CHILD), str(out), *extra], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
     assert proc.stdout is not None

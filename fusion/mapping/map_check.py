@@ -13,7 +13,8 @@ elsewhere the submap knows nothing. A keyframe whose
 endpoints conflict more often than they agree is inconsistent: more of its scan contradicts the
 rest of the map than supports it. The map fails when a stretch of ``min_stretch`` consecutive
 compared keyframes (5: a metre of travel at the keyframe spacing) is inconsistent; shorter runs are
-left to people and doors that moved.
+left to people and doors that moved. A run with nothing to compare (a short or stationary log: every
+keyframe lies in the submaps it was part of) is *not checked*, neither passed nor failed.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from trundle.fusion.geometry import inverse, transform_points
 from trundle.fusion.mapping.submaps import Submap
 
 HALF_DIAGONAL = 0.5 ** 0.5  # cells from a cell's centre to its corner
+NOT_CHECKED = "not checked"  # MapCheck.status with no keyframe compared
 
 
 @dataclass(frozen=True)
@@ -33,17 +35,23 @@ class MapCheck:
     """Outcome of :func:`check_map`.
 
     ``consistency`` is the share of agreeing among all agreeing and conflicting endpoint
-    comparisons (NaN when nothing could be compared); ``keyframe_consistency`` the same per
+    comparisons (None when nothing could be compared); ``keyframe_consistency`` the same per
     keyframe (NaN: not compared); ``stretches`` the inconsistent runs ``(first, last)`` of keyframe
-    indices, inclusive; ``passed`` is False when any run is ``min_stretch`` compared keyframes long.
+    indices, inclusive; ``passed`` is False when any run is ``min_stretch`` compared keyframes long,
+    None when no keyframe could be compared (not checked).
     """
 
-    consistency: float
+    consistency: float | None
     keyframe_consistency: np.ndarray
     comparisons: np.ndarray
     stretches: list[tuple[int, int]] = field(default_factory=list)
-    passed: bool = True
+    passed: bool | None = True
     min_stretch: int = 5
+
+    @property
+    def status(self) -> str:
+        """``passed``, ``failed`` or ``not checked`` (nothing to compare)."""
+        return NOT_CHECKED if self.passed is None else ("passed" if self.passed else "failed")
 
     @property
     def compared_keyframes(self) -> int:
@@ -117,9 +125,9 @@ def check_map(submaps: list[Submap], submap_frames: np.ndarray, keyframe_poses: 
     total = agree + conflict
     per_keyframe = np.full(count, np.nan)
     per_keyframe[total > 0] = agree[total > 0] / total[total > 0]
-    consistency = float(agree.sum() / total.sum()) if total.sum() > 0 else float("nan")
+    consistency = float(agree.sum() / total.sum()) if total.sum() > 0 else None
     stretches = _stretches(per_keyframe)
-    passed = all(_compared(per_keyframe, a, b) < min_stretch for a, b in stretches)
+    passed = None if consistency is None else all(_compared(per_keyframe, a, b) < min_stretch for a, b in stretches)
     return MapCheck(consistency, per_keyframe, total, stretches, passed, min_stretch)
 
 

@@ -3,7 +3,11 @@
 The PGM/YAML pair is what ROS's ``map_saver`` writes in trinary mode (nav2 defaults): occupied
 cells (>= 65 %) black 0, free cells (<= 25 %) 254, unknown 205, top image row = largest y; the
 YAML gives ``image``, ``mode``, ``resolution``, ``origin [x, y, yaw]``, ``negate``,
-``occupied_thresh`` and ``free_thresh``, so ``map_server`` and nav2 load it as is.
+``occupied_thresh`` and ``free_thresh``, so ``map_server`` and nav2 load it as is. The YAML's
+thresholds are those of the trinary pixels, not the ones the cells were classified with: 0.65 and
+0.196 (as ROS 1's map_saver and nav2 since ros-navigation/navigation2#5278 write them), so the
+unknown grey 205 (p = 0.1961) reads back as unknown; with ``free_thresh: 0.25`` map_server read
+every unknown cell as free.
 """
 
 from __future__ import annotations
@@ -24,7 +28,8 @@ from trundle.logs.messages import OccupancyGrid
 from trundle.logs.outputs import encode_image, write_image, writing_file, writing_files
 from trundle.logs.paths import input_file, read_text
 
-OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.25
+OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.25  # the cells' classification (percent occupancy / 100)
+SAVED_FREE_THRESH = 0.196  # the YAML's free_thresh: between the free (254) and unknown (205) pixels
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205
 
 
@@ -48,7 +53,7 @@ def save_map(grid: OccupancyGrid, base: str | os.PathLike[str], replace: bool = 
         png_tmp.write_bytes(encode_image(image, ".png", png))
         yaml_tmp.write_text(f"image: {pgm.name}\nmode: trinary\nresolution: {grid.resolution:.6g}\n"
                             f"origin: [{grid.origin_x:.6g}, {grid.origin_y:.6g}, {grid.origin_theta:.6g}]\n"
-                            f"negate: 0\noccupied_thresh: {OCCUPIED_THRESH}\nfree_thresh: {FREE_THRESH}\n")
+                            f"negate: 0\noccupied_thresh: {OCCUPIED_THRESH}\nfree_thresh: {SAVED_FREE_THRESH}\n")
     return pgm, yaml, png
 
 

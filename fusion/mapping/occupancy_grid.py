@@ -3,7 +3,10 @@
 Cell ``[row, col]`` covers ``origin + (col, row) * resolution`` to one cell further (row 0 at the
 bottom, as in nav_msgs/OccupancyGrid). Each inserted scan adds ``l_hit`` to the cells holding a
 return and ``l_miss`` to every other cell its rays cross (once per scan, however many rays cross
-it), clamped to ``[l_min, l_max]``. For matching the grid offers a distance field (metres to the
+it), clamped to ``[l_min, l_max]``. A map (not a submap) also marks the cells any return fell in, so
+the cells the laser only ever saw through can be made certainly free (:meth:`LogOddsGrid.clear_seen_through`):
+a lone keyframe's miss (``p_miss`` 40 %) is weak evidence, too weak for a map's free threshold (25 %),
+which only the cells of three keyframes' rays would reach. For matching the grid offers a distance field (metres to the
 nearest occupied cell) and a likelihood field ``exp(-d^2 / (2 sigma^2))``, cached until the next
 update.
 """
@@ -194,12 +197,13 @@ class LogOddsGrid:
     clamp the log-odds so the map can still change; ``grow_cells`` is the margin added when a scan
     falls outside (growth is amortised). With ``subcell`` each cell also keeps the moments of the
     returns that fell in it, so matching can use the walls those returns describe rather than the
-    cell lattice (see :meth:`line_data`).
+    cell lattice (see :meth:`line_data`); with ``mark_returns`` it keeps whether any return fell in
+    it (``returned``, for :meth:`clear_seen_through`).
     """
 
     def __init__(self, resolution: float = 0.05, *, p_hit: float = 0.7, p_miss: float = 0.4,
                  l_min: float = -2.0, l_max: float = 3.5, origin_xy: tuple[float, float] = (0.0, 0.0),
-                 grow_cells: int = 64, subcell: bool = False) -> None:
+                 grow_cells: int = 64, subcell: bool = False, mark_returns: bool = False) -> None:
         if resolution <= 0:
             raise ValueError("resolution must be positive")
         self.resolution = float(resolution)
@@ -211,6 +215,7 @@ class LogOddsGrid:
         self.observed = np.zeros((0, 0), bool)
         # per cell: returns, sum of their x and y offsets in the cell, and of x^2, xy, y^2 (cell units)
         self.moments: np.ndarray | None = np.zeros((6, 0, 0), np.float32) if subcell else None
+        self.returned: np.ndarray | None = np.zeros((0, 0), bool) if mark_returns else None
         self.version = 0
         self._cache: dict[tuple, object] = {}
 
@@ -254,6 +259,10 @@ class LogOddsGrid:
             if height:
                 moments[:, pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.moments
             self.moments = moments
+        if self.returned is not None:
+            returned = np.zeros((int(new_h), int(new_w)), bool)
+            returned[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.returned
+            self.returned = returned
         self.log_odds, self.observed = grown, seen
         self.origin = self.origin - pad_lo * self.resolution
         self._changed()
@@ -292,6 +301,17 @@ class LogOddsGrid:
         seen = self.observed.reshape(-1)
         seen[free_flat] = True
         seen[hit_flat] = True
+        if self.returned is not None:
+            self.returned.reshape(-1)[hit_flat] = True
+        self._changed()
+
+    def clear_seen_through(self) -> None:
+        """Make every cell that rays crossed and no return ever fell in certainly free (``l_min``): the
+        laser saw through it each time it looked, from the first scan on. Cells with a return keep
+        their log-odds (a wall, or something that moved). Needs ``mark_returns``."""
+        if self.returned is None:
+            raise ValueError("clear_seen_through needs a grid made with mark_returns=True")
+        self.log_odds[self.observed & ~self.returned] = self.l_min
         self._changed()
 
     def probability(self) -> np.ndarray:

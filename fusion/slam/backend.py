@@ -161,8 +161,10 @@ class PoseGraphBackend:
         return ij[np.abs(ij[:, 1] - ij[:, 0]) > 1]
 
     def build_map(self, resolution: float | None = None) -> LogOddsGrid:
-        """A fresh occupancy grid from every keyframe scan at its optimised pose."""
-        grid = LogOddsGrid(resolution or self.config.submaps.resolution)
+        """A fresh occupancy grid from every keyframe scan at its optimised pose, free wherever the
+        laser only ever saw through (:meth:`LogOddsGrid.clear_seen_through`): a short or stationary
+        log's few keyframes carve free space too."""
+        grid = LogOddsGrid(resolution or self.config.submaps.resolution, mark_returns=True)
         mount = self.mount
         for pose, points, free in zip(self.graph.poses, self._points, self._free, strict=True):
             origin = compose(pose, mount)[:2]
@@ -171,6 +173,7 @@ class PoseGraphBackend:
             hits = points @ rot.T + pose[:2]
             free_ends = None if free is None else free @ rot.T + pose[:2]
             grid.insert_rays(origin, hits, free_ends)
+        grid.clear_seen_through()
         return grid
 
     def check_map(self) -> MapCheck:

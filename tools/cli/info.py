@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from datetime import UTC, datetime
 
+from trundle.logs.locks import writer_of
 from trundle.logs.outputs import json_text
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.damage import say_damage
@@ -37,13 +38,19 @@ def _size(n: int) -> str:
 
 def run(args: argparse.Namespace) -> int:
     info = LogReader(args.file).info()
-    say_damage(args, info.damage)
+    live = writer_of(info.path)  # a file still being written is not damaged: recover has nothing to do
+    if live is None:
+        say_damage(args, info.damage)
+    ok = 0 if info.message_count or info.complete or live else 1
     if args.json:
-        print(json_text(as_dict(info), indent=2))
-        return 0 if info.message_count or info.complete else 1
-    state = (
-        "complete" if info.complete else "INCOMPLETE (read what was intact, see stderr; `trundle recover` fixes it)"
-    )
+        print(json_text({**as_dict(info), "being_written_by": live}, indent=2))
+        return ok
+    if live is not None:
+        state = f"being written by {live} (what it has flushed so far)"
+    elif info.complete:
+        state = "complete"
+    else:
+        state = "INCOMPLETE (read what was intact, see stderr; `trundle recover` fixes it)"
     lines = [
         f"Files:             {info.path.name}",
         f"Bag size:          {_size(info.size_bytes)}",
@@ -64,4 +71,4 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"{head}Topic: {name:<{width}} | Type: {t.ros_type:<{type_width}} | Count: {t.count:>7} | "
                      f"Rate: {t.rate_hz:8.2f} Hz | Serialization Format: {t.encoding}{latched}")
     print("\n".join(lines))
-    return 0 if info.message_count or info.complete else 1
+    return ok

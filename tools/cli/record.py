@@ -29,7 +29,6 @@ from trundle.logs.outputs import is_output_failure, output_error
 from trundle.logs.paths import output_folder, writable
 from trundle.logs.topics import DIAGNOSTICS_TOPIC, TF_STATIC_TOPIC
 from trundle.logs.writer import Logger, LoggerError
-from trundle.tools.cli.damage import say_damage
 from trundle.tools.config.arguments import positive
 from trundle.tools.config.robot import Device, RobotConfig, load_config
 
@@ -143,8 +142,8 @@ def run(args: argparse.Namespace) -> int:
         if is_output_failure(error):
             raise output_error(error, args.output) from None
         raise
-    for damage in logger.salvage_damage:  # crash files of an earlier recording, recovered by the logger
-        say_damage(args, damage)
+    for salvaged in logger.salvaged:  # crash files a killed recorder or daemon left next to the output
+        say(salvaged.line())
     sink.target = logger
     health = HealthReporter(say)
     busy: PortBusyError | None = None

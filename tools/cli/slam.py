@@ -57,7 +57,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {args.output}/map.pgm, map.yaml, map.png, trajectory.png, scans.png, trajectory.csv, "
           f"{'landmarks.csv, ' if landmarks else ''}report.json, slam.mcap")
     check = report.get("map_check")
-    if check is not None and not check["passed"]:
+    if check is not None and check["passed"] is None:
+        print("trundle slam: the map's self-check was not made: no keyframe lies outside the submaps it was "
+              "part of, so nothing could be compared (a short or stationary log); report.json says 'not checked'",
+              file=sys.stderr)
+    elif check is not None and not check["passed"]:
         failing = [
             s for s in check["stretches"] if s["last_keyframe"] - s["first_keyframe"] + 1 >= check["min_stretch"]
         ]

@@ -291,12 +291,12 @@ class Daemon:
         except (OSError, UserError) as error:
             self._logger_failed(f"cannot open a log in {cfg.folder}: {error}")
             return
+        for salvaged in logger.salvaged:  # crash files of a daemon or recorder that died (kill -9, power)
+            print(f"trundle daemon: {salvaged.line()}", file=sys.stderr, flush=True)
         with self._lock:
             latched = list(self._latched.items())
         for topic, msg in latched:
             logger.write(topic, msg)
-        for damage in logger.salvage_damage:  # crash files of an earlier run, recovered by the logger
-            print(f"trundle daemon: recovered a crash file: {damage.line()}", file=sys.stderr, flush=True)
         self.logger = logger
         self.recording_paused = ""
 

@@ -5,7 +5,9 @@ time, one series per robot: e.g. a laser whose noise drifts up, SLAM runs whose 
 Headline figures are the numeric columns the job's report has, those matching the job's
 preferred names first (:data:`PREFERRED`, substrings so a renamed or added figure still
 matches), then others that vary between logs, at most :data:`PANELS`. A boolean figure that is
-false for some logs (a consistency check, a completeness flag) is listed as a failed check.
+false for some logs (a consistency check, a completeness flag) is listed as a failed check; a figure
+that says ``not checked`` for some logs (the map self-check of a short or stationary log: nothing to
+compare) as a check not made, neither passed nor failed.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from trundle.fusion.mapping.map_check import NOT_CHECKED
 from trundle.logs.outputs import save_figure, write_text
 from trundle.tools.fleet.rows import COLUMNS, columns
 
@@ -55,6 +58,16 @@ def failed_checks(rows: Sequence[Mapping[str, Any]]) -> dict[str, list[str]]:
         false = [log for log, v in values if v is False]
         if values and false:
             checks[name] = false
+    return checks
+
+
+def not_checked(rows: Sequence[Mapping[str, Any]]) -> dict[str, list[str]]:
+    """Figure -> the logs it says ``not checked`` for (only figures that say it somewhere)."""
+    checks: dict[str, list[str]] = {}
+    for name in columns(list(rows)):
+        logs = [r["log"] for r in rows if r.get(name) == NOT_CHECKED]
+        if name not in COLUMNS and logs:
+            checks[name] = logs
     return checks
 
 
@@ -128,6 +141,12 @@ def markdown(job: str, rows: Sequence[Mapping[str, Any]], run: Mapping[str, Any]
         lines += ["## Checks that failed", "", "| figure | false for | logs |", "|---|---|---|"]
         lines += [f"| {name} | {len(logs)} of {sum(isinstance(r.get(name), bool) for r in done)} | "
                   f"{_cell(', '.join(logs[:LISTED]))} |" for name, logs in checks.items()]
+        lines.append("")
+    unchecked = not_checked(done)
+    if unchecked:
+        lines += ["## Checks not made", ""]
+        lines += [f"- {name}: not checked for {len(logs)} of {len(done)} logs (nothing to compare): "
+                  f"{', '.join(logs[:LISTED])}" for name, logs in unchecked.items()]
         lines.append("")
     names = headline(job, done)
     if done:

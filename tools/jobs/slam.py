@@ -42,14 +42,15 @@ from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 
 
 def map_check_report(check: MapCheck, stamps_ns: np.ndarray, t0_ns: int) -> dict[str, Any]:
-    """The map self-check for report.json: the figure, and each inconsistent stretch with its times (s
-    after the log's start)."""
+    """The map self-check for report.json: its ``status`` (passed, failed or not checked: nothing to
+    compare, ``passed`` and ``consistency`` None then), the figure, and each inconsistent stretch with
+    its times (s after the log's start)."""
     stretches = [{"first_keyframe": a, "last_keyframe": b, "start_s": (int(stamps_ns[a]) - t0_ns) * 1e-9,
                   "end_s": (int(stamps_ns[b]) - t0_ns) * 1e-9,
                   "consistency": float(np.nanmean(check.keyframe_consistency[a:b + 1]))} for a, b in check.stretches]
-    return {"passed": check.passed, "consistency": check.consistency, "compared_keyframes": check.compared_keyframes,
-            "inconsistent_keyframes": check.inconsistent_keyframes, "min_stretch": check.min_stretch,
-            "stretches": stretches}
+    return {"status": check.status, "passed": check.passed, "consistency": check.consistency,
+            "compared_keyframes": check.compared_keyframes, "inconsistent_keyframes": check.inconsistent_keyframes,
+            "min_stretch": check.min_stretch, "stretches": stretches}
 
 
 def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool = False,

@@ -34,9 +34,12 @@ CHUNK = 64 * 1024  # bytes asked of the socket per read
 
 def capture_clock() -> SensorClock:
     """The clock mapping of a stream's ``X-Timestamp`` (nanoseconds, never wrapping) to host time:
-    envelope mode, drift fitted over 1 s bins, re-anchored after 5 s of latency off its median."""
+    envelope mode, re-anchored after 5 s of latency off its median; drift from the lowest latency
+    of each second, fitted only once 5 minutes of them are in: on a busy host that floor moves by
+    tens of ms within a minute (the demo: 15 ms over its first 30 s, on one machine, no drift at
+    all), which a shorter fit takes for drift and turns into a growing error."""
     return SensorClock(bits=64, tick_ns=1, bin_ticks=1_000_000_000, resync_after_ticks=5_000_000_000,
-                       envelope=True)
+                       min_drift_bins=300, envelope=True)
 
 
 class MjpegStreamSource:

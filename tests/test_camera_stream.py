@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import email
 import socket
+import threading
 import urllib.request
 from itertools import pairwise
 from pathlib import Path
@@ -16,7 +17,8 @@ import pytest
 from camera_clips import avi_video_chunks, wait_for, write_clip
 
 from trundle.drivers.camera import CameraDriver, driver_from_url
-from trundle.drivers.mjpeg_stream import MjpegStreamSource
+from trundle.drivers.jpeg_check import jpeg_problem
+from trundle.drivers.mjpeg_stream import MjpegStreamSource, capture_clock
 from trundle.logs import messages as m
 from trundle.logs.errors import DeviceError
 from trundle.logs.reader import LogReader
@@ -80,6 +82,22 @@ def test_frames_are_stamped_when_captured_not_when_they_arrive() -> None:
     assert float(values["latency_max_ms"]) >= 40.0 and values["setting.timestamps"] == "capture"
 
 
+def test_a_minute_on_a_busy_host_gives_the_camera_clock_no_drift() -> None:
+    """The demo's case: a 10 Hz camera on the same machine (no drift), its first 2 s delivered
+    40 ms late, then 1 ms plus 20 ms of random delay on average. The stamps keep the quickest
+    delivery's latency to the end; a drift fitted to half a minute of it (-145 ppm) would move
+    them 8 ms early within the minute."""
+    ms = 1_000_000
+    true = 1_764_675_000 * 10**9 + np.arange(600) * 100 * ms
+    latency = (ms + np.random.default_rng(3).exponential(20 * ms, true.size)).astype(np.int64)
+    latency[:20] += 40 * ms
+    clock = capture_clock()
+    stamps = np.array([clock.update(int(t) + 3_200 * ms, int(t + lat)).stamp_ns for t, lat in zip(true, latency,
+                                                                                                  strict=True)])
+    settled = np.argmin(latency) + 1
+    assert clock.drift_ppm == 0.0 and np.all(stamps[settled:] - true[settled:] == latency.min())
+
+
 def test_a_stream_without_x_timestamp_is_stamped_on_arrival() -> None:
     log_times: list[int] = []
     with CameraEmulator(fps=30, width=160, height=120, timestamps=False) as emulator:
@@ -99,6 +117,34 @@ def test_a_silent_server_or_no_mjpeg_stream_is_a_device_error() -> None:
         source = MjpegStreamSource(emulator.url.replace("stream.mjpg", "snapshot.jpg"))
         with pytest.raises(DeviceError, match=r"snapshot.jpg is not an MJPEG stream \(HTTP 404"):
             source.open()
+
+
+def test_a_frame_cut_off_by_the_connection_is_handed_over_as_it_came_then_the_end_is_a_device_error() -> None:
+    """A server writing as mjpg-streamer does that dies inside its second frame: the first frame
+    whole, the second as far as it came (the driver's JPEG check drops it), then a lost device."""
+    whole = cv2.imencode(".jpg", synthetic_frame(0.0, 64, 48))[1].tobytes()
+    head = b"Content-Type: image/jpeg\r\nContent-Length: %d\r\nX-Timestamp: 5.250000\r\n\r\n" % len(whole)
+    reply = (b"HTTP/1.0 200 OK\r\nContent-Type: multipart/x-mixed-replace;boundary=boundarydonotcross\r\n\r\n"
+             b"--boundarydonotcross\r\n" + head + whole + b"\r\n--boundarydonotcross\r\n" + head + whole[:500])
+
+    def serve_once(server: socket.socket) -> None:
+        connection, _ = server.accept()
+        with connection:
+            connection.recv(65536)
+            connection.sendall(reply)
+
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        threading.Thread(target=serve_once, args=(server,), daemon=True).start()
+        source = MjpegStreamSource(f"http://127.0.0.1:{server.getsockname()[1]}/?action=stream", timeout_s=5.0)
+        source.open()
+        try:
+            first, cut = source.read(), source.read()
+            with pytest.raises(DeviceError, match=r"/\?action=stream: the stream ended"):
+                source.read()
+        finally:
+            source.close()
+    assert first.data == whole and jpeg_problem(whole) is None and source.settings()["timestamps"] == "capture"
+    assert cut.data == whole[:500] and jpeg_problem(cut.data) == "no EOI marker at the end (truncated frame)"
 
 
 def test_a_stream_without_a_size_gets_its_camera_info_from_the_first_frame(tmp_path: Path) -> None:

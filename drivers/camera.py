@@ -12,8 +12,10 @@ Topics (``NAME`` is the ``name`` option, default ``camera``):
   /tf_static                  parent_frame -> frame_id (config) -> optical_frame_id (REP 103)
 
 Time: the message stamp is the capture time (V4L2 buffer timestamp or file media time, on
-CLOCK_MONOTONIC) moved to wall time by the offset ``time_ns() - monotonic_ns()`` taken when the
-connection opens; MCAP log time is when the frame arrived. Frames missing from the timing (gaps
+CLOCK_MONOTONIC; for an MJPEG stream its ``X-Timestamp`` mapped to the host clock, else its arrival)
+moved to wall time by the offset ``time_ns() - monotonic_ns()`` taken when the connection opens;
+MCAP log time is when the frame arrived. Diagnostics give the median and largest ``latency_ms``
+(arrival minus capture) of the last 60 frames. Frames missing from the timing (gaps
 over 1.5 periods) are counted as ``dropped``.
 
 Faults: no frame for ``stall_timeout_s`` -> ``stalls`` and reconnect with back-off; a device
@@ -110,6 +112,7 @@ class CameraDriver(Driver):
         self._period_ns = 0.0
         self._last_t_ns: int | None = None
         self._recent: collections.deque[int] = collections.deque(maxlen=61)
+        self._latency: collections.deque[int] = collections.deque(maxlen=60)  # arrival - capture (ns)
 
     def static_messages(self) -> list[tuple[str, m.Message]]:
         return list(self._static)
@@ -126,6 +129,7 @@ class CameraDriver(Driver):
         self._period_ns = 1e9 / fps if fps > 0 else 0.0
         self._last_t_ns = None
         self._recent.clear()
+        self._latency.clear()
         log.info("%s: %s open, %s", self.name, source.description,
                  ", ".join(f"{k}={v}" for k, v in sorted(self.settings.items())))
 
@@ -174,6 +178,7 @@ class CameraDriver(Driver):
         self.publish(f"{self.config.topic_prefix}/{topic}", msg, frame.recv_ns + self.offset_ns)
         self.counters["frames"] += 1
         self._recent.append(frame.t_ns)
+        self._latency.append(frame.recv_ns - frame.t_ns)
 
     def _message(self, frame: Frame, stamp_ns: int) -> m.CompressedImage | m.Image | None:
         """The message for a frame, or None (reason in ``last_corrupt``) for a damaged one."""
@@ -223,6 +228,10 @@ class CameraDriver(Driver):
         measured = self.measured_fps()
         extra = [(f"setting.{k}", v) for k, v in sorted(self.settings.items())]
         extra += [("fps_measured", f"{measured:.2f}"), ("clock_offset_ns", str(self.offset_ns))]
+        latency = np.array(tuple(self._latency), np.int64)  # one snapshot, as above
+        if latency.size:
+            extra += [("latency_ms", f"{np.median(latency) / 1e6:.1f}"),
+                      ("latency_max_ms", f"{latency.max() / 1e6:.1f}")]
         if self.last_corrupt:
             extra.append(("last_corrupt", self.last_corrupt))
         status = dataclasses.replace(status, values=status.values + tuple(extra))

@@ -65,8 +65,8 @@ class FrameSource(Protocol):
 
 
 def quiet_opencv() -> None:
-    """Silence OpenCV's and FFmpeg's own warnings on stderr (a file it cannot open, a refused
-    connection): the driver reports every failure itself, in one line and in its diagnostics.
+    """Silence OpenCV's and FFmpeg's own warnings on stderr (a file or device it cannot open):
+    the driver reports every failure itself, in one line and in its diagnostics.
     A user's ``OPENCV_LOG_LEVEL`` / ``OPENCV_FFMPEG_LOGLEVEL`` still wins (for debugging)."""
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET; read when FFmpeg is first used
     if "OPENCV_LOG_LEVEL" not in os.environ:

@@ -6,6 +6,12 @@ nanoseconds: the offset comes from request/reply round trips (median of the midp
 estimates, as urg_node does), wraps are unwrapped forwards, a reset is recognised when the
 counter claims more time passed than the host saw (seqsense/urg_stamped PR #65), and drift is
 the slope of receive latency against device time (urg_stamped models 50 ppm).
+
+A device that is never asked (a camera stamping each frame it streams: mjpg-streamer's
+``X-Timestamp``) gets ``envelope=True``: the offset is anchored on the first reading received
+and kept at the smallest receive latency seen since, as a delivery delay only ever adds latency:
+a reading received sooner after its device time than any before lowers the offset at once, so
+no stamp lies after its own arrival and late readings change nothing.
 """
 
 from __future__ import annotations
@@ -46,6 +52,8 @@ class SensorClock:
         (the lower envelope is what transmission jitter cannot blur).
     window : bins kept for the drift fit; ``min_drift_bins`` before drift is estimated.
     max_drift_ppm : drift estimates are clipped to this magnitude.
+    envelope : no round trips (see the module's doc): the offset follows the lower envelope of
+        receive latency instead of its running median.
     """
 
     RECENT = 64  # readings kept for the latency median
@@ -53,7 +61,8 @@ class SensorClock:
 
     def __init__(self, bits: int = 24, tick_ns: int = 1_000_000, reset_tolerance_ns: int = 500_000_000,
                  resync_tolerance_ns: int = 100_000_000, resync_after_ticks: int = 5000, bin_ticks: int = 1000,
-                 window: int = 600, min_drift_bins: int = 30, max_drift_ppm: float = 1000.0) -> None:
+                 window: int = 600, min_drift_bins: int = 30, max_drift_ppm: float = 1000.0,
+                 envelope: bool = False) -> None:
         self.mask = (1 << bits) - 1
         self.tick_ns = tick_ns
         self.reset_tolerance_ns = reset_tolerance_ns
@@ -63,6 +72,7 @@ class SensorClock:
         self.window = window
         self.min_drift_bins = min_drift_bins
         self.max_drift_ppm = max_drift_ppm
+        self.envelope = envelope
         self.offset_ns = 0
         self.drift_ppm = 0.0
         self.wraps = 0
@@ -91,7 +101,7 @@ class SensorClock:
     def host_ns(self, unwrapped: int) -> int:
         """Host time of an unwrapped tick count under the current offset and drift."""
         elapsed = (unwrapped - self._ref) * self.tick_ns
-        return int(self.offset_ns + unwrapped * self.tick_ns + elapsed * self.drift_ppm * 1e-6)
+        return self.offset_ns + unwrapped * self.tick_ns + round(elapsed * self.drift_ppm * 1e-6)  # exact ints
 
     def synchronise(self, samples: Sequence[tuple[int, int, int]]) -> int:
         """Set the offset from round trips ``(host_request_ns, raw_ticks, host_reply_ns)``.
@@ -143,7 +153,7 @@ class SensorClock:
             event = "reset"
             self.resets += 1
             self._unwrapped += max(host_step, 0) // self.tick_ns
-            self._reanchor(host_rx_ns - self._median_latency())
+            self._reanchor(self._anchor_stamp(host_rx_ns))
         else:
             if raw < self._last_raw:
                 event = "wrap"
@@ -151,13 +161,27 @@ class SensorClock:
             self._unwrapped += step
         self._last_raw = raw
         self._last_host = host_rx_ns
-        stamp = self.host_ns(self._unwrapped)
-        if self._track(host_rx_ns, stamp) and not event:
+        if self._track(host_rx_ns, self.host_ns(self._unwrapped)) and not event:
             event = "resync"
             self.resyncs += 1
-            self._reanchor(host_rx_ns - self._median_latency())
-            stamp = self.host_ns(self._unwrapped)
+            self._reanchor(self._anchor_stamp(host_rx_ns))
+        stamp = self.host_ns(self._unwrapped)  # under the offset as this reading left it
         return ClockReading(raw, self._unwrapped, stamp, self.offset_ns, event)
+
+    def _anchor_stamp(self, host_rx_ns: int) -> int:
+        """The stamp a re-anchoring gives the reading received at ``host_rx_ns``: the typical latency
+        before it, or none with ``envelope`` (the envelope then lowers it as faster readings come)."""
+        return host_rx_ns if self.envelope else host_rx_ns - self._median_latency()
+
+    def _lower_offset(self, shift_ns: int) -> None:
+        """Make every stamp ``shift_ns`` earlier; the latencies kept for the median and the drift
+        fit grow by as much, so they stay comparable with those still to come."""
+        self.offset_ns -= shift_ns
+        n = min(self._n_recent, self.RECENT)
+        self._recent[:n] += shift_ns
+        self._median_at = (*self._median_at[:2], self._median_at[2] + shift_ns)
+        self._bin_y[:min(self._bins, self.window)] += shift_ns
+        self._bin_min += shift_ns
 
     def _reanchor(self, stamp_ns: int) -> None:
         """Make the current unwrapped tick map to ``stamp_ns``, keeping the drift estimate.
@@ -165,7 +189,7 @@ class SensorClock:
         One receive time is only as good as its latency; once ``REFINE`` more readings have
         come, the offset is shifted so their median latency matches the one before.
         """
-        if self._n_recent:
+        if self._n_recent and not self.envelope:
             self._target, self._refine = self._median_latency(), []
         self.offset_ns = stamp_ns - self._unwrapped * self.tick_ns
         self._ref = self._unwrapped
@@ -185,6 +209,9 @@ class SensorClock:
         latency = host_rx_ns - stamp_ns
         if latency < -self.resync_tolerance_ns:
             return True
+        if self.envelope and latency < 0:
+            self._lower_offset(-latency)
+            latency = 0
         if self._n_recent >= 8 and latency - self._median_latency() > self.resync_tolerance_ns:
             if self._outside is None:
                 self._outside = self._unwrapped

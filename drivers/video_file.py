@@ -16,7 +16,7 @@ while streaming is a lost device (``DeviceError``), as an unplugged camera is.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,15 +39,15 @@ def fourcc_text(value: float) -> str:
     return text if code and text.isprintable() else ""
 
 
-def open_ffmpeg(target: str, params: Sequence[int] = ()) -> tuple[cv2.VideoCapture, bool]:
-    """Open ``target`` (path or URL) with the FFmpeg backend; ``(capture, raw_jpeg)``.
+def open_ffmpeg(target: str) -> tuple[cv2.VideoCapture, bool]:
+    """Open the video file ``target`` with the FFmpeg backend; ``(capture, raw_jpeg)``.
 
     ``raw_jpeg`` is True when the stream is MJPEG and demux-only mode is on, so reads return
     the JPEG packets undecoded. Raises ``DeviceError`` when FFmpeg cannot open it.
     """
     quiet_opencv()
     try:
-        cap = cv2.VideoCapture(target, cv2.CAP_FFMPEG, list(params))
+        cap = cv2.VideoCapture(target, cv2.CAP_FFMPEG)
     except cv2.error as error:
         raise DeviceError(f"cannot open {target}: {error}") from None
     if not cap.isOpened():

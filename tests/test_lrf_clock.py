@@ -89,3 +89,33 @@ def test_drift_is_estimated_from_the_latency_envelope(drift_ppm):
     late = np.array([o.stamp_ns for o in out[-1000:]]) - true[-1000:]
     assert np.abs(late).max() <= 3 * MS  # without drift tracking the error would be 30-48 ms
     assert clock.resets == 0
+
+
+def camera_run(seconds: float, drift_ppm: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A camera clock (epoch ns of another machine, 3.2 s ahead, ``drift_ppm`` slow) stamping frames at
+    30 Hz: capture times on the host clock, the camera's stamps and the host receive times; every
+    10th frame comes in the quickest 1 ms, the others up to 400 ms late (a busy host)."""
+    true = T0 + np.arange(int(seconds * 30)) * 33_333_333
+    device = true + 3_200 * MS - ((true - T0) * drift_ppm * 1e-6).astype(np.int64)
+    rng = np.random.default_rng(seed)
+    late = rng.exponential(20 * MS, true.size).astype(np.int64).clip(0, 400 * MS)
+    late[::10] = 0
+    late[0] = 40 * MS  # the first frame, the anchor, came late
+    return true, device, true + MS + late
+
+
+def test_envelope_offset_follows_the_quickest_delivery_never_the_late_ones():
+    true, device, received = camera_run(20.0, 0.0, 1)
+    clock = SensorClock(bits=64, tick_ns=1, bin_ticks=10**9, resync_after_ticks=5 * 10**9, envelope=True)
+    stamps = np.array([clock.update(int(d), int(r)).stamp_ns for d, r in zip(device, received, strict=True)])
+    assert np.array_equal(stamps - true, np.minimum.accumulate(received - true))  # the smallest latency so far
+    assert np.all(stamps <= received) and clock.resyncs == 0 and clock.resets == 0
+    assert np.all(stamps[10:] - true[10:] == MS)
+
+
+def test_envelope_drift_from_the_lower_envelope():
+    true, device, received = camera_run(90.0, 200.0, 2)
+    clock = SensorClock(bits=64, tick_ns=1, bin_ticks=10**9, resync_after_ticks=5 * 10**9, envelope=True)
+    stamps = np.array([clock.update(int(d), int(r)).stamp_ns for d, r in zip(device, received, strict=True)])
+    assert 190 < clock.drift_ppm < 210
+    assert np.all(np.abs(stamps[-900:] - true[-900:] - MS) <= MS // 5)  # the last 30 s

@@ -7,7 +7,16 @@ built-in ``synthetic_frame`` scene) encoded at ``quality``, or from a video file
 produced at ``fps`` whether or not anyone watches, as a camera does; every client gets the
 newest frame. Faults for tests: ``corrupt_next`` (truncated or damaged JPEG), ``stall``
 (connection stays open, nothing is sent), ``unplug``/``replug`` (server and connections
-closed, then back on the same port).
+closed, then back on the same port), ``send_delay`` (a frame held back before it is written, as
+a busy camera or network delays it).
+
+Each part says when its frame was captured, as mjpg-streamer's output_http plugin does:
+``X-Timestamp: <sec>.<usec>`` (``"%d.%06d"`` of a ``struct timeval``), the time the frame was
+taken, not the time it is sent. mjpg-streamer's input_uvc copies the V4L2 buffer's timestamp
+(CLOCK_MONOTONIC of the camera's machine); its other inputs and many IP cameras use
+``gettimeofday``. This emulator uses the wall clock (``time.time_ns()``), read just before the
+frame is rendered at its fps tick; ``timestamps=False`` leaves the header out, as plainer
+servers do.
 """
 
 from __future__ import annotations
@@ -94,11 +103,15 @@ class CameraEmulator:
 
     ``history`` > 0 keeps that many of the last frames served (bytes) for tests to compare.
     ``corrupt_every`` N damages every N-th frame (truncated), as a flaky USB link would.
+    ``capture_ns`` holds the capture time (wall clock, ns) of each frame in ``history``.
+    ``send_delay(n)`` (a test hook) gives the seconds to wait before writing frame ``n`` (counted
+    from 1) to a client; ``timestamps`` False sends no ``X-Timestamp``.
     """
 
     def __init__(self, frame_at: Callable[[float], np.ndarray] | None = None, *, source: str | Path | None = None,
                  fps: float | None = None, width: int = 640, height: int = 480, quality: int = 85,
-                 host: str = "127.0.0.1", port: int = 0, history: int = 0, corrupt_every: int = 0) -> None:
+                 host: str = "127.0.0.1", port: int = 0, history: int = 0, corrupt_every: int = 0,
+                 timestamps: bool = True, send_delay: Callable[[int], float] | None = None) -> None:
         self.width, self.height, self.quality = width, height, quality
         self.host, self.port = host, port
         self.corrupt_every = corrupt_every
@@ -106,6 +119,9 @@ class CameraEmulator:
         self.corrupted = 0
         self.error: Exception | None = None
         self.history: collections.deque[bytes] = collections.deque(maxlen=history)
+        self.capture_ns: collections.deque[int] = collections.deque(maxlen=history)
+        self.timestamps = timestamps
+        self.send_delay = send_delay
         self._file: FrameSource | None = None
         if source is not None:
             path = Path(source)
@@ -121,7 +137,7 @@ class CameraEmulator:
         self.fps = fps or 30.0
         self.frame_at = frame_at or (lambda t: synthetic_frame(t, self.width, self.height))
         self._cond = threading.Condition()
-        self._latest: tuple[int, bytes] = (0, b"")
+        self._latest: tuple[int, bytes, int] = (0, b"", 0)  # frame number, JPEG, capture time (wall ns)
         self._corrupt_pending: list[str] = []
         self._stall_until = 0.0
         self._stop = threading.Event()
@@ -169,6 +185,7 @@ class CameraEmulator:
             index += 1
             if time.monotonic() < self._stall_until:
                 continue
+            captured_ns = time.time_ns()
             try:
                 data = self._next_jpeg(t_s)
             except Exception as error:  # a failing renderer or file ends the stream, reported in .error
@@ -183,8 +200,9 @@ class CameraEmulator:
                     self.corrupted += 1
                 else:
                     self.history.append(data)
+                    self.capture_ns.append(captured_ns)
                 self.frames_made += 1
-                self._latest = (self.frames_made, data)
+                self._latest = (self.frames_made, data, captured_ns)
                 self._cond.notify_all()
 
     def _news_for(self, connection: socket.socket, seen: int) -> bool:
@@ -203,16 +221,23 @@ class CameraEmulator:
                     self._cond.wait_for(partial(self._news_for, connection, seen), timeout=0.5)
                     if self._latest[0] == seen:
                         continue
-                    seen, data = self._latest
-                head = (f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(data)}\r\n"
-                        f"X-Timestamp: {time.time():.6f}\r\n\r\n").encode()
-                handler.wfile.write(head + data + b"\r\n")
+                    seen, data, captured_ns = self._latest
+                if self.send_delay is not None:
+                    time.sleep(self.send_delay(seen))
+                handler.wfile.write(self._part_head(data, captured_ns) + data + b"\r\n")
                 handler.wfile.flush()
         except OSError:
             return
         finally:
             with self._cond:
                 self._clients.discard(connection)
+
+    def _part_head(self, data: bytes, captured_ns: int) -> bytes:
+        """A part's delimiter and headers; ``X-Timestamp`` as mjpg-streamer writes it (``%d.%06d``)."""
+        head = f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(data)}\r\n"
+        if self.timestamps:
+            head += f"X-Timestamp: {captured_ns // 1_000_000_000}.{captured_ns // 1000 % 1_000_000:06d}\r\n"
+        return (head + "\r\n").encode()
 
     # --- faults --------------------------------------------------------------------------------
 

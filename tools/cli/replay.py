@@ -21,7 +21,15 @@ from trundle.tools.config.arguments import host_port, non_negative, positive
 from trundle.tools.config.robot import load_config
 from trundle.tools.daemon.live_view import LiveView
 from trundle.tools.daemon.processing import Processing, Publish
-from trundle.tools.daemon.replay import LogReplay, missing_inputs, open_output, output_topics, replay_window
+from trundle.tools.daemon.replay import (
+    LogReplay,
+    live_channels,
+    missing_inputs,
+    no_interrupts,
+    open_output,
+    output_topics,
+    replay_window,
+)
 from trundle.tools.jobs.slam import replay_estimator
 
 
@@ -58,29 +66,29 @@ def run(args: argparse.Namespace) -> int:
 
     probe = make_processing(lambda topic, msg: None, lambda: 0)
     if probe.active:
-        missing = missing_inputs(info, probe)
+        missing = missing_inputs(info, probe, topics)
         if missing:
             print(f"trundle replay: {log} has {', '.join(missing)}", file=sys.stderr)
         replaced = output_topics(info, probe)
         if replaced:
             print(f"trundle replay: the log's own {', '.join(replaced)} are left out: the processing makes them anew",
                   file=sys.stderr)
-    output = None
-    if args.output is not None:
-        source = read_metadata(info.metadata)
-        fields = {k: v for k, v in source.fields.items() if k not in ("trundle_version", "host")}
-        output = open_output(args.output, {
-            **fields, "robot": dict(source.robot), "devices": {k: dict(v) for k, v in source.devices.items()},
-            "command": "replay", "source": str(log), "source_command": source.command,
-            "config_file": config.source, "processing": {"slam": wanted.slam, "markers": wanted.markers},
-            "rate": args.rate})
-    live = None
+    live = output = None
     try:
         if args.live is not None:
             host, port = args.live
-            live = LiveView(host, port, name=f"trundle replay {log.name}", log_time=True)
+            live = LiveView(host, port, name=f"trundle replay {log.name}", log_time=True,
+                            channels=live_channels(info, topics, probe if probe.active else None))
             print(f"live view: ws://{host}:{live.port} (Foxglove: open connection, Foxglove WebSocket)",
                   flush=True)
+        if args.output is not None:
+            source = read_metadata(info.metadata)
+            fields = {k: v for k, v in source.fields.items() if k not in ("trundle_version", "host")}
+            output = open_output(args.output, {
+                **fields, "robot": dict(source.robot), "devices": {k: dict(v) for k, v in source.devices.items()},
+                "command": "replay", "source": str(log), "source_command": source.command,
+                "config_file": config.source, "processing": {"slam": wanted.slam, "markers": wanted.markers},
+                "rate": args.rate})
         t0 = info.start_ns or 0
         window_s = ((end_ns if end_ns is not None else info.end_ns or t0) - start_ns) * 1e-9
         progress = Progress("replay", max(window_s, 1e-9))
@@ -90,10 +98,11 @@ def run(args: argparse.Namespace) -> int:
         result = replay.run()
         progress.close()
     finally:
-        if live is not None:
-            live.close()
-        if output is not None:
-            output.close()
+        with no_interrupts():
+            if live is not None:
+                live.close()
+            if output is not None:
+                output.close()
     passes = f" in {result.passes} passes" if result.passes > 1 else ""
     print(f"replayed {result.messages} messages ({result.log_s:.2f} s of log{passes}) in {result.wall_s:.2f} s: "
           f"rate achieved {result.rate:.2f}x" + (" (stopped by Ctrl-C)" if result.interrupted else ""))

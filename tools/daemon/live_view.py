@@ -20,6 +20,7 @@ once it offers ``foxglove.sdk.v1`` (it may offer both). ``tests/test_daemon_live
 from __future__ import annotations
 
 import threading
+from collections.abc import Mapping
 from typing import Any
 
 from trundle.logs import messages as m
@@ -34,7 +35,9 @@ class LiveView:
     """A Sink (``view(topic, msg, log_time_ns)``) that streams to Foxglove clients (from any thread)."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8765, name: str = "trundle",
-                 log_time: bool = False) -> None:
+                 log_time: bool = False, channels: Mapping[str, str] | None = None) -> None:
+        """Serve on ``host``:``port`` (0: any free port) as ``name``; ``log_time``: the server time is the
+        one ``set_time`` gives; ``channels`` (topic -> ROS type): advertised before the server starts."""
         try:
             import foxglove
             from foxglove.websocket import Capability, ServerListener
@@ -50,6 +53,8 @@ class LiveView:
         self._lock = threading.RLock()
         self._joined: set[str] = set()  # latched topics a client subscribed to since they were last sent
         self._next_time_ns: int | None = None
+        for topic, ros_type in (channels or {}).items():
+            self.advertise(topic, ros_type)
         try:
             self.server = foxglove.start_server(name=name, host=host, port=port, context=self.context,
                                                 capabilities=[Capability.Time] if log_time else None,
@@ -83,12 +88,21 @@ class LiveView:
                     self._joined.discard(joined)
                     self._log(joined, *self.latched[joined])
 
+    def advertise(self, topic: str, ros_type: str) -> Any:
+        """The channel of ``topic`` (made on first use). When the topics are known (a replay), give them as
+        ``channels``: a client that subscribes at once to a channel advertised while it is connected can
+        be told "unknown channel" (foxglove-sdk 0.30.3) and then gets nothing on it."""
+        with self._lock:
+            channel = self.channels.get(topic)
+            if channel is None:
+                schema = self._foxglove.Schema(name=ros_type, encoding="ros2msg",
+                                               data=ros2.schema_text(ros_type).encode())
+                channel = self.channels[topic] = self._foxglove.Channel(topic, schema=schema, message_encoding="cdr",
+                                                                        context=self.context)
+            return channel
+
     def _log(self, topic: str, ros_type: str, data: bytes | Any, log_time_ns: int) -> None:
-        channel = self.channels.get(topic)
-        if channel is None:
-            schema = self._foxglove.Schema(name=ros_type, encoding="ros2msg", data=ros2.schema_text(ros_type).encode())
-            channel = self.channels[topic] = self._foxglove.Channel(topic, schema=schema, message_encoding="cdr",
-                                                                    context=self.context)
+        channel = self.advertise(topic, ros_type)
         if channel.has_sinks():
             channel.log(data() if callable(data) else data, log_time=log_time_ns)
             self.sent += 1

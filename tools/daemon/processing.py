@@ -20,7 +20,7 @@ from __future__ import annotations
 import collections
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -50,6 +50,11 @@ def online_estimator(config: ProcessingConfig, slam: Mapping[str, Any]) -> Slam 
                                EstimatorInputs(SlamConfig.from_mapping(slam)))
     assert isinstance(estimator, Slam)
     return estimator
+
+
+def _camera(image_topic: str) -> str:
+    """The camera's namespace of one of its image topics (``/camera`` of ``/camera/image_raw/compressed``)."""
+    return image_topic.rsplit("/image_raw", 1)[0]
 
 
 class Processing:
@@ -88,6 +93,18 @@ class Processing:
     def active(self) -> bool:
         """True when anything is configured (else the daemon leaves the thread unstarted)."""
         return self.slam is not None or self.detector is not None
+
+    def outputs(self, image_topics: Iterable[str]) -> dict[str, type[m.Message]]:
+        """The topics it publishes and their message types, given the camera topics it will see."""
+        out: dict[str, type[m.Message]] = {}
+        if self.slam is not None:
+            out |= {SLAM_POSE_TOPIC: m.Pose2D, TF_TOPIC: m.TFMessage, MAP_TOPIC: m.OccupancyGrid, PATH_TOPIC: m.Path}
+        if self.detector is not None:
+            out[LANDMARK_TOPIC] = m.LandmarkList
+            for topic in image_topics:
+                base = _camera(topic)
+                out |= {f"{base}/markers": m.ImageMarker, f"{base}/marker_poses": m.TFMessage}
+        return out
 
     def wants(self, topic: str, msg: m.Message) -> bool:
         """Whether to ``put`` this message: for SLAM what its estimator reads (the scans, transforms,
@@ -154,11 +171,15 @@ class Processing:
         slam = self.slam
         if slam is None or slam.stats.scans == 0:
             return
-        slam.finish()
-        stamps, poses = slam.trajectory()
-        end_ns = int(stamps.max())
-        self.publish(MAP_TOPIC, slam.build_map().to_message(end_ns, self.frames.map))
-        self.publish(PATH_TOPIC, m.Path(end_ns, self.frames.map, stamps, poses))
+        try:
+            slam.finish()
+            stamps, poses = slam.trajectory()
+            end_ns = int(stamps.max())
+            self.publish(MAP_TOPIC, slam.build_map().to_message(end_ns, self.frames.map))
+            self.publish(PATH_TOPIC, m.Path(end_ns, self.frames.map, stamps, poses))
+        except Exception as error:  # noqa: BLE001 -- counted and said like any message that failed
+            self.errors += 1
+            self.last_error = f"{type(error).__name__}: {error}"
 
     def _handle(self, topic: str, msg: m.Message) -> None:
         frames = self.frames
@@ -190,7 +211,7 @@ class Processing:
             return
         assert self.detector is not None and self.static_frames is not None
         info = self._camera_info.get(msg.frame_id)
-        base = topic.rsplit("/image_raw", 1)[0]
+        base = _camera(topic)
         camera_in_base = self.static_frames.try_transform(self.frames.base, msg.frame_id)
         observations = []
         for marker in self.detector.detect(image):

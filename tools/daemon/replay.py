@@ -30,7 +30,7 @@ from trundle.logs.paths import new_file
 from trundle.logs.reader import LogInfo, LogReader, RawMessage
 from trundle.logs.replay import play
 from trundle.logs.topics import LANDMARK_TOPIC, MAP_TOPIC, PATH_TOPIC, SLAM_POSE_TOPIC, TF_STATIC_TOPIC, TF_TOPIC
-from trundle.logs.writer import Logger
+from trundle.logs.writer import Logger, is_latched
 from trundle.tools.daemon.live_view import LiveView
 from trundle.tools.daemon.processing import Processing, Publish
 
@@ -73,13 +73,14 @@ def replay_window(log: str | os.PathLike[str], info: LogInfo, topics: Iterable[s
     return wanted, start_ns, end_ns
 
 
-def missing_inputs(info: LogInfo, processing: Processing) -> list[str]:
-    """What the processing needs and the log lacks, in words (empty: nothing)."""
-    types = {t.ros_type for t in info.topics.values()}
+def missing_inputs(info: LogInfo, processing: Processing, topics: Iterable[str] | None = None) -> list[str]:
+    """What the processing needs and the log's ``topics`` (None: all) lack, in words (empty: nothing)."""
+    played = {t: i for t, i in info.topics.items() if topics is None or t in set(topics)}
+    types = {i.ros_type for i in played.values()}
     missing = []
     slam = processing.slam
     if slam is not None:
-        scan = info.topics.get(processing.scan_topic)
+        scan = played.get(processing.scan_topic)
         if scan is None or scan.ros_type != "sensor_msgs/msg/LaserScan":
             missing.append(f"no scans on {processing.scan_topic} (SLAM maps nothing)")
         if not types & set(ODOMETRY_TYPES) and not (slam.wheels is not None and "sensor_msgs/msg/JointState" in types):
@@ -97,6 +98,17 @@ def output_topics(info: LogInfo, processing: Processing) -> list[str]:
     if processing.detector is not None:
         made |= {LANDMARK_TOPIC} | {t for t in info.topics if t.endswith(("/markers", "/marker_poses"))}
     return sorted(made & set(info.topics))
+
+
+def live_channels(info: LogInfo, topics: Iterable[str] | None, processing: Processing | None) -> dict[str, str]:
+    """Every topic a replay streams, with its ROS type: the log's ``topics`` (None: all) that trundle
+    decodes and the ``processing``'s outputs (the live view advertises them before clients come)."""
+    played = {t: i.ros_type for t, i in info.topics.items()
+              if ros2.is_supported(i.ros_type) and (topics is None or t in set(topics))}
+    if processing is not None:
+        images = [t for t, ros_type in played.items() if ros_type in IMAGE_TYPES]
+        played |= {t: ros2.ros_type(kind) for t, kind in processing.outputs(images).items()}
+    return played
 
 
 @dataclass
@@ -146,6 +158,7 @@ class LogReplay:
         self.result = ReplayResult()
         self._pass_start_ns: int | None = None
         self._played_s = 0.0  # log seconds played in this pass
+        self._latched_before: list[RawMessage] = []  # latched topics' last messages before the window
         self._done_s = 0.0  # in the passes before
         self._started = time.monotonic()
         self._lock = threading.Lock()
@@ -161,24 +174,32 @@ class LogReplay:
         except KeyboardInterrupt:
             result.interrupted = True
         finally:
-            with _no_interrupts():
+            with no_interrupts():
                 self._end_processing()
                 result.wall_s = time.monotonic() - started
         return result
 
     def _next_pass(self, n: int) -> None:
-        """Before pass ``n``: a fresh processing (the log's time starts again)."""
+        """Before pass ``n``: a fresh processing (the log's time starts again), then the latched topics'
+        last messages before the window (the laser's mount, calibrations), as a latched publisher's
+        subscriber would have them."""
         self.result.passes = n + 1
-        self._pass_start_ns = None
         self._done_s += self._played_s
         self._played_s = 0.0
         self._end_processing()
-        if self.make_processing is None:
-            return
-        processing = self.processing = self.make_processing(self.publish, lambda: self.now_ns)
-        self.excluded = set(output_topics(LogReader(self.log).info(), processing))
-        if self.rate > 0:
-            processing.thread.start()
+        if self.make_processing is not None:
+            processing = self.processing = self.make_processing(self.publish, lambda: self.now_ns)
+            self.excluded = set(output_topics(LogReader(self.log).info(), processing))
+            if self.rate > 0:
+                processing.thread.start()
+        if n == 0 and self.start_ns is not None:
+            latched = [t for t in LogReader(self.log).info().topics if is_latched(t)
+                       and (self.topics is None or t in self.topics)]
+            before = {raw.topic: raw for raw in LogReader(self.log).raw_messages(latched, None, self.start_ns)}
+            self._latched_before = sorted(before.values(), key=lambda raw: raw.log_time_ns)
+        for raw in self._latched_before:
+            self._deliver(raw)
+        self._pass_start_ns = None
 
     def _end_processing(self) -> None:
         processing, self.processing = self.processing, None
@@ -250,8 +271,9 @@ def _wait_for_room(logger: Logger) -> None:
 
 
 @contextlib.contextmanager
-def _no_interrupts() -> Iterator[None]:
-    """Ctrl-C ignored while the replay finishes (the output must be complete); main thread only."""
+def no_interrupts() -> Iterator[None]:
+    """Ctrl-C ignored while a replay finishes and its output is closed (a second Ctrl-C must not leave it
+    half written); main thread only."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return

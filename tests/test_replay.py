@@ -124,6 +124,20 @@ def test_rate_0_slam_is_trundle_slam(short_demo, tmp_path, capsys):
     assert map_to_odom == slam["/tf"]  # the online map -> odom of every scan, too
 
 
+def test_markers_are_detected_at_markers_hz_of_log_time(tmp_path, capsys):
+    out = tmp_path / "markers.mcap"
+    printed, _ = trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "3", "--markers", "-o", out)
+    images = [(x.log_time_ns, x.msg.stamp_ns) for x in read_messages(out, ["/camera/image_raw/compressed"])]
+    taken = [images[0]]  # [processing] markers_hz = 2: an image at least 0.5 s of log after the last one taken
+    for log_time, stamp in images[1:]:
+        if log_time - taken[-1][0] >= 500_000_000:
+            taken.append((log_time, stamp))
+    markers = decoded(out, {"/camera/markers"})["/camera/markers"]
+    assert len(taken) == 5 and len(markers) == 5 and "results: /camera/marker_poses 5, /camera/markers 5" in printed
+    assert [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in markers] == [s for _, s in taken]
+    assert {m.id for m in markers} == {96}  # the ArUco marker on the wall the robot faces at the start
+
+
 def test_start_and_end_play_that_window(tmp_path, capsys):
     out = tmp_path / "window.mcap"
     trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--start", "2", "--end", "3.5", "-o", out)

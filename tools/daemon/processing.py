@@ -36,6 +36,9 @@ if TYPE_CHECKING:
     from trundle.tools.config.robot import FramesConfig, ProcessingConfig
 
 Publish = Callable[[str, m.Message], None]  # (topic, message): log a result as the daemon's own
+INPUT_TYPES: tuple[type[m.Message], ...] = (m.LaserScan, m.TFMessage, m.Odometry, m.JointState, m.LandmarkList,
+                                            m.CompressedImage, m.Image, m.CameraInfo)
+"""Every message type ``wants`` may take (a replay decodes no other)."""
 
 
 def online_estimator(config: ProcessingConfig, slam: Mapping[str, Any]) -> Slam | None:

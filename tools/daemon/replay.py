@@ -32,7 +32,7 @@ from trundle.logs.replay import play
 from trundle.logs.topics import LANDMARK_TOPIC, MAP_TOPIC, PATH_TOPIC, SLAM_POSE_TOPIC, TF_STATIC_TOPIC, TF_TOPIC
 from trundle.logs.writer import Logger, is_latched
 from trundle.tools.daemon.live_view import LiveView
-from trundle.tools.daemon.processing import Processing, Publish
+from trundle.tools.daemon.processing import INPUT_TYPES, Processing, Publish
 
 ProcessingFactory = Callable[[Publish, Callable[[], int]], Processing]
 """Builds a fresh Processing from its ``publish`` and ``clock`` (ns) (one per pass of a ``--loop``)."""
@@ -113,8 +113,9 @@ def live_channels(info: LogInfo, topics: Iterable[str] | None, processing: Proce
 
 @dataclass
 class ReplayResult:
-    """What a replay did: messages per topic, seconds of log played and of wall time, passes, and the
-    processing's counts (scans taken and skipped to keep up, messages dropped or failed)."""
+    """What a replay did: messages per topic, seconds of log played and of wall time playing them (the
+    processing's final optimisation comes after), passes, and the processing's counts (scans taken and
+    skipped to keep up, messages dropped or failed)."""
 
     counts: collections.Counter[str] = field(default_factory=collections.Counter)
     log_s: float = 0.0
@@ -162,6 +163,7 @@ class LogReplay:
         self._done_s = 0.0  # in the passes before
         self._started = time.monotonic()
         self._lock = threading.Lock()
+        self._inputs = {ros2.ros_type(kind) for kind in INPUT_TYPES}  # the ROS types worth decoding
 
     def run(self) -> ReplayResult:
         """Play until the window's end (or, with ``loop``, until Ctrl-C); always finishes the processing
@@ -174,9 +176,9 @@ class LogReplay:
         except KeyboardInterrupt:
             result.interrupted = True
         finally:
+            result.wall_s = time.monotonic() - started  # the playing; the processing's final work after it
             with no_interrupts():
                 self._end_processing()
-                result.wall_s = time.monotonic() - started
         return result
 
     def _next_pass(self, n: int) -> None:
@@ -233,10 +235,13 @@ class LogReplay:
             self._pass_start_ns = t
         processing = self.processing
         msg: m.Message | None = None
-        if processing is not None and ros2.is_supported(raw.ros_type):
-            msg = ros2.decode(raw.ros_type, raw.data)
-            if raw.topic in self.excluded or self._is_map_to_odom(raw.topic, msg):
+        if processing is not None:
+            if raw.topic in self.excluded:
                 return
+            if raw.ros_type in self._inputs:
+                msg = ros2.decode(raw.ros_type, raw.data)
+                if self._is_map_to_odom(raw.topic, msg):
+                    return
         result = self.result
         result.counts[raw.topic] += 1
         if self.output is not None:

@@ -124,6 +124,19 @@ def test_rate_0_slam_is_trundle_slam(short_demo, tmp_path, capsys):
     assert map_to_odom == slam["/tf"]  # the online map -> odom of every scan, too
 
 
+def test_the_daemons_config_turns_the_processing_on_with_its_frames(short_demo, tmp_path, capsys):
+    robot = tmp_path / "robot.toml"
+    robot.write_text('[processing]\nslam = true\nmap_period_s = 1.0\n\n[frames]\nmap = "world"\n')
+    out = tmp_path / "configured.mcap"
+    printed, _ = trundle(capsys, "replay", short_demo, "--rate", "0", "--config", robot, "-o", out)
+    got = decoded(out, {"/slam/pose", "/map", "/tf"})
+    assert {p.header.frame_id for p in got["/slam/pose"]} == {"world"} and got["/slam/pose"]
+    assert {(t.header.frame_id, t.child_frame_id) for tf in got["/tf"] for t in tf.transforms} == {
+        ("world", "odom"), ("odom", "base_link")}  # the SLAM's and the log's own odometry
+    assert len(got["/map"]) == 5  # every 1 s of log (4 s), and the final one
+    assert read_metadata(LogReader(out).info().metadata).fields["config_file"] == str(robot)
+
+
 def test_markers_are_detected_at_markers_hz_of_log_time(tmp_path, capsys):
     out = tmp_path / "markers.mcap"
     printed, _ = trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "3", "--markers", "-o", out)

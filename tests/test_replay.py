@@ -281,9 +281,10 @@ def test_ctrl_c_leaves_a_complete_output(tmp_path):
 
 def test_what_the_log_lacks_is_said_before_it_starts(capsys):
     out, err = trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "1", "--slam", "--markers",
-                       "--topics", "/tf_static", "/wheels")
-    assert err.splitlines()[0] == (f"trundle replay: {DEMO_LOG} has no scans on /scan (SLAM maps nothing), "
-                                   "no camera images (no markers to detect)")
+                       "--topics", "/tf_static", "/wheels", "/nope")
+    assert err.splitlines() == [f"trundle replay: {DEMO_LOG} has no /nope: playing the other topics",
+                                f"trundle replay: {DEMO_LOG} has no scans on /scan (SLAM maps nothing), "
+                                "no camera images (no markers to detect)"]
     assert "slam: 0 scans processed" in out
 
 

@@ -56,6 +56,9 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--loop plays until Ctrl-C: it cannot write -o (leave out one of them)")
     info = LogReader(log).info()
     topics, start_ns, end_ns = replay_window(log, info, args.topics, args.start, args.end)
+    absent = [t for t in topics or () if t not in info.topics]
+    if absent:
+        print(f"trundle replay: {log} has no {', '.join(absent)}: playing the other topics", file=sys.stderr)
     config = load_config(args.config)
     wanted = config.processing.model_copy(update={"slam": config.processing.slam or args.slam,
                                                   "markers": config.processing.markers or args.markers})

@@ -20,7 +20,7 @@ once it offers ``foxglove.sdk.v1`` (it may offer both). ``tests/test_daemon_live
 from __future__ import annotations
 
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from trundle.logs import messages as m
@@ -73,15 +73,14 @@ class LiveView:
             return
         self.send(topic, ros_type, lambda: ros2.encode(msg)[1], log_time_ns)
 
-    def send(self, topic: str, ros_type: str, data: bytes | Any, log_time_ns: int) -> None:
+    def send(self, topic: str, ros_type: str, data: bytes | Callable[[], bytes], log_time_ns: int) -> None:
         """Stream one message of ``ros_type``: its CDR bytes, or a callable giving them (called only
         while a client subscribes, or for a latched topic)."""
         with self._lock:
-            latched = is_latched(topic)
-            if latched or (self.channels.get(topic) is not None and self.channels[topic].has_sinks()):
-                data = data() if callable(data) else data
-            if latched:
-                self.latched[topic] = (ros_type, data, log_time_ns)
+            if is_latched(topic):
+                encoded = data() if callable(data) else data
+                self.latched[topic] = (ros_type, encoded, log_time_ns)
+                data = encoded
             self._log(topic, ros_type, data, log_time_ns)
             if self._joined:
                 for joined in [t for t in list(self._joined) if t in self.latched and t != topic]:
@@ -101,7 +100,7 @@ class LiveView:
                                                                         context=self.context)
             return channel
 
-    def _log(self, topic: str, ros_type: str, data: bytes | Any, log_time_ns: int) -> None:
+    def _log(self, topic: str, ros_type: str, data: bytes | Callable[[], bytes], log_time_ns: int) -> None:
         channel = self.advertise(topic, ros_type)
         if channel.has_sinks():
             channel.log(data() if callable(data) else data, log_time=log_time_ns)

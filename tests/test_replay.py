@@ -10,6 +10,7 @@ import contextlib
 import itertools
 import json
 import os
+import re
 import signal
 import socket
 import struct
@@ -238,6 +239,10 @@ def test_live_client_joining_mid_replay_gets_every_scan_and_pose_in_log_time(tmp
     log = LogReader(DEMO_LOG)
     t0 = log.info().start_ns
     scans = [x.log_time_ns for x in log.raw_messages(["/scan"], t0 + 1_000_000_000, t0 + 4_000_000_000)]
+    said = re.search(r"slam: (\d+) scans processed, (\d+) skipped to keep up", out)
+    assert said is not None, out
+    processed, skipped = (int(n) for n in said.groups())
+    assert processed + skipped == len(scans) == 120  # the window's scans: each taken or said skipped (behind real time)
     got = client.times("/scan")
     assert len(got) > 20 and got == scans[scans.index(got[0]):]  # from the first it got, every scan, in order
     assert len(client.times("/tf_static")) >= 1  # latched, sent before the client came: sent again to it

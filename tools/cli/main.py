@@ -30,7 +30,7 @@ COMMANDS = {
     "status": "status of the running daemon: devices, rates, errors, logger, disk",
     "info": "summarise a log: duration, size, topics, types, counts, rates",
     "recover": "salvage a truncated or .active log",
-    "replay": "play a log in (scaled) real time",
+    "replay": "the daemon on a log: play it at any rate into SLAM/markers, the live view and a new log",
     "export": "export one topic as CSV or NDJSON",
     "slam": "build a map and trajectory from a log (LaserScan + odometry)",
     "slam-eval": "relation error (Kuemmerle 2009), ATE and RPE of a SLAM trajectory",

@@ -46,3 +46,15 @@ positive_int = number_in(1, whole=True)
 non_negative_int = number_in(0, whole=True)
 tcp_port = number_in(0, 65535, whole=True)
 percent = number_in(1, 100, whole=True)
+
+
+def host_port(text: str) -> tuple[str, int]:
+    """``[HOST:]PORT`` as (host, port); HOST defaults to the loopback 127.0.0.1 (nothing is served to
+    the network unless asked), PORT is a TCP port (0: any free one)."""
+    host, sep, port = text.rpartition(":")
+    if sep and not host:
+        raise argparse.ArgumentTypeError(f"{text!r} has no host before ':' (give PORT or HOST:PORT)")
+    return host or "127.0.0.1", int(tcp_port(port))
+
+
+host_port.__name__ = "[HOST:]PORT"

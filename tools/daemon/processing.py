@@ -2,11 +2,17 @@
 the camera images.
 
 The daemon offers every message to ``wants``; the chosen ones go through a bounded queue to one
-processing thread (a full queue drops and counts), and the results (``/slam/pose``, map -> odom
+processing thread (a full queue drops and counts; behind real time, SLAM takes the newest scan
+and counts the others as skipped), and the results (``/slam/pose``, map -> odom
 on ``/tf``, ``/map``, ``.../markers``, ``.../marker_poses``, and the markers as landmark
 observations in the robot frame on ``/landmarks`` once ``/tf_static`` places the camera) go back
 through ``publish``. With both SLAM and markers on, the markers are landmarks of the SLAM's pose
 graph. SLAM and the marker detector (both bring SciPy) are imported only when configured.
+
+``trundle replay`` runs the same class on a log's messages: on the thread at a real-time rate, or
+through ``handle`` message by message at rate 0 (nothing skipped), with the log's time as ``clock``.
+The SLAM estimator is built by the caller through :mod:`trundle.fusion.slam.estimators` (the daemon's
+by :func:`online_estimator`).
 """
 
 from __future__ import annotations
@@ -14,16 +20,15 @@ from __future__ import annotations
 import collections
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
-from trundle.drivers.lifecycle import wall_ns
 from trundle.logs import messages as m
 from trundle.logs.frames import FrameTree
-from trundle.logs.topics import LANDMARK_TOPIC, MAP_TOPIC, SLAM_POSE_TOPIC, TF_STATIC_TOPIC, TF_TOPIC
+from trundle.logs.topics import LANDMARK_TOPIC, MAP_TOPIC, PATH_TOPIC, SLAM_POSE_TOPIC, TF_STATIC_TOPIC, TF_TOPIC
 
 if TYPE_CHECKING:
     from trundle.fusion.slam.grid_slam import Slam
@@ -31,15 +36,39 @@ if TYPE_CHECKING:
     from trundle.tools.config.robot import FramesConfig, ProcessingConfig
 
 Publish = Callable[[str, m.Message], None]  # (topic, message): log a result as the daemon's own
+INPUT_TYPES: tuple[type[m.Message], ...] = (m.LaserScan, m.TFMessage, m.Odometry, m.JointState, m.LandmarkList,
+                                            m.CompressedImage, m.Image, m.CameraInfo)
+"""Every message type ``wants`` may take (a replay decodes no other)."""
+
+
+def online_estimator(config: ProcessingConfig, slam: Mapping[str, Any]) -> Slam | None:
+    """The daemon's SLAM (None unless ``config.slam``): the registry's ``grid`` estimator, ``grid-landmarks``
+    with markers on, from the ``[slam]`` table ``slam``; odometry from the ``Odometry`` messages."""
+    if not config.slam:
+        return None
+    from trundle.fusion.slam.config import SlamConfig
+    from trundle.fusion.slam.estimators import EstimatorInputs, make_estimator
+    from trundle.fusion.slam.grid_slam import Slam
+    estimator = make_estimator("grid-landmarks" if config.markers else "grid",
+                               EstimatorInputs(SlamConfig.from_mapping(slam)))
+    assert isinstance(estimator, Slam)
+    return estimator
+
+
+def _camera(image_topic: str) -> str:
+    """The camera's namespace of one of its image topics (``/camera`` of ``/camera/image_raw/compressed``)."""
+    return image_topic.rsplit("/image_raw", 1)[0]
 
 
 class Processing:
     """Online processing on its own thread, fed through a bounded queue (drops counted); results
-    go to ``publish``. ``slam`` is the ``[slam]`` table, ``frames`` names map and odom."""
+    go to ``publish``. ``slam`` is the SLAM estimator (None: no SLAM), ``frames`` names map and odom;
+    ``clock`` (ns) paces the marker detection and the map: the daemon's monotonic clock, a replay's
+    log time."""
 
-    def __init__(self, config: ProcessingConfig, slam: Mapping[str, Any], frames: FramesConfig,
-                 publish: Publish) -> None:
-        self.config, self.frames, self.publish = config, frames, publish
+    def __init__(self, config: ProcessingConfig, frames: FramesConfig, publish: Publish,
+                 slam: Slam | None = None, clock: Callable[[], int] = time.monotonic_ns) -> None:
+        self.config, self.frames, self.publish, self.clock = config, frames, publish, clock
         self.queue: collections.deque[tuple[str, m.Message] | None] = collections.deque()
         self.wake = threading.Event()
         self.dropped = 0
@@ -48,21 +77,15 @@ class Processing:
         self.last_error = ""
         self.markers_seen: collections.Counter[int] = collections.Counter()
         self.landmarks_published = 0
-        self._next_marker_t = 0.0
-        self._next_map_t = 0.0
+        self._next_marker_ns: int | None = None
+        self._next_map_ns: int | None = None
         self._camera_info: dict[str, m.CameraInfo] = {}
-        self.slam: Slam | None = None
+        self.slam = slam
         self.detector: MarkerDetector | None = None
         self.static_frames: FrameTree | None = None
-        if config.slam:
-            from trundle.fusion.slam.config import SlamConfig
-            from trundle.fusion.slam.estimators import EstimatorInputs, make_estimator
-            from trundle.fusion.slam.grid_slam import Slam
-            estimator = make_estimator("grid-landmarks" if config.markers else "grid",
-                                       EstimatorInputs(SlamConfig.from_mapping(slam)))
-            assert isinstance(estimator, Slam)
-            self.slam = estimator
-        self.scan_topic = self.slam.config.scan.topic if self.slam is not None else ""
+        self.scan_topic = slam.config.scan.topic if slam is not None else ""
+        constraints = slam.landmark_constraints if slam is not None else None
+        self.landmark_topic = constraints.topic if constraints is not None else ""
         if config.markers:
             from trundle.perception.markers import MarkerDetector
             self.detector = MarkerDetector(config.aruco_dictionary)
@@ -74,20 +97,36 @@ class Processing:
         """True when anything is configured (else the daemon leaves the thread unstarted)."""
         return self.slam is not None or self.detector is not None
 
+    def outputs(self, image_topics: Iterable[str]) -> dict[str, type[m.Message]]:
+        """The topics it publishes and their message types, given the camera topics it will see."""
+        out: dict[str, type[m.Message]] = {}
+        if self.slam is not None:
+            out |= {SLAM_POSE_TOPIC: m.Pose2D, TF_TOPIC: m.TFMessage, MAP_TOPIC: m.OccupancyGrid, PATH_TOPIC: m.Path}
+        if self.detector is not None:
+            out[LANDMARK_TOPIC] = m.LandmarkList
+            for topic in image_topics:
+                base = _camera(topic)
+                out |= {f"{base}/markers": m.ImageMarker, f"{base}/marker_poses": m.TFMessage}
+        return out
+
     def wants(self, topic: str, msg: m.Message) -> bool:
-        """Whether to ``put`` this message; images are rate-limited to ``markers_hz`` here, camera
-        info is kept for the marker poses."""
+        """Whether to ``put`` this message: for SLAM what its estimator reads (the scans, transforms,
+        odometry, wheel states when it has a wheel model, sightings on its landmark topic); images are
+        rate-limited to ``markers_hz`` here, camera info is kept for the marker poses."""
         if self.static_frames is not None and topic == TF_STATIC_TOPIC:
             self.static_frames.add(topic, msg)  # where the camera is on the robot, for the markers' landmark poses
-        if self.slam is not None and (topic in (self.scan_topic, TF_STATIC_TOPIC) or isinstance(msg, m.Odometry)):
+        slam = self.slam
+        if slam is not None and (topic in (self.scan_topic, TF_STATIC_TOPIC, TF_TOPIC) or isinstance(msg, m.Odometry)
+                                 or (isinstance(msg, m.JointState) and slam.wheels is not None)
+                                 or (isinstance(msg, m.LandmarkList) and topic == self.landmark_topic)):
             return True
         if self.detector is not None:
             if isinstance(msg, m.CameraInfo):
                 self._camera_info[msg.frame_id] = msg
             elif isinstance(msg, m.CompressedImage | m.Image):
-                now = time.monotonic()
-                if now >= self._next_marker_t:  # rate-limit before queueing: images are large
-                    self._next_marker_t = now + 1.0 / max(self.config.markers_hz, 1e-3)
+                now = self.clock()
+                if self._next_marker_ns is None or now >= self._next_marker_ns:  # rate-limit before queueing
+                    self._next_marker_ns = now + int(1e9 / max(self.config.markers_hz, 1e-3))
                     return True
         return False
 
@@ -117,13 +156,33 @@ class Processing:
             for i, item in enumerate(batch):
                 if item is None:
                     return
-                if i in stale:
-                    continue
-                try:
-                    self._handle(*item)
-                except Exception as error:  # noqa: BLE001 -- keep processing the next message
-                    self.errors += 1
-                    self.last_error = f"{type(error).__name__}: {error}"
+                if i not in stale:
+                    self.handle(*item)
+
+    def handle(self, topic: str, msg: m.Message) -> None:
+        """Process one wanted message now (on the caller's thread); a message that fails is counted
+        in ``errors`` and processing goes on with the next."""
+        try:
+            self._handle(topic, msg)
+        except Exception as error:  # noqa: BLE001 -- keep processing the next message
+            self.errors += 1
+            self.last_error = f"{type(error).__name__}: {error}"
+
+    def finish(self) -> None:
+        """End of the input (a replay's end): SLAM's final optimisation, then the final ``/map`` and the
+        whole trajectory on ``/path``, stamped with the last scan's time."""
+        slam = self.slam
+        if slam is None or slam.stats.scans == 0:
+            return
+        try:
+            slam.finish()
+            stamps, poses = slam.trajectory()
+            end_ns = int(stamps.max())
+            self.publish(MAP_TOPIC, slam.build_map().to_message(end_ns, self.frames.map))
+            self.publish(PATH_TOPIC, m.Path(end_ns, self.frames.map, stamps, poses))
+        except Exception as error:  # noqa: BLE001 -- counted and said like any message that failed
+            self.errors += 1
+            self.last_error = f"{type(error).__name__}: {error}"
 
     def _handle(self, topic: str, msg: m.Message) -> None:
         frames = self.frames
@@ -134,15 +193,15 @@ class Processing:
         result = self.slam.process(topic, msg)
         if result is None:
             return
-        now = wall_ns()
         x, y, theta = (float(v) for v in result.pose_map)
         self.publish(SLAM_POSE_TOPIC, m.Pose2D(result.stamp_ns, frames.map, x, y, theta))
         mx, my, mt = (float(v) for v in self.slam.map_to_odom)
         self.publish(TF_TOPIC, m.TFMessage((m.TransformStamped.planar(result.stamp_ns, frames.map, frames.odom,
                                                                    mx, my, mt),)))
-        if time.monotonic() >= self._next_map_t:
-            self._next_map_t = time.monotonic() + self.config.map_period_s
-            self.publish(MAP_TOPIC, self.slam.build_map().to_message(now, frames.map))
+        now = self.clock()
+        if self._next_map_ns is None or now >= self._next_map_ns:
+            self._next_map_ns = now + int(self.config.map_period_s * 1e9)
+            self.publish(MAP_TOPIC, self.slam.build_map().to_message(result.stamp_ns, frames.map))
 
     def _detect_markers(self, topic: str, msg: m.CompressedImage | m.Image) -> None:
         from trundle.perception.landmarks import marker_observation  # loaded with the detector
@@ -155,7 +214,7 @@ class Processing:
             return
         assert self.detector is not None and self.static_frames is not None
         info = self._camera_info.get(msg.frame_id)
-        base = topic.rsplit("/image_raw", 1)[0]
+        base = _camera(topic)
         camera_in_base = self.static_frames.try_transform(self.frames.base, msg.frame_id)
         observations = []
         for marker in self.detector.detect(image):

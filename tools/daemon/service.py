@@ -47,7 +47,7 @@ from trundle.logs.writer import Logger, LoggerError, is_latched
 from trundle.tools.config.robot import RobotConfig, check_daemon_config
 from trundle.tools.daemon.disk_guard import DAEMON_COMMAND, DiskGuard
 from trundle.tools.daemon.live_view import LiveView
-from trundle.tools.daemon.processing import Processing
+from trundle.tools.daemon.processing import Processing, online_estimator
 from trundle.tools.daemon.status import StatusServer
 from trundle.tools.daemon.supervisor import Supervised, TopicRates
 from trundle.tools.daemon.systemd import sd_notify, watchdog_period_s
@@ -126,7 +126,7 @@ class Daemon:
             self.live = LiveView(cfg.live.host, cfg.live.port, name=f"trundle {cfg.robot}")
             for topic, msg in list(self._latched.items()):
                 self.live(topic, msg, wall_ns())
-        processing = Processing(cfg.processing, cfg.slam, cfg.frames, self.publish)
+        processing = Processing(cfg.processing, cfg.frames, self.publish, online_estimator(cfg.processing, cfg.slam))
         if processing.active:
             self.processing = processing
             for topic, msg in list(self._latched.items()):  # the drivers' static transforms and calibrations

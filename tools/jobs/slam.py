@@ -34,8 +34,9 @@ from trundle.logs.errors import UsageError, UserError
 from trundle.logs.importers import write_log
 from trundle.logs.outputs import write_json, writing_file, writing_folder
 from trundle.logs.paths import output_folder
-from trundle.logs.reader import LogReader, damage_dict
+from trundle.logs.reader import LogInfo, LogReader, damage_dict
 from trundle.logs.topics import LANDMARK_MAP_TOPIC, MAP_TOPIC, PATH_TOPIC, TF_TOPIC
+from trundle.tools.config.robot import RobotConfig
 from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, odometry_source, robot_config
 from trundle.tools.jobs.landmark_slam import landmark_markers, landmark_slam_log, landmark_topic, write_landmarks
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
@@ -51,6 +52,30 @@ def map_check_report(check: MapCheck, stamps_ns: np.ndarray, t0_ns: int) -> dict
     return {"status": check.status, "passed": check.passed, "consistency": check.consistency,
             "compared_keyframes": check.compared_keyframes, "inconsistent_keyframes": check.inconsistent_keyframes,
             "min_stretch": check.min_stretch, "stretches": stretches}
+
+
+def grid_estimator(info: LogInfo, config: RobotConfig, name: str = "grid", landmark_topic: str | None = None,
+                   local_only: bool = False) -> Slam:
+    """The grid SLAM ``name`` (``grid`` or ``grid-landmarks``, sightings on ``landmark_topic``; None: the
+    registry's default) for ``info``'s log, from the registry: the ``[slam]`` options (loop closure off
+    with ``local_only``), the wheel model (:func:`make_odometry`) and the laser mount of ``config`` or the
+    log. ``trundle slam`` and ``trundle replay`` build their SLAM here, so they run the same one."""
+    slam_config = SlamConfig.from_mapping(config.slam)
+    if local_only:
+        slam_config = slam_config.replace("loop_closure", enabled=False)
+    slam = make_estimator(name, EstimatorInputs(slam_config, make_odometry(info, config), laser_pose(info, config),
+                                                landmark_topic))
+    assert isinstance(slam, Slam)
+    return slam
+
+
+def replay_estimator(info: LogInfo, config: JobConfig, markers: bool = False) -> Slam:
+    """The grid SLAM ``trundle slam`` runs on ``info``'s log (with the log's landmark sightings in its pose
+    graph); with ``markers``, the one taking the sightings of the online marker detection (``/landmarks``)
+    instead. ``trundle replay --slam`` runs it."""
+    config = robot_config(config)
+    topic = None if markers else landmark_topic(info, config)
+    return grid_estimator(info, config, "grid-landmarks" if markers or topic is not None else "grid", topic)
 
 
 def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool = False,
@@ -81,13 +106,10 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
         return landmark_slam_log(log, output, config, name, progress)
     if name == "grid-landmarks" and topic is None:
         raise UsageError(f"{log}: the grid-landmarks estimator needs landmark sightings (a LandmarkList topic)")
-    if local_only:
-        slam_config = slam_config.replace("loop_closure", enabled=False)
     info.require(slam_config.scan.topic, "sensor_msgs/msg/LaserScan")
-    wheels = make_odometry(info, config)
-    odometry = odometry_source(info, config, wheels) or "none"
-    slam = make_estimator(name, EstimatorInputs(slam_config, wheels, laser_pose(info, config), topic))
-    assert isinstance(slam, Slam)
+    slam = grid_estimator(info, config, name, topic, local_only)
+    slam_config = slam.config
+    odometry = odometry_source(info, config, slam.wheels) or "none"
     output_folder(output, create=False)  # checked before the work, made once there is a result
 
     bar = progress("slam", max(info.duration_s, 1e-9))

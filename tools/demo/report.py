@@ -8,15 +8,17 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, cast
 
 import cv2
 import numpy as np
+from matplotlib.figure import Figure
 
 from trundle.fusion.evaluation.trajectory_errors import Trajectory, landmark_error, poses_at
-from trundle.fusion.mapping.map_io import plot_trajectory
+from trundle.fusion.mapping.map_plot import Track, save_figure, trajectory_figure
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
 from trundle.logs.reader import LogReader
@@ -310,31 +312,24 @@ def _json_default(value: Any) -> Any:
 
 # ---------------------------------------------------------------------------------- pictures
 
-TRUTH_BGR, SLAM_BGR, ODOMETRY_BGR = (200, 90, 0), (0, 0, 230), (0, 140, 255)   # colours of the trajectory plot
+def run_figure(grid: m.OccupancyGrid, truth: np.ndarray, estimate: np.ndarray, odometry: np.ndarray,
+               loops: Sequence[tuple[np.ndarray, np.ndarray]],
+               landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Figure:
+    """The trajectory-over-map figure (map frame): ground truth (a wide pale band under the others,
+    so the SLAM estimate over it leaves it visible), wheel odometry, SLAM estimate, loop closures
+    and the mapped markers (landmarks with their 3-sigma ellipses), each named in the legend."""
+    tracks = [Track(truth, "ground truth (simulator)", "tab:blue", 6.0, 0.45),
+              Track(odometry, "wheel odometry", "tab:orange", 1.5),
+              Track(estimate, "SLAM estimate", "tab:red", 1.5)]
+    return trajectory_figure(grid, tracks, "demo: ground truth, wheel odometry and SLAM over the SLAM map",
+                             loops=loops, landmarks=landmarks)
 
 
 def plot_run(grid: m.OccupancyGrid, path: Path, truth: np.ndarray, estimate: np.ndarray, odometry: np.ndarray,
-             loops: list[tuple[np.ndarray, np.ndarray]],
+             loops: Sequence[tuple[np.ndarray, np.ndarray]],
              landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Path:
-    """The trajectory-over-map plot (map frame): ground truth, SLAM estimate, wheel odometry and the
-    mapped markers (landmarks with their 3-sigma ellipses), with a legend."""
-    plot_trajectory(grid, path, [truth, odometry, estimate], colours=[TRUTH_BGR, ODOMETRY_BGR, SLAM_BGR], loops=loops,
-                    landmarks=landmarks)
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise UserError(f"cannot read back {path}")
-    scale = max(1.0, image.shape[1] / 1000.0)
-    entries = [("ground truth (simulator)", TRUTH_BGR), ("wheel odometry", ODOMETRY_BGR), ("SLAM estimate", SLAM_BGR),
-               ("loop closure", (0, 200, 0))] + ([("marker (landmark, 3 sigma)", (200, 0, 200))] if landmarks else [])
-    for k, (text, colour) in enumerate(entries):
-        y = int((24 + 22 * k) * scale)
-        mid = y - int(5 * scale)
-        cv2.line(image, (int(10 * scale), mid), (int(40 * scale), mid), colour, max(2, int(2 * scale)))
-        cv2.putText(image, text, (int(48 * scale), y), cv2.FONT_HERSHEY_SIMPLEX, 0.5 * scale, (40, 40, 40),
-                    max(1, int(scale)), cv2.LINE_AA)
-    if not cv2.imwrite(str(path), image):
-        raise UserError(f"cannot write {path}")
-    return path
+    """Write the demo's ``trajectory.png`` (:func:`run_figure`)."""
+    return save_figure(run_figure(grid, truth, estimate, odometry, loops, landmarks), path)
 
 
 def draw_detections(log: Path, score: MarkerScore, frames: Trajectory, world: World, mount: Mount, path: Path

@@ -308,7 +308,7 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     seconds["markers"] = time.monotonic() - t
     say("[4/4] report")
     report = build_report(settings.as_json(), recording, run, score, world, seconds, plain)
-    save_map(run.grid, out / "map")
+    save_map(run.grid, out / "map", "demo: SLAM map of the simulated world")
     write_trajectory_csv(out / "trajectory.csv", run.trajectory.stamps_ns, run.trajectory.poses)
     map_from_world = inverse(np.array(report["trajectory"]["ate"]["alignment_xyt"]))
     keyframes = run.slam.keyframe_poses()

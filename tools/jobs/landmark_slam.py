@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 
 from trundle.fusion.geometry import compose, inverse, scan_to_points
-from trundle.fusion.mapping.map_io import plot_trajectory, save_map, write_landmarks_csv, write_trajectory_csv
+from trundle.fusion.mapping.map_io import save_map, write_landmarks_csv, write_trajectory_csv
+from trundle.fusion.mapping.map_plot import Track, plot_trajectory
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.estimators import ESTIMATORS, GRID, EstimatorInputs, make_estimator
@@ -133,10 +134,11 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
     end_ns = int(stamps.max())
     map_msg = grid.to_message(end_ns, "map")
     output_folder(output)
-    save_map(map_msg, output / "map")
+    save_map(map_msg, output / "map", f"{estimator} map of {log.name}")
     write_trajectory_csv(output / "trajectory.csv", stamps, poses)
     write_landmarks(output / "landmarks.csv", landmarks)
-    plot_trajectory(map_msg, output / "trajectory.png", [poses],
+    plot_trajectory(map_msg, output / "trajectory.png", [Track(poses, f"{estimator} trajectory", "tab:red")],
+                    f"{estimator} trajectory and landmarks of {log.name}",
                     landmarks=(landmarks.ids, landmarks.positions, landmarks.covariances))
     items: list[tuple[str, m.Message, int]] = [(TF_TOPIC, tf, t)
                                                for tf, t in _map_to_odom(stamps, poses, odometry, sighting_stamps)]

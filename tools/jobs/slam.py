@@ -25,7 +25,8 @@ from typing import Any
 import numpy as np
 
 from trundle.fusion.mapping.map_check import MapCheck
-from trundle.fusion.mapping.map_io import plot_scans, plot_trajectory, save_map, write_trajectory_csv
+from trundle.fusion.mapping.map_io import save_map, write_trajectory_csv
+from trundle.fusion.mapping.map_plot import Track, plot_scans, plot_trajectory
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.estimators import GRID, EstimatorInputs, make_estimator, resolve
 from trundle.fusion.slam.grid_slam import Slam
@@ -109,16 +110,18 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     output_folder(output)
     end_ns = int(stamps.max())
     map_msg = grid.to_message(end_ns, "map")
-    save_map(map_msg, output / "map")
+    save_map(map_msg, output / "map", f"SLAM map of {log.name}")
     write_trajectory_csv(output / "trajectory.csv", stamps, poses)
     keyframes = slam.keyframe_poses()
     loops = [(keyframes[i], keyframes[j]) for i, j in slam.loop_edges()]
     check = slam.check_map()
     landmarks = slam.landmarks()
     drawn = None if landmarks is None else (landmarks.ids, landmarks.positions, landmarks.covariances)
-    plot_trajectory(map_msg, output / "trajectory.png", [poses], loops=loops,
+    plot_trajectory(map_msg, output / "trajectory.png", [Track(poses, "SLAM trajectory", "tab:red")],
+                    f"SLAM trajectory of {log.name}", loops=loops,
                     highlights=[slam.keyframe_scans(a, b) for a, b in check.stretches], landmarks=drawn)
-    plot_scans(map_msg, output / "scans.png", slam.keyframe_endpoints(), check.keyframe_consistency < 0.5)
+    plot_scans(map_msg, output / "scans.png", slam.keyframe_endpoints(), check.keyframe_consistency < 0.5,
+               f"every keyframe's scan at its pose: {log.name}")
     path_msg = m.Path(end_ns, "map", stamps, poses)
     extra: list[tuple[str, m.Message, int]] = (
         [] if landmarks is None else [(LANDMARK_MAP_TOPIC, landmark_markers(landmarks, end_ns), end_ns)])

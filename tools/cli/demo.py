@@ -23,7 +23,6 @@ from trundle.tools.sim.world import DEFAULT_WORLD
 def register(p: argparse.ArgumentParser) -> None:
     """The command's options on its subparser ``p``."""
     p.description = __doc__
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("-o", "--output", type=Path, default=Path("trundle-demo"),
                    help="output folder (default ./trundle-demo)")
     p.add_argument(

@@ -18,9 +18,11 @@ from trundle.logs.reader import LogReader
 
 
 def register(p: argparse.ArgumentParser) -> None:
-    p.add_argument("file")
-    p.add_argument("--topic", required=True)
-    p.add_argument("--format", choices=("csv", "ndjson"), default="csv")
+    p.add_argument("file", help="MCAP log (trundle info FILE lists its topics)")
+    p.add_argument("--topic", required=True, help="the topic to export, e.g. /odom")
+    p.add_argument("--format", choices=("csv", "ndjson"), default="csv",
+                   help="csv: one row per message, nested fields as columns; ndjson: one JSON object per line "
+                        "(default csv)")
     p.add_argument("-o", "--output", help="output file (default: stdout; must not exist)")
     p.set_defaults(func=run)
 

@@ -36,7 +36,6 @@ def _job_help() -> str:
 
 def register(p: argparse.ArgumentParser) -> None:
     p.description = __doc__
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = _job_help() if {"-h", "--help"} & set(sys.argv[1:]) else None
     p.add_argument("job", choices=JOBS, help="the one-log job run on every log")
     p.add_argument("logs", nargs="+", metavar="LOG_OR_GLOB", help="log files, folders, quoted globs or URLs")

@@ -33,7 +33,6 @@ from trundle.tools.config.robot import Device, RobotConfig, load_config
 
 def register(p: argparse.ArgumentParser) -> None:
     p.description = __doc__
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("--lrf", action="append", default=[], metavar="URL",
                    help="laser: scip2:///dev/ttyACM0, scip2+tcp://host:10940, rplidar:///dev/ttyUSB0")
     p.add_argument("--can", action="append", default=[], metavar="URL",

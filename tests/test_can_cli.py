@@ -21,6 +21,31 @@ from trundle.tools.cli.main import main
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def test_the_emulator_stands_still_by_default_as_the_laser_scene_does(tmp_path, capsys):
+    """A first recording of `emulate can` and `emulate lrf` (a still scene) agrees: no --script, no motion."""
+    link = tmp_path / "ttyCAN0"
+    emulator = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "emulate", "can", "--protocol", "odrive",
+                                 "--link", str(link), "--duration", "30"],
+                                cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 90
+        while not link.exists() and time.monotonic() < deadline and emulator.poll() is None:
+            time.sleep(0.05)
+        assert link.exists(), emulator.stderr.read() if emulator.poll() is not None else "no link"
+        out = tmp_path / "still.mcap"
+        assert main(["record", "--can", f"slcan://{link}", "--encoders", "odrive:0,1", "--duration", "2",
+                     "-o", str(out)]) == 0
+    finally:
+        emulator.terminate()
+        stdout, _ = emulator.communicate(timeout=10)
+    assert stdout.startswith(f"SLCAN adapter on {link} (odrive nodes [0, 1]); the wheels stand still "
+                             "(give --script to drive them); record with:")
+    with LogReader(out) as log:
+        wheels = [w.msg for w in log.messages(["/wheels"]) if np.isfinite(w.msg.position).all()]
+    assert len(wheels) > 20
+    assert all(np.array_equal(w.position, wheels[0].position) and not w.velocity.any() for w in wheels)
+
+
 def test_record_from_the_emulator_process(tmp_path, capsys):
     link = tmp_path / "ttyCAN0"
     emulator = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "emulate", "can", "--protocol", "odrive",

@@ -7,6 +7,7 @@ import contextlib
 import csv
 import dataclasses
 import json
+import math
 import sys
 
 import numpy as np
@@ -28,18 +29,17 @@ def register(p: argparse.ArgumentParser) -> None:
 
 
 def _plain(value: object) -> object:
-    """JSON-ready value: arrays to lists (NaN/inf as strings), nested messages to dicts."""
+    """JSON-ready value: arrays to lists, NaN and infinities to null (strict JSON has neither), bytes
+    to hex, nested messages to dicts."""
     if isinstance(value, np.ndarray):
-        if value.dtype.kind == "f" and not np.isfinite(value).all():
-            return [v if np.isfinite(v) else str(v) for v in value.tolist()]
-        return value.tolist()
+        value = value.tolist()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
     if isinstance(value, bytes):
         return value.hex()
-    if isinstance(value, float) and not np.isfinite(value):
-        return str(value)
     if isinstance(value, m.Message):
         return _plain_message(value)
-    if isinstance(value, tuple):
+    if isinstance(value, (tuple, list)):
         return [_plain(v) for v in value]
     return value
 
@@ -49,40 +49,53 @@ def _plain_message(msg: m.Message) -> dict[str, object]:
     return {f.name: _plain(getattr(msg, f.name)) for f in dataclasses.fields(msg)}
 
 
-def flatten(msg: m.Message) -> dict[str, object]:
-    """One row: scalars as they are, arrays expanded to ``name.i`` columns (CSV)."""
+def flatten(value: object, prefix: str = "") -> dict[str, object]:
+    """One CSV row: every leaf of ``value`` (a message, nested messages, arrays, lists) in its own
+    column named by its path, ``status.0.values.1.key`` (as ``ros2 bag`` tools and Foxglove's CSV
+    export name them); bytes as hex, non-finite floats as ``nan``/``inf`` text. A diagnostic status's
+    ``(key, value)`` pairs are ``values.N.key`` and ``values.N.value``, as ROS's KeyValue names them."""
+    if isinstance(value, m.Message):
+        value = {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
+        if "values" in value and isinstance(value["values"], tuple):
+            value["values"] = [{"key": k, "value": v} for k, v in value["values"]]
+    if isinstance(value, np.ndarray):
+        value = value.reshape(-1).tolist()
+    if isinstance(value, dict):
+        items = list(value.items())
+    elif isinstance(value, (tuple, list)):
+        items = list(enumerate(value))
+    else:
+        return {prefix: value.hex() if isinstance(value, bytes) else value}
     row: dict[str, object] = {}
-    for f in dataclasses.fields(msg):
-        value = getattr(msg, f.name)
-        if isinstance(value, np.ndarray):
-            for i, v in enumerate(value.reshape(-1).tolist()):
-                row[f"{f.name}.{i}"] = v
-        elif isinstance(value, tuple) and all(isinstance(v, str) for v in value):
-            for i, v in enumerate(value):
-                row[f"{f.name}.{i}"] = v
-        else:
-            row[f.name] = _plain(value) if not isinstance(value, (int, float, str, bool)) else value
+    for key, item in items:
+        row.update(flatten(item, f"{prefix}.{key}" if prefix else str(key)))
     return row
 
 
 def run(args: argparse.Namespace) -> int:
     reader = LogReader(args.file)
+    info = reader.info()
+    if args.topic not in info.topics:
+        raise UserError(f"{args.file} has no topic {args.topic} (topics: {info.topic_list()})")
     if args.output:
         new_file(args.output, "-o")
     items = reader.messages([args.topic])
     count = 0
+    # CSV: messages whose arrays differ in length have different columns; the header is all of them,
+    # in the order first met, from a first pass (a cell a message lacks stays empty)
+    columns = {} if args.format == "ndjson" else {
+        name: None for item in reader.messages([args.topic]) for name in flatten(item.msg)}
     with open(args.output, "w", newline="") if args.output else contextlib.nullcontext(sys.stdout) as out:
         writer = None
         for item in items:
             if args.format == "ndjson":
                 record = {"topic": item.topic, "log_time_ns": item.log_time_ns, **_plain_message(item.msg)}
-                out.write(json.dumps(record) + "\n")
+                out.write(json.dumps(record, allow_nan=False) + "\n")
             else:
-                row = {"log_time_ns": item.log_time_ns, **flatten(item.msg)}
                 if writer is None:
-                    writer = csv.DictWriter(out, fieldnames=list(row), extrasaction="ignore")
+                    writer = csv.DictWriter(out, fieldnames=["log_time_ns", *columns])
                     writer.writeheader()
-                writer.writerow(row)
+                writer.writerow({"log_time_ns": item.log_time_ns, **flatten(item.msg)})
             count += 1
     if count == 0:
         raise UserError(f"no messages on topic {args.topic} that trundle can decode")

@@ -15,7 +15,7 @@ from pathlib import Path
 from trundle.logs.errors import UserError
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.arguments import non_negative_int, number_in, percent, positive
-from trundle.tools.demo.report import ATE_LIMIT_M
+from trundle.tools.demo.report import ATE_LIMIT_M, markers_seen, partial_run
 from trundle.tools.demo.run import LOG_NAME, DemoSettings, run_demo
 from trundle.tools.sim.world import DEFAULT_WORLD
 
@@ -70,10 +70,11 @@ def run(args: argparse.Namespace) -> int:
           f"(limit {ATE_LIMIT_M * 100:.0f} cm; wheel odometry alone "
           f"{report['trajectory']['odometry_ate']['rmse_m'] * 100:.1f} cm), "
           f"{report['trajectory']['loop_closures']} loop closures")
-    print(f"markers in view: {report['markers_expected']}; detected: "
-          f"{[row['id'] for row in report['markers_detected'] if row['frames_detected'] > row['false_detections']]}")
+    print(f"markers: {markers_seen(report)}")
     for name, ok in checks.items():
         print(f"  {'PASS' if ok else 'FAIL'}  {name}")
+    if partial_run(report):
+        print(partial_run(report))
     if report["starved"]:
         late = report["emulator_late_ms"]
         print(f"warning: the machine was too busy for real time (load average {report['load_average'][1]:.1f}): "

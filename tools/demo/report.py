@@ -35,7 +35,7 @@ from trundle.tools.demo.scoring import (
 )
 from trundle.tools.demo.slam import SlamRun
 from trundle.tools.jobs.slam import map_check_report
-from trundle.tools.sim.camera_render import CameraRenderer
+from trundle.tools.sim.camera_render import MAX_INCIDENCE_DEG, MIN_SIDE_PX, CameraRenderer
 from trundle.tools.sim.robot import Mount
 from trundle.tools.sim.world import World
 
@@ -162,7 +162,9 @@ def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, s
         "markers": {"frames": score.frames, "frames_without_truth": score.unmatched,
                     "in_view": {str(k): v for k, v in sorted(score.in_view.items())},
                     "in_view_detected": in_view_pairs - len(score.missed), "in_view_total": in_view_pairs,
-                    "detected_ids": sorted({s.id for s in score.sightings})},
+                    "detected_ids": sorted({s.id for s in score.sightings}),
+                    "detected_beyond_view": sorted({s.id for s in score.sightings if s.in_image and not s.in_view}),
+                    "in_world": len(world.markers)},
         "timing": {"scan_stamp_error_ms": _stats((truth.stamps_ns - recording.scan_true_ns) / 1e6),
                    "frame_stamp_latency_ms": _stats((recording.frames.stamps_ns - recording.frame_true_ns) / 1e6)},
         "drivers": driver_diagnostics(recording.log),
@@ -191,6 +193,29 @@ def marker_checks(markers: dict[str, Any], ate_m: float, plain_ate_m: float) -> 
             "SLAM ATE with markers no worse than without": ate_m <= plain_ate_m + NO_WORSE_M}
 
 
+def partial_run(report: dict[str, Any]) -> str:
+    """What a shortened run (``--duration``) left unjudged ("" for the whole route)."""
+    if report["settings"]["duration_s"] is None:
+        return ""
+    return (f"This run covered {report['robot_time_s']:.0f} s ({report['path_length_m']:.1f} m) of the route, not all "
+            f"of it: {len(report['markers_expected'])} of the world's {report['markers']['in_world']} markers came "
+            "into view and no loop was driven, so the checks judge only that much (run without --duration for "
+            "the whole route and its loop check).")
+
+
+def markers_seen(report: dict[str, Any]) -> str:
+    """The markers in view and detected, in words: ``In view: 96; detected: 3, 96 (3 also ...)``."""
+    rows = report["markers_detected"]
+    detected = [row["id"] for row in rows if row["frames_detected"] > row["false_detections"]]
+    false = [row["id"] for row in rows if row["false_detections"]]
+    beyond = report["markers"]["detected_beyond_view"]
+    return (f"In view: {', '.join(map(str, report['markers_expected'])) or 'none'}; detected: "
+            f"{', '.join(map(str, detected)) or 'none'}"
+            + (f" ({', '.join(map(str, beyond))} also where it was in the image but smaller or more oblique than "
+               "in view: a true detection beyond what is required)" if beyond else "")
+            + (f"; false detections of {', '.join(map(str, false))}" if false else ""))
+
+
 def report_markdown(report: dict[str, Any]) -> str:
     """``report.md``: the report's figures for a reader, with the pictures and files."""
     tr, mp, mk = report["trajectory"], report["map"], report["markers"]
@@ -216,6 +241,7 @@ def report_markdown(report: dict[str, Any]) -> str:
         "",
         checks,
         "",
+        *([partial_run(report), ""] if partial_run(report) else []),
         "## Trajectory and map",
         "",
         "![trajectory](trajectory.png)",
@@ -260,9 +286,14 @@ def report_markdown(report: dict[str, Any]) -> str:
         "",
         "![detections](camera_detections.png)",
         "",
-        f"{mk['frames']} frames; markers in view per the simulator: "
-        f"{', '.join(map(str, report['markers_expected'])) or 'none'}; detected in {mk['in_view_detected']} of "
+        f"{mk['frames']} camera frames. A marker is *in view* in a frame when the simulator shows it facing the "
+        f"camera within {MAX_INCIDENCE_DEG:.0f} deg, with sides of {MIN_SIDE_PX:.0f} px or more and unoccluded: "
+        f"what the detector is held to. {markers_seen(report)}. Detected in {mk['in_view_detected']} of the "
         f"{mk['in_view_total']} (frame, marker) pairs in view.",
+        "",
+        "Per marker: *frames in view* (as above), *frames detected* (frames with a detection of its id, in view or "
+        "not), *false* (detections of it in frames where it was not in the image at all), its distance from the "
+        "camera and the detected pose's errors against the world file.",
         "",
         "| id | frames in view | frames detected | false | distance (m) | position error median / max "
         "| angle error median / max |",

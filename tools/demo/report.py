@@ -211,8 +211,9 @@ def markers_seen(report: dict[str, Any]) -> str:
     beyond = report["markers"]["detected_beyond_view"]
     return (f"In view: {', '.join(map(str, report['markers_expected'])) or 'none'}; detected: "
             f"{', '.join(map(str, detected)) or 'none'}"
-            + (f" ({', '.join(map(str, beyond))} also where it was in the image but smaller or more oblique than "
-               "in view: a true detection beyond what is required)" if beyond else "")
+            + (f" ({', '.join(map(str, beyond))} also where {'it was' if len(beyond) == 1 else 'they were'} in the "
+               "image but smaller or more oblique than in view: true detections beyond what is required)"
+               if beyond else "")
             + (f"; false detections of {', '.join(map(str, false))}" if false else ""))
 
 

@@ -20,6 +20,7 @@ from trundle.fusion.mapping.map_plot import (
 )
 from trundle.logs import messages as m
 from trundle.tools.demo.report import plot_run, run_figure
+from trundle.tools.jobs.sensor_report import beam_noise_figure, sensitivity_figure
 
 
 def room(cells: tuple[int, int] = (240, 400), resolution: float = 0.05) -> m.OccupancyGrid:
@@ -109,3 +110,16 @@ def test_slam_command_pictures_on_disk(simulated_log, tmp_path, capsys) -> None:
     for name in ("map.png", "trajectory.png", "scans.png"):
         height, width = cv2.imread(str(out / name), cv2.IMREAD_COLOR).shape[:2]
         assert width >= PIXELS_PER_CELL * max(cells) and height >= PIXELS_PER_CELL * min(cells), name
+
+
+def test_characterize_pictures_have_titles_units_and_a_legend_for_every_line() -> None:
+    angles = np.radians(np.linspace(-120.0, 120.0, 5))
+    noise = beam_noise_figure(angles, np.array([0.01, 0.012, 0.011, 0.009, 0.01])).axes[0]
+    assert noise.get_title() == "Per-beam noise while standing still"
+    assert (noise.get_xlabel(), noise.get_ylabel()) == ("beam angle (deg)", "noise std (mm, log)")
+    assert [t.get_text() for t in noise.get_legend().get_texts()] == ["noise std of each beam", "median 10.0 mm"]
+    true = np.linspace(0.5, 3.0, 50)
+    sensitivity = sensitivity_figure(true, true * 1.01).axes[0]
+    assert sensitivity.get_title() == "Sensitivity: measured against true range"
+    assert (sensitivity.get_xlabel(), sensitivity.get_ylabel()) == ("true value (m)", "measured (m)")
+    assert [t.get_text() for t in sensitivity.get_legend().get_texts()] == ["readings", "measured = true"]

@@ -172,12 +172,15 @@ class LogInfo:
             return 0.0
         return (self.end_ns - self.start_ns) * 1e-9
 
+    def topic_list(self) -> str:
+        """The log's topics for a message naming them: ``"/odom, /scan"`` (``"none"`` for none)."""
+        return ", ".join(sorted(self.topics)) or "none"
+
     def require(self, topic: str, ros_type: str) -> TopicInfo:
         """The topic a job needs, of ``ros_type``; a DataError saying whether it is missing or of another type."""
         found = self.topics.get(topic)
         if found is None:
-            raise DataError(f"{self.path} has no topic {topic} ({ros_type}; topics: "
-                            f"{', '.join(sorted(self.topics)) or 'none'})")
+            raise DataError(f"{self.path} has no topic {topic} ({ros_type}; topics: {self.topic_list()})")
         if found.ros_type != ros_type:
             raise DataError(f"{self.path}: {topic} carries {found.ros_type or 'messages without a schema'}, "
                             f"not {ros_type}")

@@ -21,17 +21,42 @@ from trundle.tools.cli.main import main
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def start_emulator(link: Path, *options: str) -> subprocess.Popen:
+    """`trundle emulate can --protocol odrive` (30 s) at ``link`` with ``options``, once its link exists."""
+    emulator = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "emulate", "can", "--protocol", "odrive",
+                                 "--link", str(link), "--duration", "30", *options],
+                                cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 90
+    while not link.exists() and time.monotonic() < deadline and emulator.poll() is None:
+        time.sleep(0.05)
+    assert link.exists(), emulator.stderr.read() if emulator.poll() is not None else "no link"
+    return emulator
+
+
+def test_the_emulator_stands_still_by_default_as_the_laser_scene_does(tmp_path, capsys):
+    """A first recording of `emulate can` and `emulate lrf` (a still scene) agrees: no --script, no motion."""
+    link = tmp_path / "ttyCAN0"
+    emulator = start_emulator(link)
+    try:
+        out = tmp_path / "still.mcap"
+        assert main(["record", "--can", f"slcan://{link}", "--encoders", "odrive:0,1", "--duration", "2",
+                     "-o", str(out)]) == 0
+    finally:
+        emulator.terminate()
+        stdout, _ = emulator.communicate(timeout=10)
+    assert stdout.startswith(f"SLCAN adapter on {link} (odrive nodes [0, 1]); the wheels stand still "
+                             "(give --script to drive them); record with:")
+    with LogReader(out) as log:
+        wheels = [w.msg for w in log.messages(["/wheels"]) if np.isfinite(w.msg.position).all()]
+    assert len(wheels) > 20
+    assert all(np.array_equal(w.position, wheels[0].position) and not w.velocity.any() for w in wheels)
+
+
 def test_record_from_the_emulator_process(tmp_path, capsys):
     link = tmp_path / "ttyCAN0"
-    emulator = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "emulate", "can", "--protocol", "odrive",
-                                 "--link", str(link), "--script", "0:0.5,0.5", "--duration", "30",
-                                 "--fault", "1.0:heartbeat-stop:1", "--fault", "1.8:heartbeat-resume:1"],
-                                cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    emulator = start_emulator(link, "--script", "0:0.5,0.5", "--fault", "1.0:heartbeat-stop:1",
+                              "--fault", "1.8:heartbeat-resume:1")
     try:
-        deadline = time.monotonic() + 90
-        while not link.exists() and time.monotonic() < deadline and emulator.poll() is None:
-            time.sleep(0.05)
-        assert link.exists(), emulator.stderr.read() if emulator.poll() is not None else "no link"
         config = tmp_path / "robot.toml"
         config.write_text("[can]\nwheel_radius_m = 0.1\ntrack_m = 0.5\n")
         out = tmp_path / "run.mcap"

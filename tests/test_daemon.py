@@ -280,3 +280,17 @@ def test_second_daemon_on_the_same_socket_is_refused(tmp_path):
         other = Daemon(config(tmp_path), make_driver=lambda f, u, s, o: ScriptedDriver(f, s))
         with pytest.raises(UserError, match="another trundle daemon"):
             StatusServer(other.config.status.socket, other.status)
+
+
+def test_the_daemon_says_when_it_starts_and_stops(tmp_path, capfd):
+    """One line each on stderr (journald, the demo's daemon.log): what runs where, and what was written."""
+    with Running(config(tmp_path)) as run:
+        wait_for(lambda: run.daemon.logger is not None and run.daemon.logger.stats_dict())
+    lines = capfd.readouterr().err.splitlines()
+    started = [line for line in lines if " started " in line]
+    assert started == [f"trundle daemon: started (pid {os.getpid()}, robot testbot): lrf (scip2:///dev/scripted-a); "
+                       f"recording to {run.daemon.logger_files[0]}.active; status socket {tmp_path / 'status.sock'}"]
+    (stopped,) = [line for line in lines if " stopped " in line]
+    written = sum(c["written"] for c in run.daemon._stop_counts.values())
+    assert stopped.startswith("trundle daemon: stopped after ") and stopped.endswith(
+        f" s: {written} messages in {run.daemon.logger_files[0]}")

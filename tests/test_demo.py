@@ -4,6 +4,7 @@ SLAM and markers -> report, with every figure checked against the simulator's gr
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 
 import cv2
@@ -28,8 +29,10 @@ DURATION_S = 8.0
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     base = tmp_path_factory.mktemp("demo")
-    with contextlib.chdir(base):  # a relative output folder, as `make demo` gives
+    said = io.StringIO()   # what the terminal shows, kept beside the output folder for the tests that read it
+    with contextlib.chdir(base), contextlib.redirect_stdout(said):  # a relative output folder, as `make demo` gives
         code = main(["demo", "-o", "trundle-demo", "--duration", str(DURATION_S), "--camera-fps", "5"])
+    (base / "stdout.txt").write_text(said.getvalue())
     return base / "trundle-demo", code
 
 
@@ -106,6 +109,29 @@ def test_report_numbers_are_computed_from_the_log_and_the_ground_truth(demo):
     late = report["emulator_late_ms"]
     assert set(late) == {"lrf", "can", "camera"} and all(v >= 0 for v in late.values())
     assert report["starved"] == [k for k, v in late.items() if v > 100.0]
+
+
+def test_what_the_demo_says_reads_well(demo):
+    """Counts in words, every term of the marker table defined, a short run saying what it left unjudged,
+    and a robot.toml that says its devices were the demo's own."""
+    out, _ = demo
+    said = (out.parent / "stdout.txt").read_text()
+    report = json.loads((out / "report.json").read_text())
+    mapped = report["marker_map"]["mapped"]
+    assert f" {mapped} marker{'' if mapped == 1 else 's'} mapped in " in said
+    in_view = ", ".join(map(str, report["markers_expected"]))
+    assert f"markers: In view: {in_view}; detected: " in said and "[" not in said.split("markers: ")[1].split("\n")[0]
+    assert "This run covered 8 s" in said and "no loop was driven, so the checks judge only that much" in said
+    page = (out / "report.md").read_text()
+    assert "A marker is *in view* in a frame when the simulator shows it facing the camera within 60 deg, " \
+           "with sides of 24 px or more and unoccluded" in page
+    assert "*frames in view* (as above), *frames detected* (frames with a detection of its id" in page
+    assert f"This run covered 8 s ({report['path_length_m']:.1f} m) of the route, not all of it: " \
+           f"{len(report['markers_expected'])} of the world's {report['markers']['in_world']} markers" in page
+    config = (out / "robot.toml").read_text()
+    assert config.startswith("# The configuration the demo's daemon ran with")
+    urls = [line for line in config.splitlines() if line.startswith("url = ")]
+    assert len(urls) == 3 and all(line.endswith("  # the demo's own, gone when it ends") for line in urls)
 
 
 def test_map_files_load_as_map_server_reads_them(demo):

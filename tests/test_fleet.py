@@ -7,6 +7,7 @@ import csv
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -26,8 +27,8 @@ from trundle.tools.fleet.inputs import expand, folder_names
 from trundle.tools.fleet.jobs import options_key, parse_options
 from trundle.tools.fleet.results import write_csv, write_parquet
 from trundle.tools.fleet.rows import COLUMNS, flatten
-from trundle.tools.fleet.summary import failed_checks, headline, markdown
-from trundle.tools.fleet.task import Task, process_log, read_marker
+from trundle.tools.fleet.summary import failed_checks, headline, markdown, summary_figure
+from trundle.tools.fleet.task import Task, process_log, read_marker, robot_name
 
 TRUNDLE = str(Path(sys.executable).with_name("trundle"))
 HOUR_NS = 3600 * 10**9
@@ -302,11 +303,49 @@ def test_summary_names_failures_failed_checks_and_per_robot_figures() -> None:
     done = ROWS[:2]
     assert headline("slam", done) == ["real_time_factor", "scans"]   # preferred first; config.* never
     assert failed_checks(done) == {"consistent": ["/l/b.mcap"]}
-    page = markdown("slam", ROWS, {"elapsed_s": 3.0, "cpus": 2, "logs_per_minute": 60.0, "options": {}}, "summary.png")
-    assert "2 ok, 1 failed, 0 skipped, 0 cancelled in 3.0 s on 2 CPUs" in page
+    page = markdown("slam", ROWS, {"elapsed_s": 3.0, "wall_s": 10.6, "ray_start_s": 7.7, "cpus": 2,
+                                   "logs_per_minute": 60.0, "options": {}}, "summary.png")
+    assert ("2 ok, 1 failed, 0 skipped, 0 cancelled in 10.6 s (Ray's start 7.7 s; the logs 3.0 s on 2 CPUs, "
+            "60.0 logs per minute)") in page
     assert "| /l/c.mcap | failed | no LaserScan topic |" in page
     assert "| consistent | 1 of 2 | /l/b.mcap |" in page
     assert "| r1 | 1 | 0 | 20 | 10 |" in page and "| r2 | 1 | 0 | 15.5 | 12 |" in page
+
+
+def test_summary_takes_no_median_of_stamps_and_no_latched_topic_for_a_failed_check() -> None:
+    rows = [dict(ROWS[0], start_ns=1, end_ns=5, **{"topics./scan.latched": False, "topics./tf_static.latched": True}),
+            dict(ROWS[1], start_ns=2, end_ns=9, **{"topics./scan.latched": False})]
+    assert headline("slam", rows) == ["real_time_factor", "scans"]
+    assert failed_checks(rows) == {"consistent": ["/l/b.mcap"]}
+    page = markdown("slam", rows, {}, None)
+    assert "latched" not in page and "start_ns" not in page
+
+
+def test_summary_picture_plots_over_start_time_or_over_the_logs_when_a_start_is_no_clock_time() -> None:
+    figure = summary_figure("slam", ROWS[:2])
+    assert figure is not None
+    axes = figure.axes
+    assert [ax.get_ylabel() for ax in axes] == ["real_time_factor", "scans"]
+    assert axes[0].get_title() == "trundle fleet slam: figures per log over the log's start time (UTC)"
+    assert axes[-1].get_xlabel() == "log start (UTC)"
+    assert [t.get_text() for t in axes[0].get_legend().get_texts()] == ["r1", "r2"]
+    imported = [dict(ROWS[0], log_start="1970-01-01T00:00:01.000+00:00", robot="imported carmen"), ROWS[1]]
+    figure = summary_figure("slam", imported)
+    assert figure is not None
+    assert figure.axes[0].get_title().startswith("trundle fleet slam: figures per log (in the order given")
+    assert figure.axes[-1].get_xlabel() == "log"
+    assert [t.get_text() for t in figure.axes[-1].get_xticklabels()] == ["a", "b"]
+    assert [t.get_text() for t in figure.axes[0].get_legend().get_texts()] == ["imported carmen", "r2"]
+
+
+@pytest.mark.parametrize(("record", "robot"), [
+    ({"robot": '{"name": "rover-3"}', "host": "vm", "command": "daemon"}, "rover-3"),
+    ({"command": "import carmen", "host": "vm"}, "imported carmen"),
+    ({"command": "record", "host": "rover-7"}, "rover-7"),
+    ({}, ""),
+])
+def test_a_logs_robot_is_its_robots_name_an_imported_dataset_or_the_recording_host(record, robot) -> None:
+    assert robot_name({"trundle": record}) == robot
 
 
 # ---------------------------------------------------------------- inputs
@@ -349,6 +388,10 @@ def test_command_errors_are_one_line(tmp_path, capsys, monkeypatch, log) -> None
     assert capsys.readouterr().err == f"trundle fleet: no log matches {tmp_path / 'none*.mcap'}\n"
     assert main(["fleet", "characterize", str(log), "-o", str(tmp_path / "o")]) == 2
     assert capsys.readouterr().err.startswith("trundle fleet: characterize needs topic=... in --job-options")
+    assert main(["fleet", "slam", str(log), "-o", str(tmp_path / "o"), "--job-options", "estimator=nope"]) == 2
+    assert capsys.readouterr().err == ("trundle fleet: slam option estimator = 'nope': expected one of graph, grid, "
+                                       "grid-landmarks, ekf, landmark-graph\n")
+    assert not (tmp_path / "o").exists()   # refused before Ray started or anything was written
     assert main(["fleet", "info", str(log), "-o", str(tmp_path / "o"), "--retries", "-1"]) == 2
     assert (
         capsys.readouterr().err
@@ -400,7 +443,9 @@ def test_characterize_over_two_robots_on_a_local_ray_gives_per_robot_noise(tmp_p
                           "-o", str(out), "--num-cpus", "1", "--job-options", "topic=/scan"],
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
-    assert "4 logs: 4 ok in " in run.stdout
+    assert run.stderr.startswith("starting a local Ray (1 CPU) ...\nRay ready in ")
+    assert re.search(r"^4 logs: 4 ok in [\d.]+ s \(Ray's start [\d.]+ s; the logs [\d.]+ s on 1 CPU, "
+                     r"[\d.]+ logs/min\)$", run.stdout, re.MULTILINE), run.stdout
     with open(out / "results.csv", newline="") as f:
         table = list(csv.DictReader(f))
     assert [r["name"] for r in table] == ["r1__still0", "r1__still1", "r2__still0", "r2__still1"]

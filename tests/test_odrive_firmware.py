@@ -116,7 +116,8 @@ def test_record_a_firmware_0_6_odrive_with_the_default_configuration(tmp_path: P
     and nothing else gives /wheels, and the detected firmware is in /diagnostics."""
     link = tmp_path / "ttyCAN0"
     emulator = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "emulate", "can", "--protocol", "odrive",
-                                 "--firmware", "0.6", "--link", str(link), "--duration", "30"],
+                                 "--firmware", "0.6", "--link", str(link), "--script", "0:0.5,0.5",
+                                 "--duration", "30"],
                                 cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 60

@@ -76,3 +76,20 @@ def test_installed_wheel_runs_from_an_unrelated_folder(wheel: Path, tmp_path: Pa
     report = json.loads((folder / "out" / "report.json").read_text())
     assert report["trajectory"]["scans"] > 100 and report["log"]["topics"]["/scan"] > 100
     assert (folder / "out" / "map.pgm").is_file() and (folder / "out" / "map.yaml").is_file()
+
+
+def test_every_data_folder_is_a_listed_package_so_the_build_is_quiet() -> None:
+    """setuptools prints a 40-line "Package would be ignored" box for each folder of package data that
+    is not itself a listed package (``make demo`` printed two): every folder of a listed package that
+    holds files is listed, and its package data is declared on it."""
+    import tomllib
+
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    packages, data = set(config["packages"]), config["package-data"]
+    for package in sorted(packages - {"trundle"}):   # the root's other folders (tests, docs) are not shipped
+        folder = REPO.joinpath(*package.split(".")[1:])
+        for child in folder.iterdir():
+            if child.is_dir() and child.name != "__pycache__" and any(child.iterdir()):
+                assert f"{package}.{child.name}" in packages, f"{child.relative_to(REPO)} is not a listed package"
+    assert all("/" not in pattern for patterns in data.values() for pattern in patterns), data
+    assert data["trundle.drivers.data"] == ["*.dbc", "*.eds"] and data["trundle.tools.sim.worlds"] == ["*.json"]

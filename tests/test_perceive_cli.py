@@ -184,7 +184,9 @@ def test_text_summary(log: Path, tmp_path: Path, capsys) -> None:
 
 @pytest.mark.parametrize("extra, message", [
     (["--pipeline", "color"], "needs either --template or --lower and --upper"),
-    (["--pipeline", "color", "--lower", "1,2"], "three comma-separated numbers"),
+    (["--pipeline", "color", "--lower", "1,2"], "--lower needs three comma-separated finite numbers, got '1,2'"),
+    (["--pipeline", "color", "--lower", "15,0.6,0.5", "--upper", "20,1,nan"],
+     "trundle perceive: --upper needs three comma-separated finite numbers, got '20,1,nan'"),
     (["--pipeline", "color", "--lower", "1,2,3"], "--lower and --upper go together"),
     (["--pipeline", "markers", "--dictionary", "DICT_99"], "unknown ArUco dictionary"),
     (["--pipeline", "markers", "--marker-size", "-1"], "--marker-size: -1 must be above 0"),

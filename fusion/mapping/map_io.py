@@ -1,4 +1,4 @@
-"""Map and trajectory files: map_server PGM + YAML, PNG, trajectory CSV and a trajectory-over-map plot.
+"""Map and trajectory files: map_server PGM + YAML (and its picture, see map_plot), trajectory and landmark CSV.
 
 The PGM/YAML pair is what ROS's ``map_saver`` writes in trinary mode (nav2 defaults): occupied
 cells (>= 65 %) black 0, free cells (<= 25 %) 254, unknown 205, top image row = largest y; the
@@ -16,7 +16,6 @@ import csv
 import io
 import math
 import os
-from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -25,7 +24,7 @@ from ruamel.yaml import YAML, YAMLError
 
 from trundle.logs.errors import DataError, UserError
 from trundle.logs.messages import OccupancyGrid
-from trundle.logs.outputs import encode_image, write_image, writing_file, writing_files
+from trundle.logs.outputs import encode_image, writing_file, writing_files
 from trundle.logs.paths import input_file, read_text
 
 OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.25  # the cells' classification (percent occupancy / 100)
@@ -42,15 +41,18 @@ def map_image(grid: OccupancyGrid) -> np.ndarray:
     return image[::-1].copy()
 
 
-def save_map(grid: OccupancyGrid, base: str | os.PathLike[str], replace: bool = False) -> tuple[Path, Path, Path]:
-    """Write ``base.pgm``, ``base.yaml`` (map_server) and ``base.png``, the three or none
+def save_map(grid: OccupancyGrid, base: str | os.PathLike[str], title: str = "occupancy map",
+             replace: bool = False) -> tuple[Path, Path, Path]:
+    """Write ``base.pgm``, ``base.yaml`` (map_server) and ``base.png`` (the map in metres with a scale
+    bar and legend, :func:`trundle.fusion.mapping.map_plot.map_figure`), the three or none
     (:func:`trundle.logs.outputs.writing_files`; ``replace`` for a folder the command owns); returns them."""
+    from trundle.fusion.mapping.map_plot import DPI, map_figure  # map_plot draws with map_image from here
+
     base = Path(base)
-    image = map_image(grid)
     pgm, yaml, png = base.with_suffix(".pgm"), base.with_suffix(".yaml"), base.with_suffix(".png")
     with writing_files(pgm, yaml, png, replace=replace) as (pgm_tmp, yaml_tmp, png_tmp):
-        pgm_tmp.write_bytes(encode_image(image, ".pgm", pgm))
-        png_tmp.write_bytes(encode_image(image, ".png", png))
+        pgm_tmp.write_bytes(encode_image(map_image(grid), ".pgm", pgm))
+        map_figure(grid, title).savefig(png_tmp, dpi=DPI, format="png")
         yaml_tmp.write_text(f"image: {pgm.name}\nmode: trinary\nresolution: {grid.resolution:.6g}\n"
                             f"origin: [{grid.origin_x:.6g}, {grid.origin_y:.6g}, {grid.origin_theta:.6g}]\n"
                             f"negate: 0\noccupied_thresh: {OCCUPIED_THRESH}\nfree_thresh: {SAVED_FREE_THRESH}\n")
@@ -131,107 +133,6 @@ def read_trajectory_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.nd
     except (ValueError, IndexError):
         raise DataError(f"{path}: not a t_ns,x,y,theta trajectory") from None
     return stamps, poses
-
-
-def plot_trajectory(grid: OccupancyGrid, path: str | os.PathLike[str], trajectories: list[np.ndarray],
-                    colours: list[tuple[int, int, int]] | None = None,
-                    loops: Sequence[tuple[np.ndarray, np.ndarray]] = (), min_size: int = 1000,
-                    highlights: Sequence[np.ndarray] = (),
-                    landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Path:
-    """PNG of :func:`trajectory_image` at the new file ``path``; returns it."""
-    return write_image(path, trajectory_image(grid, trajectories, colours, loops, min_size, highlights, landmarks))
-
-
-def trajectory_image(grid: OccupancyGrid, trajectories: list[np.ndarray],
-                     colours: list[tuple[int, int, int]] | None = None,
-                     loops: Sequence[tuple[np.ndarray, np.ndarray]] = (), min_size: int = 1000,
-                     highlights: Sequence[np.ndarray] = (),
-                     landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """The map with trajectories (each (N, 3), map frame) drawn over it, scaled up to ``min_size`` px (BGR).
-
-    ``colours`` are BGR per trajectory (default red, then blue, green); ``loops`` are pairs of
-    positions drawn as thin lines (loop-closure constraints); ``highlights`` are stretches of path
-    drawn wide in magenta under the trajectories (e.g. where the map fails its self-check).
-    Start is a circle, end a square. ``landmarks`` (ids, positions (M, 2), covariances (M, 2, 2))
-    are drawn as a cross with its 3-sigma ellipse (at least a few pixels) and the id beside it, in magenta.
-    """
-    base = map_image(grid)
-    scale = max(1, int(math.ceil(min_size / max(base.shape))))
-    image = cv2.cvtColor(cv2.resize(base, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST),
-                         cv2.COLOR_GRAY2BGR)
-    height = image.shape[0]
-    shift = 4  # sub-pixel bits for cv2 drawing
-
-    def pixels(xy: np.ndarray) -> np.ndarray:
-        u = (xy[:, 0] - grid.origin_x) / grid.resolution * scale
-        v = height - (xy[:, 1] - grid.origin_y) / grid.resolution * scale
-        return np.round(np.stack([u, v], axis=1) * (1 << shift)).astype(np.int32)
-
-    for a, b in loops:
-        ends = pixels(np.vstack([a[:2], b[:2]]))
-        cv2.line(image, tuple(ends[0]), tuple(ends[1]), (0, 200, 0), 1, cv2.LINE_AA, shift)
-    for stretch in highlights:
-        pts = pixels(np.asarray(stretch).reshape(-1, 3)[:, :2])
-        cv2.polylines(image, [pts.reshape(-1, 1, 2)], False, (255, 0, 255), 3 * max(1, scale), cv2.LINE_AA, shift)
-        cv2.circle(image, tuple(pts[0]), 3 * max(1, scale) << shift, (255, 0, 255), -1, cv2.LINE_AA, shift)
-    colours = colours or [(0, 0, 255), (255, 0, 0), (0, 160, 0)]
-    for k, poses in enumerate(trajectories):
-        if len(poses) == 0:
-            continue
-        colour = colours[k % len(colours)]
-        pts = pixels(np.asarray(poses)[:, :2])
-        cv2.polylines(image, [pts.reshape(-1, 1, 2)], False, colour, max(1, scale // 2), cv2.LINE_AA, shift)
-        cv2.circle(image, tuple(pts[0]), 4 * scale << shift, colour, 2, cv2.LINE_AA, shift)
-        end = pts[-1] >> shift
-        cv2.rectangle(image, tuple(end - 3 * scale), tuple(end + 3 * scale), colour, 2)
-    if landmarks is not None:
-        magenta = (200, 0, 200)
-        for name, xy, cov in zip(*landmarks, strict=True):
-            centre = pixels(np.asarray(xy, np.float64).reshape(1, 2))[0]
-            values, vectors = np.linalg.eigh(np.nan_to_num(np.asarray(cov, np.float64).reshape(2, 2)))
-            axes = np.maximum(3.0 * np.sqrt(np.maximum(values, 0.0)) / grid.resolution * scale, 3.0)
-            angle = -math.degrees(math.atan2(vectors[1, 1], vectors[0, 1]))
-            cv2.ellipse(
-                image,
-                tuple(int(v) for v in centre),
-                (int(axes[1] * (1 << shift)), int(axes[0] * (1 << shift))),
-                angle,
-                0,
-                360,
-                magenta,
-                1,
-                cv2.LINE_AA,
-                shift,
-            )
-            c = centre >> shift
-            cv2.drawMarker(image, (int(c[0]), int(c[1])), magenta, cv2.MARKER_CROSS, 4 * scale + 6, 1)
-            cv2.putText(image, str(name), (int(c[0]) + 6, int(c[1]) - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4, magenta, 1,
-                        cv2.LINE_AA)
-    return image
-
-
-def plot_scans(grid: OccupancyGrid, path: str | os.PathLike[str], points: list[np.ndarray],
-               highlight: np.ndarray | None = None) -> Path:
-    """PNG of scan endpoints (each (N, 2), map frame) drawn over the map's extent, one pixel per cell.
-
-    Unlike the occupancy map, nothing clears anything: a wall mapped twice shows twice. Darker
-    pixels hold more endpoints; the scans flagged in ``highlight`` (bool per scan) are magenta.
-    """
-    height, width = grid.data.shape
-    counts = np.zeros((height, width), np.float32)
-    flagged = np.zeros((height, width), bool)
-    for k, xy in enumerate(points):
-        cols = np.floor((xy[:, 0] - grid.origin_x) / grid.resolution).astype(np.int64)
-        rows = np.floor((xy[:, 1] - grid.origin_y) / grid.resolution).astype(np.int64)
-        inside = (cols >= 0) & (rows >= 0) & (cols < width) & (rows < height)
-        np.add.at(counts, (rows[inside], cols[inside]), 1.0)
-        if highlight is not None and highlight[k]:
-            flagged[rows[inside], cols[inside]] = True
-    shade = np.clip(255.0 * (1.0 - np.log1p(counts) / max(np.log1p(counts.max()), 1e-9) * 0.9 - 0.1 * (counts > 0)),
-                    0, 255).astype(np.uint8)
-    image = cv2.cvtColor(shade, cv2.COLOR_GRAY2BGR)
-    image[flagged] = (255, 0, 255)
-    return write_image(path, image[::-1])
 
 
 LANDMARKS_HEADER = ["id", "x", "y", "sx", "sy"]

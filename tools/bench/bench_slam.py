@@ -45,7 +45,7 @@ from trundle.fusion.evaluation.trajectory_errors import (
     trajectory_relations,
 )
 from trundle.fusion.geometry import scan_to_points, transform_points, voxel_filter
-from trundle.fusion.mapping.map_io import plot_trajectory
+from trundle.fusion.mapping.map_plot import Track, plot_trajectory
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.matching.icp import LineReference, icp
 from trundle.fusion.matching.scan_matching import (
@@ -213,8 +213,10 @@ def main() -> None:
             ate_open = absolute_trajectory_error(Trajectory(*open_loop.trajectory()), Trajectory(stamps, reference))
             report.RESULTS.mkdir(exist_ok=True)
             plot_trajectory(slam.build_map().to_message(0), report.RESULTS / "slam_intel_loops.png",
-                            [reference, open_loop.trajectory()[1], slam.trajectory()[1]],
-                            colours=[(255, 0, 0), (0, 160, 0), (0, 0, 255)])
+                            [Track(reference, "reference (laser poses of the log)", "tab:blue", 4.0, 0.5),
+                             Track(open_loop.trajectory()[1], "SLAM without loop closure", "tab:green"),
+                             Track(slam.trajectory()[1], "SLAM with loop closure", "tab:red")],
+                            "Intel Research Lab: SLAM with and without loop closure")
             figures.update({"intel_ate_rmse_m": ate.rmse_m, "intel_ate_rmse_without_loop_closure_m": ate_open.rmse_m})
             figures.update({"intel_duration_s": duration, "intel_processing_s": wall, "intel_cpu_s": cpu,
                             "intel_real_time_factor": duration / wall, "intel_real_time_factor_cpu": duration / cpu,

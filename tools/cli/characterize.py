@@ -18,7 +18,7 @@ from trundle.tools.jobs.sensor_report import markdown
 
 
 def register(p: argparse.ArgumentParser) -> None:
-    p.add_argument("log")
+    p.add_argument("log", help="MCAP log holding the topic")
     p.add_argument("--topic", required=True, help="sensor topic, e.g. /scan, /wheels, /camera/image/compressed")
     p.add_argument("--reference", type=reference,
                    help="the true value: a number (m, e.g. a wall at a known distance) or a CSV of values over "

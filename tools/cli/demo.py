@@ -16,7 +16,7 @@ from trundle.logs.errors import UserError
 from trundle.tools.cli.damage import say_damage
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.arguments import non_negative_int, number_in, percent, positive
-from trundle.tools.demo.report import ATE_LIMIT_M, verdict
+from trundle.tools.demo.report import ATE_LIMIT_M, markers_seen, partial_run, verdict
 from trundle.tools.demo.run import LOG_NAME, DemoSettings, run_demo
 from trundle.tools.sim.world import DEFAULT_WORLD
 
@@ -24,7 +24,6 @@ from trundle.tools.sim.world import DEFAULT_WORLD
 def register(p: argparse.ArgumentParser) -> None:
     """The command's options on its subparser ``p``."""
     p.description = __doc__
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("-o", "--output", type=Path, default=Path("trundle-demo"),
                    help="output folder (default ./trundle-demo)")
     p.add_argument(
@@ -74,10 +73,11 @@ def run(args: argparse.Namespace) -> int:
           f"(limit {ATE_LIMIT_M * 100:.0f} cm; wheel odometry alone "
           f"{report['trajectory']['odometry_ate']['rmse_m'] * 100:.1f} cm), "
           f"{report['trajectory']['loop_closures']} loop closures")
-    print(f"markers in view: {report['markers_expected']}; detected: "
-          f"{[row['id'] for row in report['markers_detected'] if row['frames_detected'] > row['false_detections']]}")
+    print(f"markers: {markers_seen(report)}")
     for name, ok in checks.items():
         print(f"  {verdict(ok)}  {name}")
+    if partial_run(report):
+        print(partial_run(report))
     if report["starved"]:
         late = report["emulator_late_ms"]
         print(f"warning: the machine was too busy for real time (load average {report['load_average'][1]:.1f}): "

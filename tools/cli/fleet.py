@@ -37,7 +37,6 @@ def _job_help() -> str:
 
 def register(p: argparse.ArgumentParser) -> None:
     p.description = __doc__
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = _job_help() if {"-h", "--help"} & set(sys.argv[1:]) else None
     p.add_argument("job", choices=JOBS, help="the one-log job run on every log")
     p.add_argument("logs", nargs="+", metavar="LOG_OR_GLOB", help="log files, folders, quoted globs or URLs")
@@ -72,10 +71,13 @@ def run(args: argparse.Namespace) -> int:
     bar_shown = sys.stderr.isatty()
     fleet = run_fleet(args.job, args.logs, args.output, options, address=args.address, retries=args.retries,
                       num_cpus=args.num_cpus, cpus_per_log=args.cpus_per_log, force=args.force,
-                      progress=Progress, on_row=None if bar_shown else _line)
+                      progress=Progress, on_row=None if bar_shown else _line,
+                      say=lambda text: print(text, file=sys.stderr, flush=True))
     counts = ", ".join(f"{fleet.count(s)} {s}" for s in ("ok", "failed", "skipped", "cancelled") if fleet.count(s))
     rate = figures(fleet)["logs_per_minute"]
-    print(f"{len(fleet.rows)} logs: {counts} in {fleet.elapsed_s:.1f} s on {fleet.cpus:g} CPUs ({rate:.1f} logs/min)")
+    print(f"{len(fleet.rows)} logs: {counts} in {fleet.wall_s:.1f} s (Ray's start {fleet.ray_start_s:.1f} s; "
+          f"the logs {fleet.elapsed_s:.1f} s on {fleet.cpus:g} CPU{'' if fleet.cpus == 1 else 's'}, "
+          f"{rate:.1f} logs/min)")
     for row in fleet.rows:
         if row["status"] == "failed":
             print(f"failed {row['log']}: {row['error']}")

@@ -36,7 +36,7 @@ def register(p: argparse.ArgumentParser) -> None:
     formats = p.add_subparsers(dest="format", metavar="FORMAT")
     formats.required = True
     c = formats.add_parser("carmen", help="CARMEN log (.clf, .log, .gfs.log; .gz too)")
-    c.add_argument("input", type=Path)
+    c.add_argument("input", type=Path, help="CARMEN log file")
     c.add_argument("-o", "--output", type=Path, required=True, help="output .mcap (must not exist)")
     c.add_argument("--odometry", choices=ODOMETRY_SOURCES, default="auto",
                    help="odometry source: ODOM lines, the laser lines' odometry fields, or none; auto (default): "
@@ -51,7 +51,7 @@ def register(p: argparse.ArgumentParser) -> None:
     c.add_argument("--reference", type=Path, help="write the laser poses as t_ns,x,y,theta CSV")
     c.set_defaults(func=run_carmen)
     b = formats.add_parser("breezyslam", help="BreezySLAM / CoreSLAM .dat log")
-    b.add_argument("input", type=Path)
+    b.add_argument("input", type=Path, help="BreezySLAM .dat file")
     b.add_argument("-o", "--output", type=Path, required=True, help="output .mcap (must not exist)")
     b.set_defaults(func=run_breezyslam)
     r = formats.add_parser(

@@ -68,7 +68,9 @@ def run(args: argparse.Namespace) -> int:
     for i, (name, t) in enumerate(sorted(info.topics.items())):
         head = "Topic information: " if i == 0 else "                   "
         latched = " | latched" if t.latched else ""
+        # a latched topic's few messages (each split repeats them) have no rate: its "rate" was their spacing
+        rate = f"{'-':>8}   " if t.latched else f"{t.rate_hz:8.2f} Hz"
         lines.append(f"{head}Topic: {name:<{width}} | Type: {t.ros_type:<{type_width}} | Count: {t.count:>7} | "
-                     f"Rate: {t.rate_hz:8.2f} Hz | Serialization Format: {t.encoding}{latched}")
+                     f"Rate: {rate} | Serialization Format: {t.encoding}{latched}")
     print("\n".join(lines))
     return ok

@@ -1,6 +1,6 @@
 """`trundle inject-faults LOG -o OUT.mcap`: a copy of a log with realistic wheel-odometry faults.
 
-For testing odometry handling on real scans (:mod:`trundle.tools.jobs.inject_faults`). Times are
+For testing how odometry faults show in SLAM and localization on real scans. Times are
 seconds after the first odometry reading. Faults (each option may be repeated):
 
   --heading-glitch T:DEG[:S]   the odometry heading turns DEG degrees within S s (default 0.6) from T
@@ -28,13 +28,14 @@ from trundle.tools.jobs.inject_faults import inject_faults
 
 def register(p: argparse.ArgumentParser) -> None:
     p.description = __doc__
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("log", type=Path, help="MCAP log with odometry (nav_msgs/Odometry or wheel JointState)")
     p.add_argument("-o", "--output", type=Path, required=True, help="output .mcap")
-    p.add_argument("--heading-glitch", action="append", default=[], metavar="T:DEG[:S]")
-    p.add_argument("--slip", action="append", default=[], metavar="T:S:FRACTION")
+    p.add_argument("--heading-glitch", action="append", default=[], metavar="T:DEG[:S]",
+                   help="heading turns DEG degrees within S s (default 0.6) from T s")
+    p.add_argument("--slip", action="append", default=[], metavar="T:S:FRACTION",
+                   help="wheels report 1 + FRACTION times the distance from T s for S s")
     p.add_argument("--scale", type=finite, metavar="FRACTION", help="distance scale error over the whole log")
-    p.add_argument("--dropout", action="append", default=[], metavar="T:S")
+    p.add_argument("--dropout", action="append", default=[], metavar="T:S", help="no odometry from T s for S s")
     p.add_argument(
         "--glitches", type=non_negative_int, default=0, metavar="N", help="N heading glitches at random times"
     )

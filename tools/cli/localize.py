@@ -29,7 +29,6 @@ from trundle.tools.jobs.localize import localize_log
 
 def register(p: argparse.ArgumentParser) -> None:
     p.description = __doc__
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("log", type=Path, help="MCAP log with LaserScan (and Odometry or wheel JointState)")
     p.add_argument("--map", type=Path, required=True, help="folder with map.yaml + map.pgm, or the map YAML itself")
     p.add_argument("--config", type=Path, help="TOML with [odometry] and [laser] tables (as for trundle slam)")

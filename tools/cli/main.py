@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import sys
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from trundle import __version__
 from trundle.logs.errors import OutputError, TrundleError
@@ -51,8 +52,36 @@ def module_name(command: str) -> str:
     return "trundle.tools.cli." + MODULES.get(command, command.replace("-", "_"))
 
 
+MARKUP = re.compile(r"(?::[a-z]+:)?`+~?([^`]+?)`+")   # ``code``, `title`, :mod:`a.b`, :func:`~a.b`
+
+
+def plain(text: str) -> str:
+    """``text`` with its reST markup (the docstrings' ````--lrf````, ``:mod:`a.b```) as the plain words a
+    terminal shows: ``--lrf``, ``a.b``."""
+    return MARKUP.sub(r"\1", text)
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Every command's help: its description's lines as written (lists, examples), and no reST markup
+    anywhere (descriptions come from module docstrings)."""
+
+    def _format_text(self, text: str) -> str:
+        return super()._format_text(plain(text))
+
+    def _expand_help(self, action: argparse.Action) -> str:
+        return plain(super()._expand_help(action))
+
+
 class Parser(argparse.ArgumentParser):
-    """argparse with a usage mistake said in one line (what, and where the help is), exit code 2."""
+    """argparse with a usage mistake said in one line (what, and where the help is), exit code 2, and
+    help by :class:`HelpFormatter` (also for a command's own subcommands)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+        # As Python 3.13's argparse: an argument starting with a minus and a digit ("-5:30", "-1e3")
+        # is a value, not an unknown option ("--heading-glitch -5:30" said "expected one argument").
+        self._negative_number_matcher = re.compile(r"^-\.?\d")
 
     def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USER_ERROR, f"{self.prog}: {message} (see {self.prog} --help)\n")

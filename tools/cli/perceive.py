@@ -21,11 +21,13 @@ on its own. A summary (text, or one JSON object with ``--json``) ends the run.
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 from typing import Any
 
 from trundle.logs.errors import UserError
 from trundle.logs.outputs import json_text
+from trundle.perception.features import METHODS
 from trundle.tools.cli.damage import say_damage
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.arguments import non_negative, non_negative_int, number_in, positive, positive_int
@@ -34,9 +36,9 @@ from trundle.tools.jobs.perceive import perceive_log
 
 def register(p: argparse.ArgumentParser) -> None:
     p.description = __doc__
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("file", help="MCAP log with images")
-    p.add_argument("--pipeline", required=True, choices=("color", "markers", "features"))
+    p.add_argument("--pipeline", required=True, choices=("color", "markers", "features"),
+                   help="color: regions of one colour; markers: ArUco markers; features: keypoints (see above)")
     p.add_argument("-o", "--output", required=True, help="output MCAP file (must not exist)")
     p.add_argument("--topics", nargs="+", help="image topics (default: every Image and CompressedImage topic)")
     p.add_argument("--no-images", action="store_true", help="write only the detections, not the images")
@@ -67,21 +69,23 @@ def register(p: argparse.ArgumentParser) -> None:
     k.add_argument("--marker-size", type=positive, help="printed marker side in metres (enables poses)")
     k.add_argument("--camera-info", help="CameraInfo topic (default: <camera namespace>/camera_info)")
     f = p.add_argument_group("features pipeline")
-    f.add_argument("--method", default="orb", help="detector name known to trundle.perception.features (default orb)")
+    f.add_argument("--method", default="orb", metavar="NAME",
+                   help=f"keypoint detector: {', '.join(METHODS)} (default orb)")
     f.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="detector parameter (repeatable)")
     p.set_defaults(func=run)
 
 
 def _triple(text: str | None, name: str) -> tuple[float, float, float] | None:
-    """``"a,b,c"`` as three floats (None for None); anything else is a UserError naming the option ``name``."""
+    """``"a,b,c"`` as three finite floats (None for None); anything else (also nan, inf) is a UserError
+    naming the option ``name``."""
     if text is None:
         return None
     try:
         values = tuple(float(v) for v in text.split(","))
     except ValueError:
         values = ()
-    if len(values) != 3:
-        raise UserError(f"{name} needs three comma-separated numbers, got {text!r}")
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise UserError(f"{name} needs three comma-separated finite numbers, got {text!r}")
     return values[0], values[1], values[2]
 
 

@@ -30,3 +30,33 @@ class Progress:
         if self.enabled:
             self.stream.write("\n")
             self.stream.flush()
+
+
+class StatusLine:
+    """Progress of work without an end known in advance (a recording until Ctrl-C): on a terminal,
+    ``update(text)`` redraws one line in place at most once a second; otherwise (a log file,
+    journald) it prints the text as a line of its own every ``every_s`` seconds."""
+
+    def __init__(self, stream: TextIO | None = None, every_s: float = 10.0, terminal: bool | None = None) -> None:
+        self.stream = stream if stream is not None else sys.stderr
+        self.terminal = self.stream.isatty() if terminal is None else terminal
+        self.every_s = every_s if not self.terminal else 1.0
+        self._next = time.monotonic() + self.every_s
+        self._width = 0
+
+    def update(self, text: str) -> None:
+        now = time.monotonic()
+        if now < self._next:
+            return
+        self._next = now + self.every_s
+        if self.terminal:
+            self.stream.write(f"\r{text:<{self._width}}")   # spaces over a longer line before it
+            self._width = len(text)
+        else:
+            self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.terminal and self._width:
+            self.stream.write("\n")
+            self.stream.flush()

@@ -29,13 +29,13 @@ from trundle.logs.outputs import is_output_failure, output_error
 from trundle.logs.paths import output_folder, writable
 from trundle.logs.topics import DIAGNOSTICS_TOPIC, TF_STATIC_TOPIC
 from trundle.logs.writer import Logger, LoggerError
+from trundle.tools.cli.progress import StatusLine
 from trundle.tools.config.arguments import positive
 from trundle.tools.config.robot import Device, RobotConfig, load_config
 
 
 def register(p: argparse.ArgumentParser) -> None:
     p.description = __doc__
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("--lrf", action="append", default=[], metavar="URL",
                    help="laser: scip2:///dev/ttyACM0, scip2+tcp://host:10940, rplidar:///dev/ttyUSB0")
     p.add_argument("--can", action="append", default=[], metavar="URL",
@@ -106,6 +106,39 @@ def _discard(paths: list[Path]) -> None:
         path.unlink(missing_ok=True)
 
 
+PROGRESS_PERIOD_S = 10.0   # a progress line this often when stderr is no terminal (a log file, journald)
+QUIET_TOPICS = (DIAGNOSTICS_TOPIC, TF_STATIC_TOPIC)   # not the devices' data: left out of the progress line
+
+
+class TopicRates:
+    """Each topic's message rate (Hz) since the last ``update``, from the logger's written counts."""
+
+    def __init__(self, logger: Logger) -> None:
+        self.logger = logger
+        self._counts: dict[str, int] = {}
+        self._time = time.monotonic()
+
+    def update(self) -> dict[str, float]:
+        now = time.monotonic()
+        counts = {topic: c["written"] for topic, c in self.logger.stats_dict().items() if topic not in QUIET_TOPICS}
+        seconds = max(now - self._time, 1e-6)
+        rates = {topic: (n - self._counts.get(topic, 0)) / seconds for topic, n in counts.items()}
+        self._counts, self._time = counts, now
+        return rates
+
+
+def progress_text(elapsed_s: float, duration_s: float | None, rates: dict[str, float], logger: Logger) -> str:
+    """The progress line: time recorded (of ``duration_s``), each topic's rate, the file and its size."""
+    path = logger.current_path
+    try:
+        size = f"{path.stat().st_size / 1e6:.1f} MB in {path.name}" if path is not None else "no file open"
+    except OSError:
+        size = f"{path.name}" if path is not None else "no file open"
+    of = f" of {duration_s:g} s" if duration_s else " (Ctrl-C stops)"
+    topics = ", ".join(f"{topic} {rate:.1f} Hz" for topic, rate in rates.items()) or "no messages yet"
+    return f"recording {elapsed_s:.0f} s{of}: {topics}; {size}"
+
+
 def say(text: str) -> None:
     print(f"trundle record: {text}", file=sys.stderr, flush=True)
 
@@ -147,6 +180,7 @@ def run(args: argparse.Namespace) -> int:
     sink.target = logger
     health = HealthReporter(say)
     busy: PortBusyError | None = None
+    line, rates = StatusLine(every_s=PROGRESS_PERIOD_S), TopicRates(logger)
     try:
         stop = SignalFlag()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -160,15 +194,18 @@ def run(args: argparse.Namespace) -> int:
             logger.write(TF_STATIC_TOPIC, static_frames.static_message())
         for driver in drivers:
             driver.start()
-        deadline = time.monotonic() + args.duration if args.duration else None
+        started = time.monotonic()
+        deadline = started + args.duration if args.duration else None
         while not stop.wait(1.0 if deadline is None else max(0.0, min(1.0, deadline - time.monotonic()))):
             status = diagnostics(drivers)
             logger.write(DIAGNOSTICS_TOPIC, status)
             health.update(status.status)
+            line.update(progress_text(time.monotonic() - started, args.duration, rates.update(), logger))
             busy = next((d.port_busy for d in drivers if d.port_busy is not None), None)
             if busy or logger.error is not None or (deadline is not None and time.monotonic() >= deadline):
                 break
     finally:
+        line.close()
         for driver in drivers:
             driver.stop()
         logger.write(DIAGNOSTICS_TOPIC, diagnostics(drivers))

@@ -39,7 +39,6 @@ MAX_TOLERANCE_MS = 86_400_000.0  # a day: pairing poses further apart than that 
 
 def register(p: argparse.ArgumentParser) -> None:
     p.description = __doc__
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("result", help="trajectory.csv from `trundle slam` (t_ns,x,y,theta)")
     p.add_argument("reference", help=".relations file, t_ns,x,y,theta CSV or CARMEN log")
     p.add_argument("--step", type=positive_int, default=1,

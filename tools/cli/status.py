@@ -24,7 +24,6 @@ SYSTEM_CONFIG = Path("/etc/trundle/robot.toml")  # the systemd unit's config
 def register(p: argparse.ArgumentParser) -> None:
     """The command's options on its subparser ``p``."""
     p.description = __doc__
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
     where = p.add_mutually_exclusive_group()
     where.add_argument("--socket", type=Path, help="the daemon's status socket")
     where.add_argument("--config", type=Path, help="take the socket path from the daemon's robot TOML")

@@ -87,7 +87,12 @@ class Daemon:
         self.odometry: dict[str, OdometrySink] = {}
         self.live: LiveView | None = None
         self.live_errors = 0
-        self.health = HealthReporter(lambda text: print(f"trundle daemon: {text}", file=sys.stderr, flush=True))
+        self.health = HealthReporter(self.say)
+        self.started_at: float | None = None   # monotonic time the daemon said it started
+    @staticmethod
+    def say(text: str) -> None:
+        """One line on stderr (journald, the daemon's log file), ``trundle daemon: ...``."""
+        print(f"trundle daemon: {text}", file=sys.stderr, flush=True)
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> None:
@@ -141,6 +146,12 @@ class Daemon:
             sup.start()
         self.state = "running"
         sd_notify("READY=1\nSTATUS=" + self._summary())
+        devices = ", ".join(f"{s.device.name} ({s.device.url})" for s in self.supervised) or "no devices"
+        log = (f"recording to {self.logger.current_path}" if self.logger is not None and self.logger.current_path
+               else self.recording_paused or "not recording")
+        self.say(f"started (pid {os.getpid()}, robot {cfg.robot}): {devices}; {log}; "
+                 f"status socket {cfg.status.socket}")
+        self.started_at = time.monotonic()
 
     def run(self, *, install_signals: bool = True) -> int:
         """Start, then supervise until a stop is requested; always shuts down cleanly."""
@@ -224,6 +235,10 @@ class Daemon:
         if self._server is not None:
             self._server.close()
             self._server = None
+        if self.state == "stopping" and self.started_at is not None:   # a start that failed said why instead
+            written = sum(c["written"] for c in self._stop_counts.values())
+            files = ", ".join(str(p) for p in self.logger_files) or "no log"
+            self.say(f"stopped after {time.monotonic() - self.started_at:.0f} s: {written} messages in {files}")
         self.state = "stopped"
 
     # ------------------------------------------------------------------ messages
@@ -308,7 +323,7 @@ class Daemon:
         try:
             logger.close()
         except LoggerError as error:
-            print(f"trundle daemon: {error}", file=sys.stderr, flush=True)
+            self.say(str(error))
         self.logger_files.extend(logger.files)
         self._stop_counts = logger.stats_dict()
 
@@ -317,7 +332,7 @@ class Daemon:
         self.logger_failures += 1
         self.recording_paused = reason
         self._logger_retry_at = time.monotonic() + LOGGER_RETRY_S
-        print(f"trundle daemon: recording paused: {reason}", file=sys.stderr, flush=True)
+        self.say(f"recording paused: {reason}")
 
     def _check_logger(self, now: float) -> None:
         """Close a log that failed to write; retry a paused one when due (``now``: monotonic, s)."""

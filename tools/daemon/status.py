@@ -141,8 +141,15 @@ def format_status(status: dict[str, Any]) -> str:
         )
     if "processing" in status:
         p = status["processing"]
-        extra = "".join(f", {k} {v}" for k, v in p.items() if k in ("slam", "markers"))
-        lines.append(f"processing: queue {p['queue']}, dropped {p['dropped']}, errors {p['errors']}{extra}")
+        lines.append(f"processing: queue {p['queue']}, dropped {p['dropped']}, errors {p['errors']}"
+                     + (f"; last error: {p['last_error']}" if p.get("last_error") else ""))
+        if "slam" in p:
+            s = p["slam"]
+            lines.append(f"  slam: {s['scans']} scans, {s['keyframes']} keyframes, {s['matched']} matched, "
+                         f"{s['loop_closures']} loop closures")
+        if "markers" in p:
+            seen = ", ".join(f"id {k} {v} times" for k, v in p["markers"].items()) or "none yet"
+            lines.append(f"  markers seen: {seen}; {p.get('landmark_messages', 0)} landmark messages")
     return "\n".join(lines)
 
 

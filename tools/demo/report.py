@@ -7,15 +7,17 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, cast
 
 import cv2
 import numpy as np
+from matplotlib.figure import Figure
 
 from trundle.fusion.evaluation.trajectory_errors import Trajectory, landmark_error, poses_at
-from trundle.fusion.mapping.map_io import trajectory_image
+from trundle.fusion.mapping.map_plot import Track, save_figure, trajectory_figure
 from trundle.logs import messages as m
 from trundle.logs.outputs import write_image, write_json, write_text
 from trundle.logs.reader import LogReader, damage_dict
@@ -32,7 +34,7 @@ from trundle.tools.demo.scoring import (
 )
 from trundle.tools.demo.slam import SlamRun
 from trundle.tools.jobs.slam import map_check_report
-from trundle.tools.sim.camera_render import CameraRenderer
+from trundle.tools.sim.camera_render import MAX_INCIDENCE_DEG, MIN_SIDE_PX, CameraRenderer
 from trundle.tools.sim.robot import Mount
 from trundle.tools.sim.world import World
 
@@ -165,7 +167,9 @@ def build_report(settings: dict[str, Any], recording: Recording, run: SlamRun, s
         "markers": {"frames": score.frames, "frames_without_truth": score.unmatched,
                     "in_view": {str(k): v for k, v in sorted(score.in_view.items())},
                     "in_view_detected": in_view_pairs - len(score.missed), "in_view_total": in_view_pairs,
-                    "detected_ids": sorted({s.id for s in score.sightings})},
+                    "detected_ids": sorted({s.id for s in score.sightings}),
+                    "detected_beyond_view": sorted({s.id for s in score.sightings if s.in_image and not s.in_view}),
+                    "in_world": len(world.markers)},
         "timing": {"scan_stamp_error_ms": _stats((truth.stamps_ns - recording.scan_true_ns) / 1e6),
                    "frame_stamp_latency_ms": _stats((recording.frames.stamps_ns - recording.frame_true_ns) / 1e6)},
         "drivers": driver_diagnostics(recording.log),
@@ -195,6 +199,30 @@ def marker_checks(markers: dict[str, Any], ate_m: float, plain_ate_m: float) -> 
             "SLAM ATE with markers no worse than without": ate_m <= plain_ate_m + NO_WORSE_M}
 
 
+def partial_run(report: dict[str, Any]) -> str:
+    """What a shortened run (``--duration``) left unjudged ("" for the whole route)."""
+    if report["settings"]["duration_s"] is None:
+        return ""
+    return (f"This run covered {report['robot_time_s']:.0f} s ({report['path_length_m']:.1f} m) of the route, not all "
+            f"of it: {len(report['markers_expected'])} of the world's {report['markers']['in_world']} markers came "
+            "into view and no loop was driven, so the checks judge only that much (run without --duration for "
+            "the whole route and its loop check).")
+
+
+def markers_seen(report: dict[str, Any]) -> str:
+    """The markers in view and detected, in words: ``In view: 96; detected: 3, 96 (3 also ...)``."""
+    rows = report["markers_detected"]
+    detected = [row["id"] for row in rows if row["frames_detected"] > row["false_detections"]]
+    false = [row["id"] for row in rows if row["false_detections"]]
+    beyond = report["markers"]["detected_beyond_view"]
+    return (f"In view: {', '.join(map(str, report['markers_expected'])) or 'none'}; detected: "
+            f"{', '.join(map(str, detected)) or 'none'}"
+            + (f" ({', '.join(map(str, beyond))} also where {'it was' if len(beyond) == 1 else 'they were'} in the "
+               "image but smaller or more oblique than in view: true detections beyond what is required)"
+               if beyond else "")
+            + (f"; false detections of {', '.join(map(str, false))}" if false else ""))
+
+
 def report_markdown(report: dict[str, Any]) -> str:
     """``report.md``: the report's figures for a reader, with the pictures and files."""
     tr, mp, mk = report["trajectory"], report["map"], report["markers"]
@@ -220,6 +248,7 @@ def report_markdown(report: dict[str, Any]) -> str:
         "",
         checks,
         "",
+        *([partial_run(report), ""] if partial_run(report) else []),
         "## Trajectory and map",
         "",
         "![trajectory](trajectory.png)",
@@ -264,9 +293,14 @@ def report_markdown(report: dict[str, Any]) -> str:
         "",
         "![detections](camera_detections.png)",
         "",
-        f"{mk['frames']} frames; markers in view per the simulator: "
-        f"{', '.join(map(str, report['markers_expected'])) or 'none'}; detected in {mk['in_view_detected']} of "
+        f"{mk['frames']} camera frames. A marker is *in view* in a frame when the simulator shows it facing the "
+        f"camera within {MAX_INCIDENCE_DEG:.0f} deg, with sides of {MIN_SIDE_PX:.0f} px or more and unoccluded: "
+        f"what the detector is held to. {markers_seen(report)}. Detected in {mk['in_view_detected']} of the "
         f"{mk['in_view_total']} (frame, marker) pairs in view.",
+        "",
+        "Per marker: *frames in view* (as above), *frames detected* (frames with a detection of its id, in view or "
+        "not), *false* (detections of it in frames where it was not in the image at all), its distance from the "
+        "camera and the detected pose's errors against the world file.",
         "",
         "| id | frames in view | frames detected | false | distance (m) | position error median / max "
         "| angle error median / max |",
@@ -308,26 +342,24 @@ def write_report(out: Path, report: dict[str, Any]) -> None:
 
 # ---------------------------------------------------------------------------------- pictures
 
-TRUTH_BGR, SLAM_BGR, ODOMETRY_BGR = (200, 90, 0), (0, 0, 230), (0, 140, 255)   # colours of the trajectory plot
+def run_figure(grid: m.OccupancyGrid, truth: np.ndarray, estimate: np.ndarray, odometry: np.ndarray,
+               loops: Sequence[tuple[np.ndarray, np.ndarray]],
+               landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Figure:
+    """The trajectory-over-map figure (map frame): ground truth (a wide pale band under the others,
+    so the SLAM estimate over it leaves it visible), wheel odometry, SLAM estimate, loop closures
+    and the mapped markers (landmarks with their 3-sigma ellipses), each named in the legend."""
+    tracks = [Track(truth, "ground truth (simulator)", "tab:blue", 6.0, 0.45),
+              Track(odometry, "wheel odometry", "tab:orange", 1.5),
+              Track(estimate, "SLAM estimate", "tab:red", 1.5)]
+    return trajectory_figure(grid, tracks, "demo: ground truth, wheel odometry and SLAM over the SLAM map",
+                             loops=loops, landmarks=landmarks)
 
 
 def plot_run(grid: m.OccupancyGrid, path: Path, truth: np.ndarray, estimate: np.ndarray, odometry: np.ndarray,
-             loops: list[tuple[np.ndarray, np.ndarray]],
+             loops: Sequence[tuple[np.ndarray, np.ndarray]],
              landmarks: tuple[list[str], np.ndarray, np.ndarray] | None = None) -> Path:
-    """The trajectory-over-map plot (map frame): ground truth, SLAM estimate, wheel odometry and the
-    mapped markers (landmarks with their 3-sigma ellipses), with a legend."""
-    image = trajectory_image(grid, [truth, odometry, estimate], colours=[TRUTH_BGR, ODOMETRY_BGR, SLAM_BGR],
-                             loops=loops, landmarks=landmarks)
-    scale = max(1.0, image.shape[1] / 1000.0)
-    entries = [("ground truth (simulator)", TRUTH_BGR), ("wheel odometry", ODOMETRY_BGR), ("SLAM estimate", SLAM_BGR),
-               ("loop closure", (0, 200, 0))] + ([("marker (landmark, 3 sigma)", (200, 0, 200))] if landmarks else [])
-    for k, (text, colour) in enumerate(entries):
-        y = int((24 + 22 * k) * scale)
-        mid = y - int(5 * scale)
-        cv2.line(image, (int(10 * scale), mid), (int(40 * scale), mid), colour, max(2, int(2 * scale)))
-        cv2.putText(image, text, (int(48 * scale), y), cv2.FONT_HERSHEY_SIMPLEX, 0.5 * scale, (40, 40, 40),
-                    max(1, int(scale)), cv2.LINE_AA)
-    return write_image(path, image, replace=True)
+    """Write the demo's ``trajectory.png`` (:func:`run_figure`)."""
+    return save_figure(run_figure(grid, truth, estimate, odometry, loops, landmarks), path, replace=True)
 
 
 def draw_detections(log: Path, score: MarkerScore, frames: Trajectory, world: World, mount: Mount, path: Path

@@ -108,6 +108,25 @@ def daemon_config(devices: SimDevices, folder: Path, socket_path: Path, calibrat
             "status": {"socket": str(socket_path), "diagnostics_period_s": 1.0}}
 
 
+SAVED_CONFIG_NOTE = """\
+# The configuration the demo's daemon ran with (trundle daemon --config robot.toml). Its device
+# URLs were the demo's emulators and its logger folder and status socket were temporary: all are
+# gone now (the log is demo.mcap). To run the daemon on a robot, give your devices' URLs
+# (scip2:///dev/ttyACM0, slcan:///dev/ttyACM1@1000000, v4l2:///dev/video0) and a logger folder,
+# or start from `trundle daemon --print-example-config`.
+"""
+GONE = "  # the demo's own, gone when it ends"
+
+
+def saved_config(tables: dict[str, Any]) -> str:
+    """``out/robot.toml`` (the daemon reads it; the user keeps it): the daemon's configuration with a note
+    that its device URLs, logger folder and status socket are the run's own (temporary), and how to
+    point it at a robot's devices."""
+    temporary = ("url = ", "folder = ", "socket = ")
+    lines = [line + GONE if line.startswith(temporary) else line for line in format_config(tables).splitlines()]
+    return SAVED_CONFIG_NOTE + "\n".join(lines) + "\n"
+
+
 def marker_size(world: World) -> float:
     """The side (m) of the world's ArUco markers, which the daemon needs to know (one size for all)."""
     sizes = {d.width for d in world.markers}
@@ -172,7 +191,7 @@ def record(out: Path, sim: RobotSim, settings: DemoSettings = DemoSettings(), sa
             calibration = out / "camera.yaml"
             write_text(calibration, devices.camera.calibration_yaml("trundle_demo"), replace=True)
             config = out / "robot.toml"
-            write_text(config, format_config(daemon_config(devices, folder, socket_path, calibration)), replace=True)
+            write_text(config, saved_config(daemon_config(devices, folder, socket_path, calibration)), replace=True)
             say(f"emulators up: laser {devices.urls['lrf']}, encoders {devices.urls['can']}, "
                 f"camera {devices.urls['camera']}")
             daemon_log = out / "daemon.log"
@@ -302,7 +321,7 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     mapped = run.slam.landmarks()
     assert mapped is not None, "the demo's SLAM runs with its markers"
     say(f"      {run.slam.stats.keyframes} keyframes, {run.slam.stats.loop_closures} loop closures, "
-        f"{len(mapped.ids)} markers mapped in {run.processing_s:.0f} s")
+        f"{len(mapped.ids)} marker{'' if len(mapped.ids) == 1 else 's'} mapped in {run.processing_s:.0f} s")
     say(f"[3/4] perception: ArUco markers in {len(recording.frames)} camera frames")
     t = time.monotonic()
     mount = sensor_mount(recording.log, "camera")
@@ -310,7 +329,7 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     seconds["markers"] = time.monotonic() - t
     say("[4/4] report")
     report = build_report(settings.as_json(), recording, run, score, world, seconds, plain)
-    save_map(run.grid, out / "map", replace=True)
+    save_map(run.grid, out / "map", "demo: SLAM map of the simulated world", replace=True)
     write_trajectory_csv(out / "trajectory.csv", run.trajectory.stamps_ns, run.trajectory.poses, replace=True)
     map_from_world = inverse(np.array(report["trajectory"]["ate"]["alignment_xyt"]))
     keyframes = run.slam.keyframe_poses()

@@ -44,8 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--nodes", help="node ids, one per wheel (default odrive 0,1; cia406 5,6; dbc 9,10)")
     parser.add_argument(
         "--script",
-        default="0:0.5,0.5",
-        help="motor speeds in turns/s from T seconds on: 'T:left,right;T:left,right' (default 0:0.5,0.5)",
+        help="motor speeds in turns/s from T seconds on: 'T:left,right;T:left,right', e.g. 0:0.5,0.5 "
+             "(default: standing still, as the scene of `trundle emulate lrf`, so a first recording of both agrees)",
     )
     parser.add_argument("--duration", type=positive,
                         help="stop this many seconds after the host opened the adapter (default: until Ctrl-C)")
@@ -106,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
         ids = [int(t, 0) for t in (args.nodes or DEFAULT_NODES[args.protocol]).split(",")]
     except ValueError:
         raise UserError(f"--nodes must be integers separated by commas, got {args.nodes!r}") from None
-    script = VelocityScript.parse(args.script)
+    # without --script the wheels stand still, as the scene of `emulate lrf` does
+    script = VelocityScript.parse(args.script) if args.script else VelocityScript([(0.0, [0.0] * len(ids))])
     if script.wheels != len(ids):
         raise UserError(f"the script gives {script.wheels} speeds per segment for {len(ids)} nodes")
     if not 0.0 <= args.drop < 1.0:
@@ -123,7 +124,9 @@ def run(args: argparse.Namespace) -> int:
     runner.drop_probability = args.drop
     spec = {"odrive": "odrive", "cia406": "cia406", "dbc": f"dbc:{VESC_DBC}"}[args.protocol]
     encoders = spec if args.protocol == "dbc" else f"{spec}:{','.join(map(str, ids))}"
-    print(f"SLCAN adapter on {args.link} ({args.protocol} nodes {ids}); record with:\n"
+    motion = ("the wheels stand still (give --script to drive them)" if not script.speeds.any()
+              else f"wheel speeds (turns/s) {args.script}")
+    print(f"SLCAN adapter on {args.link} ({args.protocol} nodes {ids}); {motion}; record with:\n"
           f"  trundle record --can slcan://{args.link} --encoders {encoders} -o run.mcap", flush=True)
     if args.protocol == "cia406":
         print(f"  (EDS of the emulated encoders: {cia406.DEFAULT_EDS})", flush=True)

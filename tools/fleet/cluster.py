@@ -17,7 +17,7 @@ import logging
 import os
 import secrets
 import socket
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from typing import Any
 
@@ -51,9 +51,11 @@ def _check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None
 
 class Cluster:
     """A connection to a Ray cluster: ``address`` (``HOST:PORT``, ``auto``, ``ray://...``), else
-    ``RAY_ADDRESS``, else a local Ray started for this run with ``num_cpus`` CPUs (default: all)."""
+    ``RAY_ADDRESS``, else a local Ray started for this run with ``num_cpus`` CPUs (default: all);
+    ``say`` is told which, before the seconds Ray takes to start or connect."""
 
-    def __init__(self, address: str | None = None, num_cpus: int | None = None) -> None:
+    def __init__(self, address: str | None = None, num_cpus: int | None = None,
+                 say: Callable[[str], None] = lambda text: None) -> None:
         self.address = address or os.environ.get("RAY_ADDRESS") or LOCAL
         local = self.address == LOCAL
         if local:
@@ -68,6 +70,9 @@ class Cluster:
         import ray
 
         self._ray = ray
+        cpus = "all CPUs" if num_cpus is None else f"{num_cpus} CPU{'' if num_cpus == 1 else 's'}"
+        say(f"starting a local Ray ({cpus}) ..." if local else
+            f"connecting to the Ray cluster at {self.address} ...")
         try:
             ray.init(address=self.address, num_cpus=num_cpus if local else None,
                      include_dashboard=False if local else None, log_to_driver=False,

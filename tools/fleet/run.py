@@ -35,12 +35,16 @@ CANCEL_WAIT_S = 10.0  # after Ctrl-C, how long the cancelled tasks are given to 
 @dataclass
 class FleetRun:
     """The outcome: one row per log (in input order), the seconds from the first task submitted
-    to the last finished, the cluster's CPUs, and whether the run was interrupted."""
+    to the last finished (``elapsed_s``), from the call to its end (``wall_s``: with Ray's start and
+    the results' writing), and Ray's start alone (``ray_start_s``), the cluster's CPUs, and whether
+    the run was interrupted."""
 
     job: str
     options: dict[str, Any]
     rows: list[dict[str, Any]] = field(default_factory=list)
     elapsed_s: float = 0.0
+    wall_s: float = 0.0
+    ray_start_s: float = 0.0
     cpus: float = 0.0
     interrupted: bool = False
     files: list[Path] = field(default_factory=list)
@@ -83,13 +87,16 @@ def _sigterm_interrupts() -> Iterator[None]:
 def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[str, Any], *,
               address: str | None = None, retries: int = 3, num_cpus: int | None = None,
               cpus_per_log: float = 1.0, force: bool = False, progress: ProgressFactory = NoProgress,
-              on_row: Callable[[dict[str, Any], FleetRun], None] | None = None) -> FleetRun:
+              on_row: Callable[[dict[str, Any], FleetRun], None] | None = None,
+              say: Callable[[str], None] = lambda text: None) -> FleetRun:
     """Run ``job`` with ``options`` on every log ``patterns`` name, outputs in ``output``/<name>/.
 
     ``address``/``num_cpus``: see :class:`trundle.tools.fleet.cluster.Cluster`; ``retries``: how
     often a task lost with its worker is run again; ``force`` recomputes complete results;
-    ``progress`` shows done/failed/running/remaining; ``on_row`` is called with each finished row.
+    ``progress`` shows done/failed/running/remaining; ``on_row`` is called with each finished row;
+    ``say`` is told when Ray starts and is ready (seconds of silence otherwise).
     """
+    called = time.perf_counter()
     output = output.resolve()
     sources = expand(patterns, exclude=output)
     names = folder_names(sources)
@@ -98,7 +105,9 @@ def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[
     rows: list[dict[str, Any] | None] = [None] * len(sources)
     with _lock(output), _sigterm_interrupts():
         shutil.rmtree(output / STATE / "work", ignore_errors=True)
-        cluster = Cluster(address, num_cpus)
+        cluster = Cluster(address, num_cpus, say)
+        run.ray_start_s = time.perf_counter() - called
+        say(f"Ray ready in {run.ray_start_s:.1f} s")
         try:
             started = time.perf_counter()
             refs = {cluster.submit(Task(job, s, n, str(output), dict(options), key, force), retries, cpus_per_log): i
@@ -150,6 +159,7 @@ def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[
             cluster.close()
             shutil.rmtree(output / STATE / "work", ignore_errors=True)
         run.rows = [r for r in rows if r is not None]
+        run.wall_s = time.perf_counter() - called   # before the results are written, so run.json holds it
         run.files = write_results(run, output)
     return run
 
@@ -159,7 +169,7 @@ def figures(run: FleetRun) -> dict[str, Any]:
     finished = len(run.rows) - run.count("cancelled")
     return {"job": run.job, "options": run.options, "logs": len(run.rows),
             **{status: run.count(status) for status in STATUSES}, "interrupted": run.interrupted,
-            "elapsed_s": run.elapsed_s, "cpus": run.cpus,
+            "elapsed_s": run.elapsed_s, "wall_s": run.wall_s, "ray_start_s": run.ray_start_s, "cpus": run.cpus,
             "logs_per_minute": 60.0 * finished / run.elapsed_s if run.elapsed_s > 0 else 0.0,
             "job_cpu_seconds": sum(r.get("cpu_seconds") or 0.0 for r in run.rows if r["status"] == "ok")}
 

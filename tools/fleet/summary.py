@@ -14,9 +14,12 @@ from __future__ import annotations
 
 import statistics
 from collections.abc import Mapping, Sequence
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 from trundle.fusion.mapping.map_check import NOT_CHECKED
 from trundle.logs.outputs import save_figure, write_text
@@ -31,6 +34,9 @@ PREFERRED = {
 }
 PANELS = 6
 SKIP_PREFIXES = ("config.", "class.", "report.")
+STAMP_SUFFIX = "_ns"            # an absolute time (start_ns, end_ns), not a figure to plot or take a median of
+DESCRIPTIVE = (".latched",)     # booleans that describe a log (a latched topic), not checks that can fail
+EARLIEST = datetime(2000, 1, 1, tzinfo=UTC)   # a log "starting" before this has no wall-clock stamps (an import)
 LISTED = 20   # at most this many logs named per table
 
 
@@ -41,7 +47,7 @@ def _numeric(value: Any) -> bool:
 def headline(job: str, rows: Sequence[Mapping[str, Any]]) -> list[str]:
     """The figure columns to plot for ``job`` (see the module doc)."""
     candidates = [c for c in columns(list(rows)) if c not in COLUMNS and not c.startswith(SKIP_PREFIXES)
-                  and any(_numeric(r.get(c)) for r in rows)]
+                  and not c.endswith(STAMP_SUFFIX) and any(_numeric(r.get(c)) for r in rows)]
     chosen = [c for pattern in PREFERRED.get(job, ()) for c in candidates if pattern in c]
     chosen = list(dict.fromkeys(chosen))
     chosen += [c for c in candidates if c not in chosen and len({r.get(c) for r in rows if _numeric(r.get(c))}) > 1]
@@ -49,10 +55,11 @@ def headline(job: str, rows: Sequence[Mapping[str, Any]]) -> list[str]:
 
 
 def failed_checks(rows: Sequence[Mapping[str, Any]]) -> dict[str, list[str]]:
-    """Boolean figure -> the logs it is false for (only figures false somewhere)."""
+    """Boolean figure -> the logs it is false for (only figures false somewhere; not the booleans that
+    describe a log, :data:`DESCRIPTIVE`)."""
     checks: dict[str, list[str]] = {}
     for name in columns(list(rows)):
-        if name in COLUMNS:
+        if name in COLUMNS or name.endswith(DESCRIPTIVE):
             continue
         values = [(r["log"], r.get(name)) for r in rows if isinstance(r.get(name), bool)]
         false = [log for log, v in values if v is False]
@@ -78,34 +85,57 @@ def _when(row: Mapping[str, Any]) -> datetime | None:
         return None
 
 
-def plot(job: str, rows: Sequence[Mapping[str, Any]], path: Path) -> Path | None:
-    """``summary.png``: each headline figure over log start time, per robot (None without figures)."""
+def summary_figure(job: str, rows: Sequence[Mapping[str, Any]]) -> Figure | None:
+    """The figure of ``summary.png``: each headline figure over log start time, one line per robot
+    (None without figures to plot).
+
+    When a log's start is no wall-clock time (before :data:`EARLIEST`: an imported dataset's stamps
+    count from 0), the figures are plotted over the logs in their order instead, named on the axis.
+    """
     names = headline(job, rows)
     timed = [r for r in rows if _when(r) is not None]
     if not names or not timed:
         return None
-    import matplotlib
+    clock = all(when >= EARLIEST for r in timed if (when := _when(r)) is not None)
+    order = {id(r): k for k, r in enumerate(timed)}
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    def x(row: Mapping[str, Any]) -> Any:
+        return _when(row) if clock else order[id(row)]
 
     robots = sorted({r.get("robot") or "unknown" for r in timed})
-    fig, axes = plt.subplots(len(names), 1, figsize=(9, 2.2 * len(names) + 0.6), sharex=True, squeeze=False)
-    for ax, name in zip(axes[:, 0], names, strict=True):
+    fig = Figure(figsize=(9, 2.2 * len(names) + 1.0), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, name in zip(axes, names, strict=True):
         for robot in robots:
-            points = sorted((_when(r), r[name]) for r in timed
+            points = sorted((x(r), r[name]) for r in timed
                             if (r.get("robot") or "unknown") == robot and _numeric(r.get(name)))
             if points:
                 ax.plot([p[0] for p in points], [p[1] for p in points], "o-", ms=3, lw=0.8, label=robot)
         ax.set_ylabel(name, fontsize=8)
         ax.grid(alpha=0.3)
-    axes[0, 0].set_title(f"trundle fleet {job}: figures per log over the log's start time (UTC)")
+    if clock:
+        axes[0].set_title(f"trundle fleet {job}: figures per log over the log's start time (UTC)")
+        axes[-1].set_xlabel("log start (UTC)")
+        for label in axes[-1].get_xticklabels():
+            label.set(rotation=30, horizontalalignment="right")
+    else:
+        axes[0].set_title(f"trundle fleet {job}: figures per log (in the order given: "
+                          "some logs have no wall-clock start time)")
+        axes[-1].set_xlabel("log")
+        axes[-1].set_xticks(range(len(timed)), [str(r.get("name") or r["log"]) for r in timed], rotation=30,
+                            horizontalalignment="right", fontsize=7)
     if len(robots) <= 12:
-        axes[0, 0].legend(fontsize=7, loc="best", title="robot", title_fontsize=7)
-    fig.autofmt_xdate()
-    fig.tight_layout()
+        axes[0].legend(fontsize=7, loc="best", title="robot", title_fontsize=7)
+    return fig
+
+
+def plot(job: str, rows: Sequence[Mapping[str, Any]], path: Path) -> Path | None:
+    """``summary.png`` (:func:`summary_figure`; None without figures)."""
+    fig = summary_figure(job, rows)
+    if fig is None:
+        return None
     save_figure(fig, path, dpi=100, replace=True)
-    plt.close(fig)
     return path
 
 
@@ -120,8 +150,9 @@ def markdown(job: str, rows: Sequence[Mapping[str, Any]], run: Mapping[str, Any]
     counts = {s: sum(r["status"] == s for r in rows) for s in ("ok", "failed", "skipped", "cancelled")}
     lines = [f"# trundle fleet {job}: {len(rows)} logs", "",
              f"{counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped, {counts['cancelled']} "
-             f"cancelled in {run.get('elapsed_s', 0.0):.1f} s on {run.get('cpus', 0):g} CPUs "
-             f"({run.get('logs_per_minute', 0.0):.1f} logs per minute); job options: {run.get('options') or 'none'}.",
+             f"cancelled in {run.get('wall_s', 0.0):.1f} s (Ray's start {run.get('ray_start_s', 0.0):.1f} s; the logs "
+             f"{run.get('elapsed_s', 0.0):.1f} s on {run.get('cpus', 0):g} CPUs, "
+             f"{run.get('logs_per_minute', 0.0):.1f} logs per minute); job options: {run.get('options') or 'none'}.",
              ""]
     failed = [r for r in rows if r["status"] in ("failed", "cancelled")]
     if failed:

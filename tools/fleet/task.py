@@ -24,6 +24,7 @@ from typing import Any
 
 from trundle import __version__
 from trundle.logs.errors import OutputError, TrundleError, UserError
+from trundle.logs.metadata import read_metadata
 from trundle.logs.outputs import write_json, write_text
 from trundle.logs.reader import LogReader
 from trundle.tools.fleet.inputs import identity, local_copy
@@ -71,11 +72,16 @@ def sha256(path: Path) -> str:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
-def _robot(metadata: dict[str, dict[str, str]]) -> str:
-    """The robot a log came from: the daemon's robot name, else the recording host ('' if neither)."""
-    trundle = metadata.get("trundle", {})
-    robot = trundle.get("robot", "")
-    return robot if robot and not robot.lstrip().startswith("{") else trundle.get("host", "")
+def robot_name(metadata: dict[str, dict[str, str]]) -> str:
+    """The robot a log came from: the robot's name in the log (record, daemon); for an imported
+    dataset, which one (``imported carmen``: the host is only the machine that imported it); else
+    the recording host ('' if none)."""
+    described = read_metadata(metadata)
+    if described.robot_name:
+        return described.robot_name
+    if described.command.startswith("import "):
+        return "imported " + described.command.removeprefix("import ")
+    return str(described.fields.get("host", ""))
 
 
 def _log_columns(path: Path, source: str) -> dict[str, Any]:
@@ -84,7 +90,7 @@ def _log_columns(path: Path, source: str) -> dict[str, Any]:
     info = LogReader(path).info()
     start = (datetime.fromtimestamp(info.start_ns / 1e9, tz=UTC).isoformat(timespec="milliseconds")
              if info.start_ns is not None else None)
-    return {"robot": _robot(info.metadata), "log_start": start, "log_duration_s": info.duration_s,
+    return {"robot": robot_name(info.metadata), "log_start": start, "log_duration_s": info.duration_s,
             "log_damage": info.damage.line(source) if info.damage is not None else None}
 
 

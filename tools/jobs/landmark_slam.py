@@ -25,7 +25,8 @@ from typing import Any
 import numpy as np
 
 from trundle.fusion.geometry import compose, inverse, scan_to_points
-from trundle.fusion.mapping.map_io import plot_trajectory, save_map, write_landmarks_csv, write_trajectory_csv
+from trundle.fusion.mapping.map_io import save_map, write_landmarks_csv, write_trajectory_csv
+from trundle.fusion.mapping.map_plot import Track, plot_trajectory
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.estimators import ESTIMATORS, GRID, EstimatorInputs, make_estimator
@@ -150,10 +151,11 @@ def landmark_slam_log(log: Path, output: Path, config: JobConfig = None, estimat
         "map": {"resolution": float(map_msg.resolution), "width": map_msg.width, "height": map_msg.height},
     }
     with writing_folder(output):  # every file or, on any failure, none
-        save_map(map_msg, output / "map")
+        save_map(map_msg, output / "map", f"{estimator} map of {log.name}")
         write_trajectory_csv(output / "trajectory.csv", stamps, poses)
         write_landmarks(output / "landmarks.csv", landmarks)
-        plot_trajectory(map_msg, output / "trajectory.png", [poses],
+        plot_trajectory(map_msg, output / "trajectory.png", [Track(poses, f"{estimator} trajectory", "tab:red")],
+                        f"{estimator} trajectory and landmarks of {log.name}",
                         landmarks=(landmarks.ids, landmarks.positions, landmarks.covariances))
         with writing_file(output / "slam.mcap") as tmp:
             write_log(items, tmp, metadata={"command": "slam", "source": str(log), "estimator": estimator})

@@ -6,46 +6,49 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 from trundle.logs.outputs import save_figure
 
 
+def beam_noise_figure(angles: np.ndarray, std: np.ndarray) -> Figure:
+    """Per-beam range noise (std, m, per beam angle, rad) while standing still, its median dashed."""
+    fig = Figure(figsize=(8, 3.5), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    log_scale = bool(np.any(std > 0))  # a noiseless (simulated or quantised) laser has no log axis
+    (ax.semilogy if log_scale else ax.plot)(np.degrees(angles), std * 1000, lw=0.8, label="noise std of each beam")
+    ax.axhline(np.nanmedian(std) * 1000, color="k", ls="--", lw=0.8, label=f"median {np.nanmedian(std) * 1000:.1f} mm")
+    ax.set(xlabel="beam angle (deg)", ylabel=f"noise std (mm{', log' if log_scale else ''})",
+           title="Per-beam noise while standing still")
+    ax.legend(loc="upper right")
+    return fig
+
+
+def sensitivity_figure(true: np.ndarray, measured: np.ndarray) -> Figure:
+    """Measured against true range (m), with the line where they are equal."""
+    keep = np.isfinite(true) & np.isfinite(measured)
+    step = max(1, keep.sum() // 20000)
+    fig = Figure(figsize=(5, 5), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.plot(true[keep][::step], measured[keep][::step], ",", alpha=0.4, label="readings")
+    lim = [np.nanmin(true[keep]), np.nanmax(true[keep])]
+    ax.plot(lim, lim, "k--", lw=0.8, label="measured = true")
+    ax.set(xlabel="true value (m)", ylabel="measured (m)", title="Sensitivity: measured against true range")
+    ax.legend(loc="upper left")
+    return fig
+
+
 def write_plots(folder: Path, plots: dict[str, Any]) -> list[str]:
     """The PNGs of ``plots`` (per-beam noise, sensitivity) in ``folder``; returns their file names."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    figures = {"beam_noise": beam_noise_figure, "sensitivity": sensitivity_figure}
     names = []
-    if "beam_noise" in plots:
-        angles, std = plots["beam_noise"]
-        fig, ax = plt.subplots(figsize=(8, 3.5))
-        log_scale = bool(np.any(std > 0))  # a noiseless (simulated or quantised) laser has no log axis
-        (ax.semilogy if log_scale else ax.plot)(np.degrees(angles), std * 1000, lw=0.8)
-        ax.axhline(
-            np.nanmedian(std) * 1000, color="k", ls="--", lw=0.8, label=f"median {np.nanmedian(std) * 1000:.1f} mm"
-        )
-        ax.set(xlabel="beam angle (deg)", ylabel=f"noise std (mm{', log' if log_scale else ''})",
-               title="Per-beam noise while standing still")
-        ax.legend(loc="upper right")
-        fig.tight_layout()
-        save_figure(fig, folder / "beam_noise.png", dpi=110)
-        plt.close(fig)
-        names.append("beam_noise.png")
-    if "sensitivity" in plots:
-        true, measured = plots["sensitivity"]
-        keep = np.isfinite(true) & np.isfinite(measured)
-        step = max(1, keep.sum() // 20000)
-        fig, ax = plt.subplots(figsize=(5, 5))
-        ax.plot(true[keep][::step], measured[keep][::step], ",", alpha=0.4)
-        lim = [np.nanmin(true[keep]), np.nanmax(true[keep])]
-        ax.plot(lim, lim, "k--", lw=0.8)
-        ax.set(xlabel="true value (m)", ylabel="measured (m)", title="Sensitivity")
-        fig.tight_layout()
-        save_figure(fig, folder / "sensitivity.png", dpi=110)
-        plt.close(fig)
-        names.append("sensitivity.png")
+    for name, draw in figures.items():
+        if name in plots:
+            save_figure(draw(*plots[name]), folder / f"{name}.png", dpi=110)
+            names.append(f"{name}.png")
     return names
 
 

@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 
 from trundle.fusion.mapping.map_check import MapCheck
-from trundle.fusion.mapping.map_io import plot_scans, plot_trajectory, save_map, write_trajectory_csv
+from trundle.fusion.mapping.map_io import save_map, write_trajectory_csv
+from trundle.fusion.mapping.map_plot import Track, plot_scans, plot_trajectory
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.estimators import GRID, EstimatorInputs, make_estimator, resolve
 from trundle.fusion.slam.grid_slam import Slam
@@ -159,11 +160,13 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     if landmarks is not None:
         report["landmarks"] = {"topic": topic, "mapped": len(landmarks.ids), **landmark_counts}
     with writing_folder(output):  # every file or, on any failure, none
-        save_map(map_msg, output / "map")
+        save_map(map_msg, output / "map", f"SLAM map of {log.name}")
         write_trajectory_csv(output / "trajectory.csv", stamps, poses)
-        plot_trajectory(map_msg, output / "trajectory.png", [poses], loops=loops,
+        plot_trajectory(map_msg, output / "trajectory.png", [Track(poses, "SLAM trajectory", "tab:red")],
+                        f"SLAM trajectory of {log.name}", loops=loops,
                         highlights=[slam.keyframe_scans(a, b) for a, b in check.stretches], landmarks=drawn)
-        plot_scans(map_msg, output / "scans.png", slam.keyframe_endpoints(), check.keyframe_consistency < 0.5)
+        plot_scans(map_msg, output / "scans.png", slam.keyframe_endpoints(), check.keyframe_consistency < 0.5,
+                   f"every keyframe's scan at its pose: {log.name}")
         with writing_file(output / "slam.mcap") as tmp:
             write_log(transforms + [(MAP_TOPIC, map_msg, end_ns), (PATH_TOPIC, path_msg, end_ns)] + extra, tmp,
                       metadata={"command": "slam", "source": str(log)})

@@ -33,6 +33,7 @@ WALL_PX_PER_M = 64.0
 FLOOR_PX_PER_M = 40.0
 ATLAS_WIDTH = 4096
 ATLAS_MAX_PX = 32000  # cv2.remap needs source images under 32767 pixels a side
+MIN_SIDE_PX, MAX_INCIDENCE_DEG = 24.0, 60.0   # a decal a detector should find: sides (px), facing within (deg)
 
 
 @dataclass(frozen=True)
@@ -321,7 +322,8 @@ class CameraRenderer:
         patch = image[r0:r1, c0:c1].astype(np.float32)
         image[r0:r1, c0:c1] = np.clip(patch + alpha * (sampled[:, :, :3] - patch) + 0.5, 0, 255).astype(np.uint8)
 
-    def visible_decals(self, pose: CameraPose, *, min_side_px: float = 24.0, max_incidence_deg: float = 60.0,
+    def visible_decals(self, pose: CameraPose, *, min_side_px: float = MIN_SIDE_PX,
+                       max_incidence_deg: float = MAX_INCIDENCE_DEG,
                        border_px: float = 4.0) -> list[tuple[Decal, np.ndarray]]:
         """Decals a detector should find from ``pose``, each with its projected corners (4, 2).
 

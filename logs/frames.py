@@ -90,6 +90,11 @@ def planar(matrix: np.ndarray) -> np.ndarray:
     return np.array([matrix[0, 3], matrix[1, 3], math.atan2(matrix[1, 0], matrix[0, 0])])
 
 
+def links(msg: m.TFMessage) -> set[tuple[str, str]]:
+    """The (parent, child) frame pairs a TF message carries, e.g. ``{("map", "odom")}``."""
+    return {(t.frame_id, t.child_frame_id) for t in msg.transforms}
+
+
 def _slerp(q0: np.ndarray, q1: np.ndarray, f: float) -> np.ndarray:
     """The rotation a fraction ``f`` of the way from ``q0`` to ``q1`` (shortest arc)."""
     q0, q1 = q0 / np.linalg.norm(q0), q1 / np.linalg.norm(q1)

@@ -37,7 +37,7 @@ def daemon_lines(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> list[str]
     """Start and stop the daemon on ``tmp_path/logs``; the lines it said about recovering."""
     with Running(config(tmp_path)):
         pass
-    return [line for line in capfd.readouterr().err.splitlines() if "recovered" in line]
+    return [line for line in capfd.readouterr().err.splitlines() if line.startswith("trundle daemon: recovered")]
 
 
 def summary(log: Path) -> tuple[int, float]:

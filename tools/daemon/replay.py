@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from trundle.logs import messages as m
 from trundle.logs import ros2
 from trundle.logs.errors import DataError, UsageError
+from trundle.logs.frames import links
 from trundle.logs.paths import new_file
 from trundle.logs.reader import LogInfo, LogReader, RawMessage
 from trundle.logs.replay import play
@@ -265,8 +266,7 @@ class LogReplay:
     def _is_map_to_odom(self, topic: str, msg: m.Message) -> bool:
         """A map -> odom transform on /tf: the log's own SLAM output."""
         return (topic == TF_TOPIC and isinstance(msg, m.TFMessage) and self.processing is not None
-                and self.processing.slam is not None and bool(msg.transforms)
-                and all((t.frame_id, t.child_frame_id) == self.map_frames for t in msg.transforms))
+                and self.processing.slam is not None and links(msg) == {self.map_frames})
 
 
 def _wait_for_room(logger: Logger) -> None:

@@ -3,7 +3,8 @@
 Each ``numpy_*`` function below is the numpy implementation as it stood in the tree before the kernel
 took its place (scan_matching.py, occupancy_grid.py), kept here as the oracle: the kernel must give
 the same numbers on whatever hypothesis draws (bit for bit where the arithmetic is the same, else to
-floating-point tolerance).
+floating-point tolerance). The numpy code kept the return moments dense (6, H, W); the grid keeps them
+per cell that holds a return (:class:`trundle.fusion.mapping.occupancy_grid.ReturnMoments`).
 """
 
 from __future__ import annotations
@@ -225,6 +226,17 @@ def test_ray_cells_equal_numpy_to_the_bit(x: float, y: float, targets: np.ndarra
     np.testing.assert_array_equal(ray_cells(start, targets), numpy_ray_cells(start, targets))
 
 
+def sparse(moments: np.ndarray, holding: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Dense moments (6, H, W) as the grid keeps them: a slot per cell (0: none) into rows; row 0 zero.
+    The cells ``holding`` returns get a row in the order of their flat index."""
+    slots = np.zeros(holding.shape, np.int32)
+    cells = np.flatnonzero(holding)
+    slots.reshape(-1)[cells] = np.arange(1, len(cells) + 1)
+    rows = np.zeros((1 + holding.size + 100, 6), np.float32)   # room for a row per return
+    rows[1:len(cells) + 1] = moments.reshape(6, -1)[:, cells].T
+    return slots, rows, len(cells) + 1
+
+
 @EXAMPLES
 @given(st.integers(1, 12), st.integers(1, 12), st.integers(0, 2**32 - 1), st.integers(0, 25), st.integers(0, 60))
 def test_cell_updates_equal_numpy_to_the_bit(height: int, width: int, seed: int, hits: int, crossed: int) -> None:
@@ -232,15 +244,18 @@ def test_cell_updates_equal_numpy_to_the_bit(height: int, width: int, seed: int,
     rng = np.random.default_rng(seed)
     log_odds = rng.uniform(-2.0, 3.5, (height, width)).astype(np.float32)
     observed = rng.random((height, width)) < 0.5
-    moments = rng.uniform(0.0, 5.0, (6, height, width)).astype(np.float32)
+    holding = rng.random((height, width)) < 0.3
+    moments = np.where(holding, rng.uniform(0.0, 5.0, (6, height, width)), 0.0).astype(np.float32)
+    slots, rows, count = sparse(moments, holding)
     hit_flat = rng.integers(0, height * width, hits)
     crossed_flat = rng.integers(0, height * width, crossed)
     offsets = rng.random((hits, 2))
     expected = (log_odds.copy(), observed.copy(), moments.copy())
     numpy_update(*expected, hit_flat, crossed_flat, offsets, 0.8473, -0.4055, -2.0, 3.5)
-    add_moments(moments, hit_flat, offsets)
+    count = add_moments(slots, rows, count, hit_flat, offsets)
     update_cells(log_odds, observed, hit_flat, crossed_flat, 0.8473, -0.4055, -2.0, 3.5)
-    for actual, wanted in zip((log_odds, observed, moments), expected, strict=True):
+    assert count == 1 + int(np.count_nonzero(expected[2][0]))
+    for actual, wanted in zip((log_odds, observed, rows[slots].transpose(2, 0, 1)), expected, strict=True):
         np.testing.assert_array_equal(actual, wanted)
 
 
@@ -253,6 +268,7 @@ def test_neighbourhood_moments_equal_numpy(height: int, width: int, seed: int) -
     u, v = rng.random((2, height, width)), rng.random((2, height, width))
     moments = np.stack([counts, counts * u[0], counts * v[0], counts * u[1] ** 2, counts * u[1] * v[1],
                         counts * v[1] ** 2]).astype(np.float32)
+    slots, table, _ = sparse(moments, np.ones((height, width), bool))
     rows, cols = np.nonzero(log_odds > 0.0)
-    assert_same(neighbourhood_moments(moments, log_odds, rows, cols),
+    assert_same(neighbourhood_moments(slots, table, log_odds, rows, cols),
                 numpy_neighbourhood_moments(moments, log_odds, rows, cols))

@@ -178,6 +178,19 @@ class WallLines:
     is_line: np.ndarray
 
 
+@dataclass
+class ReturnMoments:
+    """The moments of the returns in each cell, stored for the cells that hold any: ``slots`` (H, W, int32)
+    is each cell's row of ``rows`` (0: none, and row 0 stays zero), ``rows`` (capacity, 6, float32) the
+    count and sums of u, v, u^2, uv, v^2 of the returns' offsets in their cell (cell units), ``count``
+    the rows in use. A dense (6, H, W) array paid 24 bytes for every cell of every submap (a submap is
+    mostly free space and margin: 2.3 GB on fr079); this pays 4, plus 24 per cell that holds a return."""
+
+    slots: np.ndarray
+    rows: np.ndarray
+    count: int = 1
+
+
 class LogOddsGrid:
     """Occupancy in log-odds over a growing 2-D array.
 
@@ -201,7 +214,7 @@ class LogOddsGrid:
         self.log_odds = np.zeros((0, 0), np.float32)
         self.observed = np.zeros((0, 0), bool)
         # per cell: returns, sum of their x and y offsets in the cell, and of x^2, xy, y^2 (cell units)
-        self.moments: np.ndarray | None = np.zeros((6, 0, 0), np.float32) if subcell else None
+        self.moments = ReturnMoments(np.zeros((0, 0), np.int32), np.zeros((64, 6), np.float32)) if subcell else None
         self.version = 0
         self._cache: dict[tuple, object] = {}
 
@@ -241,10 +254,10 @@ class LogOddsGrid:
             grown[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.log_odds
             seen[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.observed
         if self.moments is not None:
-            moments = np.zeros((6, int(new_h), int(new_w)), np.float32)
+            slots = np.zeros((int(new_h), int(new_w)), np.int32)
             if height:
-                moments[:, pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.moments
-            self.moments = moments
+                slots[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.moments.slots
+            self.moments.slots = slots
         self.log_odds, self.observed = grown, seen
         self.origin = self.origin - pad_lo * self.resolution
         self._changed()
@@ -271,7 +284,12 @@ class LogOddsGrid:
         hit_flat = (rays.hits[:, 0] + row_shift) * width + rays.hits[:, 1] + col_shift
         crossed_flat = (rays.crossed[:, 0] + row_shift) * width + rays.crossed[:, 1] + col_shift
         if self.moments is not None:
-            ray_casting.add_moments(self.moments, hit_flat, rays.offsets)
+            moments = self.moments
+            if moments.count + len(hit_flat) > len(moments.rows):   # room for every return in a cell of its own
+                grown = np.zeros((2 * (moments.count + len(hit_flat)), 6), np.float32)
+                grown[:moments.count] = moments.rows[:moments.count]
+                moments.rows = grown
+            moments.count = ray_casting.add_moments(moments.slots, moments.rows, moments.count, hit_flat, rays.offsets)
         # each cell once per scan, hits winning over misses
         ray_casting.update_cells(self.log_odds, self.observed, hit_flat, crossed_flat, self.l_hit, self.l_miss,
                                  self.l_min, self.l_max)
@@ -330,8 +348,8 @@ class LogOddsGrid:
         """
         if self.moments is None:
             raise ValueError("wall lines need a grid built with subcell=True")
-        mean, sums = neighbourhood_moments(self.moments, self.log_odds, np.asarray(rows, np.int64),
-                                           np.asarray(cols, np.int64))  # cell units; moments about each mean
+        mean, sums = neighbourhood_moments(self.moments.slots, self.moments.rows, self.log_odds,
+                                           np.asarray(rows, np.int64), np.asarray(cols, np.int64))
         mx, my = sums[:, 1] / sums[:, 0], sums[:, 2] / sums[:, 0]
         sxx, sxy, syy = (sums[:, 3] / sums[:, 0] - mx * mx, sums[:, 4] / sums[:, 0] - mx * my,
                          sums[:, 5] / sums[:, 0] - my * my)

@@ -67,16 +67,23 @@ def update_cells(log_odds: np.ndarray, observed: np.ndarray, hit_flat: np.ndarra
 
 
 @numba.njit(cache=True, nogil=True)
-def add_moments(moments: np.ndarray, hit_flat: np.ndarray, offsets: np.ndarray) -> None:
-    """Add each return's moments (1, u, v, u^2, uv, v^2 of its offset (u, v) in its cell) to ``moments``
-    (6, H, W, float32) at its cell (flat index), in the returns' order."""
-    planes = moments.reshape(6, -1)
+def add_moments(slots: np.ndarray, rows: np.ndarray, count: int, hit_flat: np.ndarray, offsets: np.ndarray) -> int:
+    """Add each return's moments (1, u, v, u^2, uv, v^2 of its offset (u, v) in its cell) to its cell's row of
+    ``rows`` (float32), in the returns' order; ``slots`` (H, W) holds each cell's row (0: none yet: the
+    next free row, ``count``, becomes its). ``rows`` must have room for a new row per return. Returns
+    the rows in use."""
+    flat = slots.ravel()
     for j in range(hit_flat.shape[0]):
         u, v = offsets[j, 0], offsets[j, 1]
-        cell = hit_flat[j]
-        planes[0, cell] += np.float32(1.0)
-        planes[1, cell] += np.float32(u)
-        planes[2, cell] += np.float32(v)
-        planes[3, cell] += np.float32(u * u)
-        planes[4, cell] += np.float32(u * v)
-        planes[5, cell] += np.float32(v * v)
+        row = flat[hit_flat[j]]
+        if row == 0:
+            row = count
+            flat[hit_flat[j]] = row
+            count += 1
+        rows[row, 0] += np.float32(1.0)
+        rows[row, 1] += np.float32(u)
+        rows[row, 2] += np.float32(v)
+        rows[row, 3] += np.float32(u * u)
+        rows[row, 4] += np.float32(u * v)
+        rows[row, 5] += np.float32(v * v)
+    return count

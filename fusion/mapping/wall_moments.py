@@ -12,30 +12,30 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True)
-def neighbourhood_moments(moments: np.ndarray, log_odds: np.ndarray, rows: np.ndarray, cols: np.ndarray
-                          ) -> tuple[np.ndarray, np.ndarray]:
-    """For cells ``(rows, cols)`` of a grid with return ``moments`` (6, H, W: count, sums of u, v, u^2,
-    uv, v^2 in cell units): the mean of each cell's returns (N, 2, absolute cell units, x then y) and the
-    count and moments (N, 6) of the returns of its occupied (log-odds > 0) 3 x 3 neighbourhood about that
-    mean (sums of 1, x, y, x^2, xy, y^2)."""
+def neighbourhood_moments(slots: np.ndarray, moments: np.ndarray, log_odds: np.ndarray, rows: np.ndarray,
+                          cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For cells ``(rows, cols)`` of a grid whose cells' return moments are ``moments[slots[row, col]]``
+    (count, sums of u, v, u^2, uv, v^2 in cell units; row 0 zero: no return): the mean of each cell's
+    returns (N, 2, absolute cell units, x then y) and the count and moments (N, 6) of the returns of its
+    occupied (log-odds > 0) 3 x 3 neighbourhood about that mean (sums of 1, x, y, x^2, xy, y^2)."""
     height, width = log_odds.shape
     n = rows.shape[0]
     mean = np.empty((n, 2))
     sums = np.zeros((n, 6))
     for i in range(n):
         r, c = rows[i], cols[i]
-        count = np.float64(moments[0, r, c])
-        mean[i, 0] = c + np.float64(moments[1, r, c]) / count
-        mean[i, 1] = r + np.float64(moments[2, r, c]) / count
+        own = moments[slots[r, c]]
+        count = np.float64(own[0])
+        mean[i, 0] = c + np.float64(own[1]) / count
+        mean[i, 1] = r + np.float64(own[2]) / count
         for dr in (-1, 0, 1):
             for dc in (-1, 0, 1):
                 rr, cc = r + dr, c + dc
                 if rr < 0 or cc < 0 or rr >= height or cc >= width or not log_odds[rr, cc] > 0.0:
                     continue
-                n0, n1, n2 = (np.float64(moments[0, rr, cc]), np.float64(moments[1, rr, cc]),
-                              np.float64(moments[2, rr, cc]))
-                n3, n4, n5 = (np.float64(moments[3, rr, cc]), np.float64(moments[4, rr, cc]),
-                              np.float64(moments[5, rr, cc]))
+                m = moments[slots[rr, cc]]
+                n0, n1, n2 = np.float64(m[0]), np.float64(m[1]), np.float64(m[2])
+                n3, n4, n5 = np.float64(m[3]), np.float64(m[4]), np.float64(m[5])
                 ox, oy = cc - mean[i, 0], rr - mean[i, 1]
                 sums[i, 0] += n0
                 sums[i, 1] += n1 + ox * n0

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import cv2
 
+import trundle
 from trundle.logs.reader import LogReader
 from trundle.logs.topics import CAN_RX_TOPIC, IMAGE_TOPIC, SCAN_TOPIC, WHEELS_TOPIC
 from trundle.tools.bench import report
@@ -37,7 +38,9 @@ from trundle.tools.sim.camera_render import CameraRenderer
 from trundle.tools.sim.robot import RobotSim
 from trundle.tools.sim.world import load_world
 
-REPO = Path(__file__).resolve().parents[2]
+# the folder holding the `trundle` this bench imports, so the measured commands run the same code (the
+# repository root is the package itself: on PYTHONPATH it would leave them to whatever trundle is installed)
+PACKAGE_PARENT = Path(trundle.__file__).absolute().parents[1]
 WIDTH, HEIGHT, FPS = 1280, 720, 30.0
 TOPICS = {SCAN_TOPIC: "scan", WHEELS_TOPIC: "wheels", CAN_RX_TOPIC: "can_frames", IMAGE_TOPIC: "camera"}
 
@@ -61,7 +64,7 @@ def render_clip(sim: RobotSim, path: Path, seconds: float = 4.0) -> Path:
 def measure(command: list[str], folder: Path, logs: Path, warmup_s: float, duration_s: float,
             socket_path: Path | None) -> dict[str, float]:
     """Start ``command``, let it warm up, and return its CPU share over ``duration_s``."""
-    process = subprocess.Popen(command, cwd=folder, env={**os.environ, "PYTHONPATH": str(REPO)},
+    process = subprocess.Popen(command, cwd=folder, env={**os.environ, "PYTHONPATH": str(PACKAGE_PARENT)},
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 60

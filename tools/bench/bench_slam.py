@@ -17,7 +17,8 @@ over the same lattice are given as ratios to it; matches are timed in CPU second
 figures depend on the machine's load (shared with other work), so CPU time and the load average
 are recorded too.
 fr079 (issue 14) is mapped laser-only from GMapping's corrected scans, as ``trundle import carmen
---odometry none`` makes it, and scored against the corrected poses (consecutive relations, revisits
+--odometry none`` makes it (and once more by ``trundle slam`` in its own process for its peak
+resident memory), and scored against the corrected poses (consecutive relations, revisits
 less than 3 m and more than 30 s apart, ATE). Each log's real-time factor is given with
 Cartographer's published figure for it (Hess et al. 2016, Table V: Intel 15x, fr079 17x, CSAIL
 12x, on a 6-core desktop) and their ratio; the MIT CSAIL log is not in ../shared/data, so its
@@ -294,6 +295,16 @@ def kernel_first_calls() -> dict[str, float]:
     return figures
 
 
+def peak_rss_mb(command: list[str]) -> float:
+    """Peak resident memory (MB) of ``command`` run to its end (its own, from wait4)."""
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, usage = os.wait4(process.pid, 0)
+    process.returncode = os.waitstatus_to_exitcode(status)
+    if process.returncode:
+        raise RuntimeError(f"{' '.join(command)} failed: {process.stderr.read().decode() if process.stderr else ''}")
+    return usage.ru_maxrss / 1024.0
+
+
 def fr079_figures(path: Path, folder: Path) -> dict[str, object]:
     """fr079 laser-only: speed against Cartographer's figure, and accuracy against the corrected poses."""
     log = carmen.read_carmen(path)
@@ -301,6 +312,7 @@ def fr079_figures(path: Path, folder: Path) -> dict[str, object]:
     mcap = folder / "fr079.mcap"
     carmen.import_carmen(path, mcap, odometry="none", log=log)
     slam, duration, wall, cpu = map_log(mcap, None)
+    peak_mb = peak_rss_mb([sys.executable, "-m", "trundle.tools.cli", "slam", str(mcap), "-o", str(folder / "fr079")])
     estimate, reference = Trajectory(*slam.trajectory()), Trajectory(stamps, poses)
     consecutive = relation_error(estimate, trajectory_relations(reference))
     revisits = relation_error(estimate, revisit_relations(reference, 3.0, 30.0))
@@ -308,6 +320,7 @@ def fr079_figures(path: Path, folder: Path) -> dict[str, object]:
     return {"fr079_duration_s": duration, "fr079_processing_s": wall, "fr079_cpu_s": cpu,
             "fr079_real_time_factor": duration / wall, "fr079_real_time_factor_cpu": duration / cpu,
             "fr079_vs_cartographer_rtf": duration / wall / CARTOGRAPHER_RTF["fr079"],
+            "fr079_trundle_slam_peak_rss_mb": peak_mb,
             "fr079_scans": slam.stats.scans, "fr079_loop_closures": slam.stats.loop_closures,
             "fr079_consecutive_translation_mean_m": consecutive.translation_abs_m.mean,
             "fr079_consecutive_rotation_mean_deg": consecutive.rotation_abs_deg.mean,

@@ -295,14 +295,17 @@ def kernel_first_calls() -> dict[str, float]:
     return figures
 
 
+# Runs a command and prints its peak resident memory (KiB). A command started from the bench itself would
+# not do: on Linux a child inherits the high-water mark of the process it was forked from (the bench holds
+# gigabytes of maps by then); one started from this small process inherits little.
+PEAK_RSS = ("import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, stdout=subprocess.DEVNULL); "
+            "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+
+
 def peak_rss_mb(command: list[str]) -> float:
-    """Peak resident memory (MB) of ``command`` run to its end (its own, from wait4)."""
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(process.pid, 0)
-    process.returncode = os.waitstatus_to_exitcode(status)
-    if process.returncode:
-        raise RuntimeError(f"{' '.join(command)} failed: {process.stderr.read().decode() if process.stderr else ''}")
-    return usage.ru_maxrss / 1024.0
+    """Peak resident memory (MiB) of ``command`` run to its end in a process of its own."""
+    done = subprocess.run([sys.executable, "-c", PEAK_RSS, *command], capture_output=True, text=True, check=True)
+    return int(done.stdout.split()[-1]) / 1024.0
 
 
 def fr079_figures(path: Path, folder: Path) -> dict[str, object]:

@@ -19,7 +19,7 @@ from hypothesis.extra import numpy as hnp
 from trundle.fusion.mapping.ray_casting import add_moments, ray_cells, update_cells
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
 from trundle.fusion.matching.block_scores import block_scores
-from trundle.fusion.matching.field_residuals import bilinear, field_residuals, line_residuals
+from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear, field_residuals
 
 EXAMPLES = settings(max_examples=60, deadline=None)
 
@@ -194,7 +194,7 @@ def test_field_residuals_equal_numpy(problem: tuple[np.ndarray, np.ndarray, np.n
                                      res: float, max_distance_m: float) -> None:
     field, cx, cy = problem
     rx, ry = 0.3 * cx - 1.0, 0.2 * cy + 0.5
-    assert_same(field_residuals(field, row0, col0, cx, cy, rx, ry, res, max_distance_m),
+    assert_same(field_residuals(field, *NO_WALLS, row0, col0, cx, cy, 0.3, -0.2, rx, ry, res, max_distance_m),
                 numpy_field_residuals(field, row0, col0, cx, cy, rx, ry, res, max_distance_m))
 
 
@@ -212,7 +212,7 @@ def test_line_residuals_equal_numpy(problem: tuple[np.ndarray, np.ndarray, np.nd
     is_line = rng.random(walls) < 0.7
     rx, ry = 0.05 * cx - 0.5, 0.05 * cy + 0.2
     arguments = (field, nearest, mean, normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx, ry, 0.05, 0.5)
-    assert_same(line_residuals(*arguments), numpy_line_residuals(*arguments))
+    assert_same(field_residuals(*arguments), numpy_line_residuals(*arguments))
 
 
 ends = st.floats(-60.0, 60.0, allow_nan=False)

@@ -1,5 +1,5 @@
 """The refinement's residuals, compiled: bilinear lookups in a match field window and the point-to-field
-and point-to-line residuals with their Jacobians (numba, cached on disk).
+and point-to-line residuals with their Jacobians, one kernel for both (numba, cached on disk).
 
 One pass over the points replaces a dozen numpy temporaries per evaluation (the refinement evaluates
 a few hundred points five to ten times a scan). The arithmetic is numpy's, step for step: field
@@ -13,6 +13,8 @@ import numpy as np
 
 # the largest coordinate a lookup may use inside a field of ``size`` cells: ``size - 1 - EDGE``
 EDGE = 0.000001
+# the wall arguments of :func:`field_residuals` for the point-to-field residual alone
+NO_WALLS = (np.zeros((0, 0), np.int32), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.bool_))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -51,42 +53,20 @@ def bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarra
 
 
 @numba.njit(cache=True, nogil=True)
-def field_residuals(distance: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray, rx: np.ndarray,
-                    ry: np.ndarray, resolution: float, max_distance_m: float
+def field_residuals(distance: np.ndarray, nearest: np.ndarray, mean: np.ndarray, normal: np.ndarray,
+                    is_line: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray, pose_x: float,
+                    pose_y: float, rx: np.ndarray, ry: np.ndarray, resolution: float, max_distance_m: float
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Point-to-field residuals: the distance (m) of each point to the nearest occupied cell, read from
-    the ``distance`` field of the window whose cell (0, 0) is the grid's (``row0``, ``col0``) at the
-    points' continuous grid cell coordinates (cx, cy), and ``max_distance_m`` off the window; the
-    Jacobian (N, 3) with respect to the world-frame pose (x, y, theta), 0 where the point is off the
-    window or beyond ``max_distance_m``; and that active mask. (rx, ry): the points rotated by the
-    pose, in metres."""
-    height, width = distance.shape
-    flat = distance.ravel()
-    n = cx.shape[0]
-    d = np.empty(n)
-    jac = np.zeros((n, 3))
-    active = np.empty(n, np.bool_)
-    for i in range(n):
-        value, du, dv, inside = _sample(flat, height, width, cx[i] - 0.5 - col0, cy[i] - 0.5 - row0)
-        active[i] = inside and value < max_distance_m
-        d[i] = value if inside else max_distance_m
-        if active[i]:
-            jac[i, 0] = du / resolution
-            jac[i, 1] = dv / resolution
-            jac[i, 2] = ry[i] * -jac[i, 0] + rx[i] * jac[i, 1]
-    return d, jac, active
+    """Residuals of points against a match field window whose cell (0, 0) is the grid's (``row0``, ``col0``).
 
-
-@numba.njit(cache=True, nogil=True)
-def line_residuals(distance: np.ndarray, nearest: np.ndarray, mean: np.ndarray, normal: np.ndarray,
-                   is_line: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray, pose_x: float,
-                   pose_y: float, rx: np.ndarray, ry: np.ndarray, resolution: float, max_distance_m: float
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Point-to-line residuals: where the nearest occupied cell of a point's cell (``nearest``, window
-    cells, the point's cell clipped to the window) has its returns on a line (``is_line``), the signed
-    distance (m) of the point (rotated (rx, ry) plus the pose's (``pose_x``, ``pose_y``), grid frame) to
-    that line (``mean``, ``normal``); elsewhere the distance field as :func:`field_residuals` reads it.
-    Returns residuals, Jacobian (N, 3) and active mask as that does."""
+    Point to field: the distance (m) to the nearest occupied cell, read bilinearly from ``distance`` at
+    the points' continuous grid cell coordinates (cx, cy), ``max_distance_m`` off the window. Point to
+    line, with walls (``nearest`` the window's nearest occupied cell per cell, empty: none): where the
+    nearest occupied cell of a point's cell (clipped to the window) has its returns on a line
+    (``is_line``), the signed distance (m) of the point (rotated (rx, ry) plus the pose's (``pose_x``,
+    ``pose_y``), grid frame) to that line (``mean``, ``normal``). Returns the residuals, their Jacobian
+    (N, 3) with respect to the world-frame pose (x, y, theta), 0 where the point is off the window or
+    beyond ``max_distance_m``, and that active mask."""
     height, width = distance.shape
     flat = distance.ravel()
     n = cx.shape[0]
@@ -97,7 +77,7 @@ def line_residuals(distance: np.ndarray, nearest: np.ndarray, mean: np.ndarray, 
         value, du, dv, inside = _sample(flat, height, width, cx[i] - 0.5 - col0, cy[i] - 0.5 - row0)
         row = min(max(int(np.floor(cy[i])) - row0, 0), height - 1)
         col = min(max(int(np.floor(cx[i])) - col0, 0), width - 1)
-        k = nearest[row, col]
+        k = nearest[row, col] if nearest.size else -1
         active[i] = inside and value < max_distance_m
         on_line = active[i] and k >= 0 and is_line[k]
         if on_line:

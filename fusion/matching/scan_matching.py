@@ -21,7 +21,7 @@ import numpy as np
 from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.mapping.occupancy_grid import FieldWindow, LogOddsGrid, MatchFields
 from trundle.fusion.matching.block_scores import block_scores
-from trundle.fusion.matching.field_residuals import bilinear, field_residuals, line_residuals
+from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear, field_residuals
 from trundle.fusion.optimization.levenberg_marquardt import Settings, levenberg_marquardt
 from trundle.fusion.optimization.robust_kernels import robust_loss
 
@@ -313,8 +313,8 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
 
     def evaluate_field(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         rx, ry, cx, cy, window = placed(pose)
-        d, jac, active = field_residuals(window.distance, window.row0, window.col0, cx, cy, rx, ry, res,
-                                         max_distance_m)
+        d, jac, active = field_residuals(window.distance, *NO_WALLS, window.row0, window.col0, cx, cy,
+                                         float(pose[0]), float(pose[1]), rx, ry, res, max_distance_m)
         loss, weight = robust_loss(d * d, "huber", huber)
         return float(loss.sum()), d, jac, weight, active
 
@@ -322,9 +322,9 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
         rx, ry, cx, cy, window = placed(pose)
         lines = window.lines
         assert lines is not None   # only called when the fields have their walls (``fields.lines``)
-        d, jac, active = line_residuals(window.distance, lines.nearest, lines.mean, lines.normal, lines.is_line,
-                                        window.row0, window.col0, cx, cy, float(pose[0]), float(pose[1]), rx, ry,
-                                        res, max_distance_m)
+        d, jac, active = field_residuals(window.distance, lines.nearest, lines.mean, lines.normal, lines.is_line,
+                                         window.row0, window.col0, cx, cy, float(pose[0]), float(pose[1]), rx, ry,
+                                         res, max_distance_m)
         loss, weight = robust_loss(d * d, "huber", huber)
         return float(loss.sum()), d, jac, weight, active
 

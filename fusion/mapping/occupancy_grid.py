@@ -1,4 +1,4 @@
-"""A log-odds occupancy grid that grows as needed, with vectorised ray updates and match fields.
+"""A log-odds occupancy grid that grows as needed, with compiled ray updates (ray_casting.py) and match fields.
 
 Cell ``[row, col]`` covers ``origin + (col, row) * resolution`` to one cell further (row 0 at the
 bottom, as in nav_msgs/OccupancyGrid). Each inserted scan adds ``l_hit`` to the cells holding a
@@ -21,6 +21,8 @@ from typing import TypeVar
 import cv2
 import numpy as np
 
+from trundle.fusion.mapping import ray_casting
+from trundle.fusion.mapping.wall_moments import neighbourhood_moments
 from trundle.logs.errors import UserError
 from trundle.logs.messages import OccupancyGrid
 
@@ -38,22 +40,11 @@ def ray_cells(start: np.ndarray, ends: np.ndarray) -> np.ndarray:
     """Cells ``(row, col)`` crossed by rays from ``start`` (2,) to each of ``ends`` (N, 2), end cells excluded.
 
     Coordinates are in cells (x = column, y = row; cell k spans [k, k+1)). Each ray is sampled at
-    ``ceil(max(|dx|, |dy|))`` equal steps (a DDA line, like Bresenham's), all rays at once.
+    ``ceil(max(|dx|, |dy|))`` equal steps (a DDA line, like Bresenham's; compiled:
+    :func:`trundle.fusion.mapping.ray_casting.ray_cells`).
     """
-    start = np.asarray(start, dtype=np.float64)
-    ends = np.asarray(ends, dtype=np.float64).reshape(-1, 2)
-    delta = ends - start
-    steps = np.ceil(np.abs(delta).max(axis=1)).astype(np.int64) if len(ends) else np.zeros(0, np.int64)
-    total = int(steps.sum())
-    if total == 0:
-        return np.zeros((0, 2), np.int64)
-    ray = np.repeat(np.arange(len(ends)), steps)
-    t = (np.arange(total) - np.repeat(np.cumsum(steps) - steps, steps)) / steps[ray]
-    # one coordinate at a time: gathering (N, 2) rows per sample costs six times as much
-    x = np.floor(start[0] + t * delta[:, 0][ray]).astype(np.int64)
-    y = np.floor(start[1] + t * delta[:, 1][ray]).astype(np.int64)
-    keep = (x != np.floor(ends[:, 0]).astype(np.int64)[ray]) | (y != np.floor(ends[:, 1]).astype(np.int64)[ray])
-    return np.stack([y[keep], x[keep]], axis=1)
+    return ray_casting.ray_cells(np.asarray(start, dtype=np.float64).reshape(2),
+                                 np.ascontiguousarray(ends, dtype=np.float64).reshape(-1, 2))
 
 
 @dataclass(frozen=True)
@@ -190,6 +181,19 @@ class WallLines:
     is_line: np.ndarray
 
 
+@dataclass
+class ReturnMoments:
+    """The moments of the returns in each cell, stored for the cells that hold any: ``slots`` (H, W, int32)
+    is each cell's row of ``rows`` (0: none, and row 0 stays zero), ``rows`` (capacity, 6, float32) the
+    count and sums of u, v, u^2, uv, v^2 of the returns' offsets in their cell (cell units), ``count``
+    the rows in use. A dense (6, H, W) array paid 24 bytes for every cell of every submap (a submap is
+    mostly free space and margin: 2.3 GB on fr079); this pays 4, plus 24 per cell that holds a return."""
+
+    slots: np.ndarray
+    rows: np.ndarray
+    count: int = 1
+
+
 class LogOddsGrid:
     """Occupancy in log-odds over a growing 2-D array.
 
@@ -214,7 +218,7 @@ class LogOddsGrid:
         self.log_odds = np.zeros((0, 0), np.float32)
         self.observed = np.zeros((0, 0), bool)
         # per cell: returns, sum of their x and y offsets in the cell, and of x^2, xy, y^2 (cell units)
-        self.moments: np.ndarray | None = np.zeros((6, 0, 0), np.float32) if subcell else None
+        self.moments = ReturnMoments(np.zeros((0, 0), np.int32), np.zeros((64, 6), np.float32)) if subcell else None
         self.returned: np.ndarray | None = np.zeros((0, 0), bool) if mark_returns else None
         self.version = 0
         self._cache: dict[tuple, object] = {}
@@ -255,10 +259,10 @@ class LogOddsGrid:
             grown[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.log_odds
             seen[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.observed
         if self.moments is not None:
-            moments = np.zeros((6, int(new_h), int(new_w)), np.float32)
+            slots = np.zeros((int(new_h), int(new_w)), np.int32)
             if height:
-                moments[:, pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.moments
-            self.moments = moments
+                slots[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.moments.slots
+            self.moments.slots = slots
         if self.returned is not None:
             returned = np.zeros((int(new_h), int(new_w)), bool)
             returned[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.returned
@@ -279,6 +283,8 @@ class LogOddsGrid:
         """Update with rays traced on this grid's cell lattice (:func:`trace_rays`): one trace serves
         every grid on the lattice, as the two active submaps that take each keyframe are."""
         self.ensure_contains(rays.xy_min, rays.xy_max)
+        if not self.log_odds.flags.writeable:
+            raise ValueError("this grid is read-only (a map loaded to localize in)")
         shift = (rays.origin - self.origin) / self.resolution   # this grid's cell of the trace's cell (0, 0)
         col_shift, row_shift = np.rint(shift).astype(np.int64)
         if not np.allclose(shift, (col_shift, row_shift), atol=1e-6):
@@ -286,21 +292,16 @@ class LogOddsGrid:
         width = self.shape[1]
         hit_flat = (rays.hits[:, 0] + row_shift) * width + rays.hits[:, 1] + col_shift
         crossed_flat = (rays.crossed[:, 0] + row_shift) * width + rays.crossed[:, 1] + col_shift
-        if self.moments is not None and len(hit_flat):
-            u, v = rays.offsets.T
-            for k, values in enumerate((np.ones_like(u), u, v, u * u, u * v, v * v)):
-                np.add.at(self.moments[k].reshape(-1), hit_flat, values.astype(np.float32))
-        # each cell once per scan, hits winning over misses; a repeated index takes the same value
-        # twice, so no cell needs sorting out
-        is_hit = np.zeros(self.log_odds.size, bool)
-        is_hit[hit_flat] = True
-        free_flat = crossed_flat[~is_hit[crossed_flat]]
-        flat = self.log_odds.reshape(-1)
-        flat[free_flat] = np.maximum(flat[free_flat] + self.l_miss, self.l_min)
-        flat[hit_flat] = np.minimum(flat[hit_flat] + self.l_hit, self.l_max)
-        seen = self.observed.reshape(-1)
-        seen[free_flat] = True
-        seen[hit_flat] = True
+        if self.moments is not None:
+            moments = self.moments
+            if moments.count + len(hit_flat) > len(moments.rows):   # room for every return in a cell of its own
+                grown = np.zeros((2 * (moments.count + len(hit_flat)), 6), np.float32)
+                grown[:moments.count] = moments.rows[:moments.count]
+                moments.rows = grown
+            moments.count = ray_casting.add_moments(moments.slots, moments.rows, moments.count, hit_flat, rays.offsets)
+        # each cell once per scan, hits winning over misses
+        ray_casting.update_cells(self.log_odds, self.observed, hit_flat, crossed_flat, self.l_hit, self.l_miss,
+                                 self.l_min, self.l_max)
         if self.returned is not None:
             self.returned.reshape(-1)[hit_flat] = True
         self._changed()
@@ -367,20 +368,8 @@ class LogOddsGrid:
         """
         if self.moments is None:
             raise ValueError("wall lines need a grid built with subcell=True")
-        height, width = self.shape
-        m = self.moments[:, rows, cols].astype(np.float64)
-        mean = np.stack([cols + m[1] / m[0], rows + m[2] / m[0]], axis=1)  # returns' mean, absolute cell units
-        sums = np.zeros((len(rows), 6))  # moments of the occupied neighbourhood about the cell's mean
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                r, c = rows + dr, cols + dc
-                ok = (r >= 0) & (c >= 0) & (r < height) & (c < width)
-                ok[ok] &= self.log_odds[r[ok], c[ok]] > 0.0
-                n = self.moments[:, r[ok], c[ok]].astype(np.float64)
-                ox, oy = c[ok] - mean[ok, 0], r[ok] - mean[ok, 1]
-                sums[ok] += np.stack([n[0], n[1] + ox * n[0], n[2] + oy * n[0], n[3] + 2 * ox * n[1] + ox * ox * n[0],
-                                      n[4] + ox * n[2] + oy * n[1] + ox * oy * n[0],
-                                      n[5] + 2 * oy * n[2] + oy * oy * n[0]], axis=1)
+        mean, sums = neighbourhood_moments(self.moments.slots, self.moments.rows, self.log_odds,
+                                           np.asarray(rows, np.int64), np.asarray(cols, np.int64))
         mx, my = sums[:, 1] / sums[:, 0], sums[:, 2] / sums[:, 0]
         sxx, sxy, syy = (sums[:, 3] / sums[:, 0] - mx * mx, sums[:, 4] / sums[:, 0] - mx * my,
                          sums[:, 5] / sums[:, 0] - my * my)

@@ -6,7 +6,8 @@ and finds the best exactly, robust to poor initial guesses. The refinement then 
 robust (Huber) sum of squared distances from the points to the nearest occupied cells, read
 from a bilinearly interpolated distance field, with the one Levenberg-Marquardt core
 (:func:`solve_pose`), which gives sub-cell precision and, from the Gauss-Newton Hessian, a
-covariance for the match. Both are vectorised over points and poses.
+covariance for the match. Their inner loops over points and poses are compiled (numba):
+:mod:`~trundle.fusion.matching.block_scores` and :mod:`~trundle.fusion.matching.field_residuals`.
 """
 
 from __future__ import annotations
@@ -18,11 +19,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from trundle.fusion.geometry import wrap_angle
-from trundle.fusion.mapping.occupancy_grid import FieldWindow, LogOddsGrid
+from trundle.fusion.mapping.occupancy_grid import FieldWindow, LogOddsGrid, MatchFields
+from trundle.fusion.matching.block_scores import block_scores
+from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear, field_residuals
 from trundle.fusion.optimization.levenberg_marquardt import Settings, levenberg_marquardt
 from trundle.fusion.optimization.robust_kernels import robust_loss
-
-_CHUNK_ELEMENTS = 1 << 21
 
 
 @dataclass(frozen=True)
@@ -75,24 +76,6 @@ def score_pyramid(field: np.ndarray, levels: int) -> list[np.ndarray]:
     return pyramid
 
 
-def _block_scores(grid: np.ndarray, base: np.ndarray, candidates: np.ndarray) -> np.ndarray:
-    """Mean of ``grid`` under each candidate's points.
-
-    ``base`` (angles, N) holds the flat index of each rotated point for offset (0, 0);
-    ``candidates`` (M, 3) = angle index, dx, dy in cells.
-    """
-    count = base.shape[1]
-    width = grid.shape[1]
-    flat = grid.reshape(-1)
-    out = np.empty(len(candidates), np.float64)
-    step = max(1, _CHUNK_ELEMENTS // max(count, 1))
-    for start in range(0, len(candidates), step):
-        c = candidates[start:start + step]
-        index = base[c[:, 0]] + (c[:, 2] * width + c[:, 1])[:, None]
-        out[start:start + step] = flat[index].sum(axis=1, dtype=np.float64)
-    return out / max(count, 1)
-
-
 def _shifts(level: int) -> np.ndarray:
     """Offsets (angle, dx, dy) of the four sub-blocks at ``level - 1`` of a block at ``level``."""
     s = 1 << (level - 1)
@@ -109,7 +92,8 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
                        window_xy_m: float = 0.3, window_theta_rad: float = math.radians(10.0),
                        angular_step_rad: float | None = None, sigma_m: float | None = None,
                        min_score: float = 0.0, prior_std_xy_m: float | None = None,
-                       prior_std_theta_rad: float | None = None) -> tuple[np.ndarray, float] | None:
+                       prior_std_theta_rad: float | None = None, max_distance_m: float = 0.5,
+                       wall_lines: bool = True) -> tuple[np.ndarray, float] | None:
     """Best pose on the search lattice around ``initial_pose_xyt`` and its score, or None below ``min_score``.
 
     ``points_xy`` (N, 2) are the scan's points in the robot frame. The lattice spans
@@ -122,7 +106,9 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     ``min_score`` applies to the unweighted score of that pose (a good match far out in a wide
     prior is still a good match).
     Branch and bound over a max-pooled pyramid makes the result the exact lattice optimum at a
-    fraction of the exhaustive cost.
+    fraction of the exhaustive cost. The pyramid covers the cells the lattice can reach, no more: it
+    is built on the likelihood window of the match fields that :func:`refine_pose` reads with the
+    same ``max_distance_m`` and ``wall_lines`` (:func:`match_fields`), so a match computes one window.
     """
     points = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
     if len(points) == 0 or grid.shape[0] == 0:
@@ -136,23 +122,30 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     thetas = t0 + angular_step_rad * np.arange(-n_theta, n_theta + 1)
     limit = int(math.ceil(window_xy_m / res))
     levels = max(1, min(8, int(math.ceil(math.log2(2 * limit + 1))) + 1))
-    pyramid = grid.cached(("pyramid", float(sigma), levels),
-                          lambda: score_pyramid(grid.likelihood_field(sigma), levels))
     pad = 1 << (levels - 1)
 
     c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
-    wx = c * points[:, 0] - s * points[:, 1] + x0
-    wy = s * points[:, 0] + c * points[:, 1] + y0
+    cols = np.floor((c * points[:, 0] - s * points[:, 1] + x0 - grid.origin[0]) / res).astype(np.int64)
+    rows = np.floor((s * points[:, 0] + c * points[:, 1] + y0 - grid.origin[1]) / res).astype(np.int64)
+    # The likelihood over a window holding every cell a lattice pose puts a point on (the match
+    # fields' window, which the refinement reads too), max-pooled once per window.
+    window = match_fields(grid, max_distance_m, sigma, wall_lines).around(
+        np.array([cols.min() - limit, cols.max() + limit], np.float64),
+        np.array([rows.min() - limit, rows.max() + limit], np.float64))
+    pyramids: dict[int, tuple[FieldWindow, list[np.ndarray]]] = grid.cached(("pyramids", float(sigma)), dict)
+    if levels not in pyramids or pyramids[levels][0] is not window:
+        pyramids[levels] = (window, score_pyramid(window.likelihood, levels))
+    pyramid = pyramids[levels][1]
     # Cell of each rotated point for offset (0, 0), clipped once so that every offset in
     # [0, 2 limit] stays in the array: a point off the grid then lands in the zero border,
     # which keeps level 0 exact and coarser levels upper bounds.
     height, width = pyramid[0].shape
-    ix = np.clip(np.floor((wx - grid.origin[0]) / res).astype(np.int64) + pad - limit, 0, width - 1 - 2 * limit)
-    iy = np.clip(np.floor((wy - grid.origin[1]) / res).astype(np.int64) + pad - limit, 0, height - 1 - 2 * limit)
+    ix = np.clip(cols - window.col0 + pad - limit, 0, width - 1 - 2 * limit)
+    iy = np.clip(rows - window.row0 + pad - limit, 0, height - 1 - 2 * limit)
     base = iy * width + ix
 
     def scores_of(level: int, candidates: np.ndarray) -> np.ndarray:
-        raw = _block_scores(pyramid[level], base, candidates)
+        raw = block_scores(pyramid[level], base, candidates)
         if prior_std_xy_m is None and prior_std_theta_rad is None:
             return raw
         cost = np.zeros(len(candidates))
@@ -192,31 +185,11 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     if len(scores) == 0:
         return None
     i = int(np.argmax(scores))
-    raw = float(_block_scores(pyramid[0], base, candidates[i:i + 1])[0]) if weighted else float(scores[i])
+    raw = float(block_scores(pyramid[0], base, candidates[i:i + 1])[0]) if weighted else float(scores[i])
     if raw < min_score:
         return None
     a_i, dx, dy = candidates[i]
     return np.array([x0 + (dx - limit) * res, y0 + (dy - limit) * res, wrap_angle(thetas[a_i])]), float(scores[i])
-
-
-def _bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Value, d/du, d/dv of ``field`` at continuous cell-centre coordinates, and an inside mask."""
-    height, width = field.shape
-    inside = (u >= 0) & (v >= 0) & (u < width - 1) & (v < height - 1)
-    u = np.clip(u, 0, width - 1.000001)
-    v = np.clip(v, 0, height - 1.000001)
-    c0, r0 = u.astype(np.int64), v.astype(np.int64)  # u, v >= 0: truncation is floor
-    fu, fv = u - c0, v - r0
-    flat = field.reshape(-1)
-    i00 = r0 * width + c0
-    i10 = np.minimum(i00 + width, flat.size - 1)
-    f00, f01 = flat[i00], flat[np.minimum(i00 + 1, flat.size - 1)]
-    f10, f11 = flat[i10], flat[np.minimum(i10 + 1, flat.size - 1)]
-    top, bottom = f01 - f00, f11 - f10
-    du = top + fv * (bottom - top)
-    left = f00 + fu * top
-    dv = f10 + fu * bottom - left
-    return left + fv * dv, du, dv, inside
 
 
 # The matchers' schedule: Marquardt's scale-invariant damping from lambda 1e-3, any decrease accepted;
@@ -296,6 +269,12 @@ def match_covariance(jacobian: np.ndarray, residuals: np.ndarray, weights: np.nd
     return 0.5 * (covariance + covariance.T)
 
 
+def match_fields(grid: LogOddsGrid, max_distance_m: float, sigma_m: float, wall_lines: bool) -> MatchFields:
+    """The fields the search and the refinement read on ``grid`` (one cached instance per grid version):
+    wall lines when the grid keeps its returns' moments and ``wall_lines`` asks for them."""
+    return grid.match_fields(max_distance_m, sigma_m, lines=grid.moments is not None and wall_lines)
+
+
 def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.ndarray, *,
                 max_distance_m: float = 0.5, huber_m: float | None = None, inlier_m: float | None = None,
                 max_iterations: int = 20, sigma_m: float | None = None, min_std_xy_m: float = 0.01,
@@ -320,7 +299,7 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
     huber = res if huber_m is None else huber_m
     inlier = 2.0 * res if inlier_m is None else inlier_m
     sigma = res if sigma_m is None else sigma_m
-    fields = grid.match_fields(max_distance_m, sigma, lines=grid.moments is not None and wall_lines)
+    fields = match_fields(grid, max_distance_m, sigma, wall_lines)
     origin = grid.origin
 
     px, py = points[:, 0], points[:, 1]
@@ -332,20 +311,10 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
         cx, cy = (rx + (pose[0] - origin[0])) / res, (ry + (pose[1] - origin[1])) / res
         return rx, ry, cx, cy, fields.around(cx, cy)
 
-    def sample(values: np.ndarray, window: FieldWindow, cx: np.ndarray, cy: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Bilinear value, gradient and inside mask of a window's field at cell coordinates (cx, cy)."""
-        return _bilinear(values, cx - 0.5 - window.col0, cy - 0.5 - window.row0)
-
     def evaluate_field(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         rx, ry, cx, cy, window = placed(pose)
-        d, du, dv, inside = sample(window.distance, window, cx, cy)
-        active = inside & (d < max_distance_m)
-        d[~inside] = max_distance_m
-        jac = np.empty((len(d), 3))
-        jac[:, 0] = np.where(active, du, 0.0) / res
-        jac[:, 1] = np.where(active, dv, 0.0) / res
-        jac[:, 2] = ry * -jac[:, 0] + rx * jac[:, 1]
+        d, jac, active = field_residuals(window.distance, *NO_WALLS, window.row0, window.col0, cx, cy,
+                                         float(pose[0]), float(pose[1]), rx, ry, res, max_distance_m)
         loss, weight = robust_loss(d * d, "huber", huber)
         return float(loss.sum()), d, jac, weight, active
 
@@ -353,21 +322,9 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
         rx, ry, cx, cy, window = placed(pose)
         lines = window.lines
         assert lines is not None   # only called when the fields have their walls (``fields.lines``)
-        qx, qy = rx + pose[0], ry + pose[1]
-        d, du, dv, inside = sample(window.distance, window, cx, cy)
-        col = np.clip(np.floor(cx).astype(np.int64) - window.col0, 0, window.distance.shape[1] - 1)
-        row = np.clip(np.floor(cy).astype(np.int64) - window.row0, 0, window.distance.shape[0] - 1)
-        k = lines.nearest[row, col]
-        active = inside & (d < max_distance_m)
-        line = active & (k >= 0) & lines.is_line[np.maximum(k, 0)]
-        k = np.maximum(k, 0)
-        nx, ny = lines.normal[k, 0], lines.normal[k, 1]
-        # on a line: the signed distance to it; elsewhere (a corner, clutter, a sparse wall): the field
-        d = np.where(line, (qx - lines.mean[k, 0]) * nx + (qy - lines.mean[k, 1]) * ny, d)
-        d[~inside] = max_distance_m
-        jac = np.stack([np.where(line, nx, du / res), np.where(line, ny, dv / res), np.zeros(len(d))], axis=1)
-        jac[~active] = 0.0
-        jac[:, 2] = ry * -jac[:, 0] + rx * jac[:, 1]
+        d, jac, active = field_residuals(window.distance, lines.nearest, lines.mean, lines.normal, lines.is_line,
+                                         window.row0, window.col0, cx, cy, float(pose[0]), float(pose[1]), rx, ry,
+                                         res, max_distance_m)
         loss, weight = robust_loss(d * d, "huber", huber)
         return float(loss.sum()), d, jac, weight, active
 
@@ -381,7 +338,7 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
     covariance = match_covariance(jac[inliers], d[inliers], weight[inliers], min_std_xy_m, min_std_theta_rad,
                                   shaped=shaped_covariance)
     _, _, cx, cy, window = placed(pose)
-    lik, _, _, inside = sample(window.likelihood, window, cx, cy)
+    lik, _, _, inside = bilinear(window.likelihood, cx - 0.5 - window.col0, cy - 0.5 - window.row0)
     lik = np.where(inside, lik, 0.0)
     score = float(np.mean(lik)) if len(points) else 0.0
     cells = np.floor(np.stack([cx, cy], axis=1)).astype(np.int64)
@@ -423,7 +380,8 @@ def match_scan(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.nd
     found = correlative_search(grid, points_xy, initial_pose_xyt, window_xy_m=window_xy_m,
                                window_theta_rad=window_theta_rad, angular_step_rad=angular_step_rad,
                                sigma_m=sigma_m, min_score=min_score, prior_std_xy_m=prior_std_xy_m,
-                               prior_std_theta_rad=prior_std_theta_rad)
+                               prior_std_theta_rad=prior_std_theta_rad, max_distance_m=max_distance_m,
+                               wall_lines=wall_lines)
     if found is None:
         return None
     pose, search_score = found

@@ -102,7 +102,8 @@ def update(x: np.ndarray, dx: np.ndarray, poses: int) -> np.ndarray:
     """The state ``x`` moved by ``dx``: its first ``poses`` poses by :func:`retract`, the rest additively."""
     out = x + dx
     head = 3 * poses
-    out[:head] = retract(x[:head].reshape(-1, 3), dx[:head].reshape(-1, 3)).reshape(-1)
+    if head:   # a scan match's pose is Euclidean to the loop (poses 0): nothing to retract, many times a scan
+        out[:head] = retract(x[:head].reshape(-1, 3), dx[:head].reshape(-1, 3)).reshape(-1)
     return out
 
 

@@ -17,11 +17,23 @@ over the same lattice are given as ratios to it; matches are timed in CPU second
 figures depend on the machine's load (shared with other work), so CPU time and the load average
 are recorded too.
 fr079 (issue 14) is mapped laser-only from GMapping's corrected scans, as ``trundle import carmen
---odometry none`` makes it, and scored against the corrected poses (consecutive relations, revisits
+--odometry none`` makes it (and once more by ``trundle slam`` in its own process for its peak
+resident memory), and scored against the corrected poses (consecutive relations, revisits
 less than 3 m and more than 30 s apart, ATE). Each log's real-time factor is given with
 Cartographer's published figure for it (Hess et al. 2016, Table V: Intel 15x, fr079 17x, CSAIL
 12x, on a 6-core desktop) and their ratio; the MIT CSAIL log is not in ../shared/data, so its
 figure is not measured here.
+One scan-to-map match against OpenKarto's (issue 25; ``karto-scanmatcher``, slam_toolbox's matcher, in
+the bench extra) on fr079 and Intel: every fifth scan i matched against scans i-5..i-1 at their
+corrected poses, the same 0.05 m grid, the same seeded start offsets (up to 0.15 m and 5 deg), both
+searching +-0.3 m / +-10 deg, Karto with slam_toolbox's defaults. Timed in CPU seconds, the two
+matchers interleaved scan by scan so load disturbs both alike; per match: trundle's search and
+refinement (its fields and pyramid included, they are per reference) against Karto's ``match_scan``
+(which builds its own correlation grid from the five scans each call), and trundle's reference build
+(ray casting the five scans into the grid) against the same Karto call. Goals: match at most 2x
+Karto, build at most 1x; median position and heading errors of both against the corrected poses.
+The compiled kernels' first-call times (numba: compiled into an empty cache, then loaded from it)
+are measured in fresh processes.
 Run: python tools/bench/bench_slam.py [--quick]
 """
 
@@ -30,10 +42,13 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -44,7 +59,7 @@ from trundle.fusion.evaluation.trajectory_errors import (
     revisit_relations,
     trajectory_relations,
 )
-from trundle.fusion.geometry import scan_to_points, transform_points, voxel_filter
+from trundle.fusion.geometry import scan_to_points, transform_points, voxel_filter, wrap_angle
 from trundle.fusion.mapping.map_plot import Track, plot_trajectory
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.matching.icp import LineReference, icp
@@ -54,6 +69,7 @@ from trundle.fusion.matching.scan_matching import (
     correlative_search,
     match_scan,
     refine_pose,
+    samples_walls_densely,
 )
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.fusion.odometry.drift import drifting_odometry
@@ -61,6 +77,7 @@ from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.estimators import EstimatorInputs, make_estimator
 from trundle.fusion.slam.grid_slam import Slam
 from trundle.logs.importers import breezyslam, carmen
+from trundle.logs.messages import LaserScan
 from trundle.logs.reader import LogReader
 from trundle.tools.bench import report
 
@@ -158,6 +175,139 @@ def time_matches(log: carmen.CarmenLog, first: int, count: int) -> dict[str, flo
     }
 
 
+def karto_scans(scans: list[LaserScan], config: Any) -> list[Any]:  # karto_scanmatcher's binding has no types
+    """Karto's LocalizedRangeScan of each LaserScan (ranges as they are: inf and NaN are no return)."""
+    import karto_scanmatcher as karto
+    return [karto.LocalizedRangeScan(config, [float(r) for r in scan.ranges], karto.Pose2(0.0, 0.0, 0.0),
+                                     karto.Pose2(0.0, 0.0, 0.0), k, k * 0.1) for k, scan in enumerate(scans)]
+
+
+def karto_matcher(resolution: float) -> Any:
+    """OpenKarto's scan matcher with slam_toolbox's defaults (``minimum_distance_penalty`` 0.5: Karto's own
+    default 1.0 switches the distance penalty off), searching +-0.3 m and +-10 deg at ``resolution``."""
+    import karto_scanmatcher as karto
+    config = karto.ScanMatcherConfig()
+    config.resolution = resolution
+    config.search_size = 0.6
+    config.smear_deviation = 0.05
+    config.distance_variance_penalty = 0.25
+    config.angle_variance_penalty = 1.0
+    config.minimum_distance_penalty = 0.5
+    config.minimum_angle_penalty = 0.9
+    config.coarse_angle_resolution = math.radians(2.0)
+    config.coarse_search_angle_offset = math.radians(10.0)
+    config.fine_search_angle_resolution = math.radians(0.2)
+    config.range_threshold = 30.0
+    config.use_response_expansion = True
+    return karto.Wrapper(config)
+
+
+def against_karto(name: str, log: carmen.CarmenLog, count: int, seed: int = 1) -> dict[str, object]:
+    """One match per fifth scan (up to ``count``), trundle and Karto side by side (see the module docstring)."""
+    import karto_scanmatcher as karto
+    _, reference = carmen.scan_poses(log)
+    no_return = carmen.infer_no_return(log)
+    scans = [carmen.to_scan(laser, "laser", no_return) for laser in log.lasers if laser.kind != "RLASER"]
+    first = scans[0]
+    laser = karto.LaserScanConfig(first.angle_min, first.angle_max, first.angle_increment, 0.0, 30.0, 30.0, "laser")
+    kscans = karto_scans(scans, laser)
+    matcher = karto_matcher(0.05)
+    tracking = SlamConfig().tracking
+    rng = np.random.default_rng(seed)
+    ours: dict[str, list[float]] = {"build": [], "match": [], "error_m": [], "error_deg": []}
+    theirs: dict[str, list[float]] = {"match": [], "error_m": [], "error_deg": []}
+    for i in range(5, len(scans), 5)[:count]:
+        turn, reach = rng.uniform(-math.pi, math.pi), rng.uniform(0.0, 0.15)
+        guess = reference[i] + np.array([reach * math.cos(turn), reach * math.sin(turn),
+                                         math.radians(rng.uniform(-5.0, 5.0))])
+        references = [(reference[j][:2], transform_points(reference[j], scan_to_points(scans[j], range_max=30.0)))
+                      for j in range(i - 5, i)]
+        raw = scan_to_points(scans[i], range_max=30.0)
+        points = voxel_filter(raw, SlamConfig().scan.voxel_m)
+        for j in range(i - 5, i):
+            kscans[j].corrected_pose = karto.Pose2(*reference[j])
+        kscans[i].corrected_pose = kscans[i].odom_pose = karto.Pose2(*guess)
+        start = time.process_time()
+        grid = LogOddsGrid(0.05, subcell=True)
+        everything = np.vstack([np.vstack([sensor[None], hits]) for sensor, hits in references])
+        grid.ensure_contains(everything.min(axis=0), everything.max(axis=0))   # one allocation for the five
+        for sensor, hits in references:
+            grid.insert_rays(sensor, hits)
+        built = time.process_time()
+        result = match_scan(grid, points, guess, window_xy_m=0.3, window_theta_rad=math.radians(10.0),
+                            angular_step_rad=tracking.search_angular_step_rad, shaped_covariance=True,
+                            wall_lines=samples_walls_densely(raw, 0.05))
+        matched = time.process_time()
+        found = matcher.match_scan(kscans[i], kscans[i - 5:i], True, True)
+        theirs["match"].append(time.process_time() - matched)
+        ours["build"].append(built - start)
+        ours["match"].append(matched - built)
+        for figures, pose in ((ours, None if result is None else result.pose),
+                              (theirs, np.array([found.best_pose.x, found.best_pose.y, found.best_pose.yaw]))):
+            if pose is None:
+                figures["error_m"].append(math.inf)
+                figures["error_deg"].append(math.inf)
+                continue
+            figures["error_m"].append(float(np.hypot(*(pose[:2] - reference[i][:2]))))
+            figures["error_deg"].append(abs(math.degrees(wrap_angle(pose[2] - reference[i][2]))))
+    median = {f"{who}_{key}": float(np.median(values)) for who, figures in (("trundle", ours), ("karto", theirs))
+              for key, values in figures.items()}
+    karto_ms = 1e3 * median["karto_match"]
+    return {f"{name}_karto_matches": len(ours["match"]),
+            f"{name}_trundle_match_ms": 1e3 * median["trundle_match"],
+            f"{name}_trundle_reference_build_ms": 1e3 * median["trundle_build"],
+            f"{name}_karto_match_ms": karto_ms,
+            f"{name}_match_vs_karto": 1e3 * median["trundle_match"] / karto_ms,
+            f"{name}_reference_build_vs_karto": 1e3 * median["trundle_build"] / karto_ms,
+            f"{name}_trundle_error_median_m": median["trundle_error_m"],
+            f"{name}_trundle_error_median_deg": median["trundle_error_deg"],
+            f"{name}_karto_error_median_m": median["karto_error_m"],
+            f"{name}_karto_error_median_deg": median["karto_error_deg"]}
+
+
+KERNEL_CALLS = """
+import time
+start = time.perf_counter()
+import numpy as np
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
+from trundle.fusion.matching.scan_matching import match_scan
+imported = time.perf_counter()
+angles = np.linspace(-2.0, 2.0, 200)
+points = np.stack([3.0 * np.cos(angles), 3.0 * np.sin(angles)], axis=1)
+grid = LogOddsGrid(0.05, subcell=True)
+grid.insert_rays(np.zeros(2), points)
+match_scan(grid, points, np.array([0.05, -0.05, 0.02]))
+print(imported - start, time.perf_counter() - imported)
+"""
+
+
+def kernel_first_calls() -> dict[str, float]:
+    """Seconds to import the matcher (numba included) and for its first match in a fresh process: with an
+    empty numba cache (cold: every kernel compiled) and again with that cache (warm: loaded)."""
+    figures: dict[str, float] = {}
+    with tempfile.TemporaryDirectory() as cache:
+        for state in ("cold", "warm"):
+            done = subprocess.run([sys.executable, "-c", KERNEL_CALLS], capture_output=True, text=True, check=True,
+                                  env={**os.environ, "NUMBA_CACHE_DIR": cache})
+            imported, first = (float(v) for v in done.stdout.split())
+            figures[f"kernels_{state}_import_s"] = imported
+            figures[f"kernels_{state}_first_match_s"] = first
+    return figures
+
+
+# Runs a command and prints its peak resident memory (KiB). A command started from the bench itself would
+# not do: on Linux a child inherits the high-water mark of the process it was forked from (the bench holds
+# gigabytes of maps by then); one started from this small process inherits little.
+PEAK_RSS = ("import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, stdout=subprocess.DEVNULL); "
+            "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+
+
+def peak_rss_mb(command: list[str]) -> float:
+    """Peak resident memory (MiB) of ``command`` run to its end in a process of its own."""
+    done = subprocess.run([sys.executable, "-c", PEAK_RSS, *command], capture_output=True, text=True, check=True)
+    return int(done.stdout.split()[-1]) / 1024.0
+
+
 def fr079_figures(path: Path, folder: Path) -> dict[str, object]:
     """fr079 laser-only: speed against Cartographer's figure, and accuracy against the corrected poses."""
     log = carmen.read_carmen(path)
@@ -165,6 +315,7 @@ def fr079_figures(path: Path, folder: Path) -> dict[str, object]:
     mcap = folder / "fr079.mcap"
     carmen.import_carmen(path, mcap, odometry="none", log=log)
     slam, duration, wall, cpu = map_log(mcap, None)
+    peak_mb = peak_rss_mb([sys.executable, "-m", "trundle.tools.cli", "slam", str(mcap), "-o", str(folder / "fr079")])
     estimate, reference = Trajectory(*slam.trajectory()), Trajectory(stamps, poses)
     consecutive = relation_error(estimate, trajectory_relations(reference))
     revisits = relation_error(estimate, revisit_relations(reference, 3.0, 30.0))
@@ -172,6 +323,7 @@ def fr079_figures(path: Path, folder: Path) -> dict[str, object]:
     return {"fr079_duration_s": duration, "fr079_processing_s": wall, "fr079_cpu_s": cpu,
             "fr079_real_time_factor": duration / wall, "fr079_real_time_factor_cpu": duration / cpu,
             "fr079_vs_cartographer_rtf": duration / wall / CARTOGRAPHER_RTF["fr079"],
+            "fr079_trundle_slam_peak_rss_mb": peak_mb,
             "fr079_scans": slam.stats.scans, "fr079_loop_closures": slam.stats.loop_closures,
             "fr079_consecutive_translation_mean_m": consecutive.translation_abs_m.mean,
             "fr079_consecutive_rotation_mean_deg": consecutive.rotation_abs_deg.mean,
@@ -232,6 +384,11 @@ def main() -> None:
                 figures["fr079"] = f"not measured: {fr079} absent"
             figures["csail"] = "not measured: the MIT CSAIL log is not in ../shared/data"
     figures.update(time_matches(log, 40, 20 if args.quick else 80))
+    figures.update(against_karto("intel", log, 20 if args.quick else 180))
+    fr079 = DATA / "fr079" / "fr079-corrected-gfs.log.gz"
+    if fr079.exists():
+        figures.update(against_karto("fr079", carmen.read_carmen(fr079), 40 if args.quick else 957))
+    figures.update(kernel_first_calls())
     figures["load_average_1min_at_end"] = os.getloadavg()[0]
     report.write("slam", figures)
 

@@ -1,0 +1,274 @@
+"""The compiled kernels (numba) against the numpy code they replaced, on random inputs.
+
+Each ``numpy_*`` function below is the numpy implementation as it stood in the tree before the kernel
+took its place (scan_matching.py, occupancy_grid.py), kept here as the oracle: the kernel must give
+the same numbers on whatever hypothesis draws (bit for bit where the arithmetic is the same, else to
+floating-point tolerance). The numpy code kept the return moments dense (6, H, W); the grid keeps them
+per cell that holds a return (:class:`trundle.fusion.mapping.occupancy_grid.ReturnMoments`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from trundle.fusion.mapping.ray_casting import add_moments, ray_cells, update_cells
+from trundle.fusion.mapping.wall_moments import neighbourhood_moments
+from trundle.fusion.matching.block_scores import block_scores
+from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear, field_residuals
+
+EXAMPLES = settings(max_examples=60, deadline=None)
+
+
+def numpy_block_scores(grid: np.ndarray, base: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    flat = grid.reshape(-1)
+    index = base[candidates[:, 0]] + (candidates[:, 2] * grid.shape[1] + candidates[:, 1])[:, None]
+    return flat[index].sum(axis=1, dtype=np.float64) / max(base.shape[1], 1)
+
+
+def numpy_bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    height, width = field.shape
+    inside = (u >= 0) & (v >= 0) & (u < width - 1) & (v < height - 1)
+    u = np.clip(u, 0, width - 1.000001)
+    v = np.clip(v, 0, height - 1.000001)
+    c0, r0 = u.astype(np.int64), v.astype(np.int64)
+    fu, fv = u - c0, v - r0
+    flat = field.reshape(-1)
+    i00 = r0 * width + c0
+    i10 = np.minimum(i00 + width, flat.size - 1)
+    f00, f01 = flat[i00], flat[np.minimum(i00 + 1, flat.size - 1)]
+    f10, f11 = flat[i10], flat[np.minimum(i10 + 1, flat.size - 1)]
+    top, bottom = f01 - f00, f11 - f10
+    du = top + fv * (bottom - top)
+    left = f00 + fu * top
+    dv = f10 + fu * bottom - left
+    return left + fv * dv, du, dv, inside
+
+
+def numpy_field_residuals(distance: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray,
+                          rx: np.ndarray, ry: np.ndarray, res: float, max_distance_m: float
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    d, du, dv, inside = numpy_bilinear(distance, cx - 0.5 - col0, cy - 0.5 - row0)
+    active = inside & (d < max_distance_m)
+    d[~inside] = max_distance_m
+    jac = np.empty((len(d), 3))
+    jac[:, 0] = np.where(active, du, 0.0) / res
+    jac[:, 1] = np.where(active, dv, 0.0) / res
+    jac[:, 2] = ry * -jac[:, 0] + rx * jac[:, 1]
+    return d, jac, active
+
+
+def numpy_line_residuals(distance: np.ndarray, nearest: np.ndarray, mean: np.ndarray, normal: np.ndarray,
+                         is_line: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray, pose_x: float,
+                         pose_y: float, rx: np.ndarray, ry: np.ndarray, res: float, max_distance_m: float
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    qx, qy = rx + pose_x, ry + pose_y
+    d, du, dv, inside = numpy_bilinear(distance, cx - 0.5 - col0, cy - 0.5 - row0)
+    col = np.clip(np.floor(cx).astype(np.int64) - col0, 0, distance.shape[1] - 1)
+    row = np.clip(np.floor(cy).astype(np.int64) - row0, 0, distance.shape[0] - 1)
+    k = nearest[row, col]
+    active = inside & (d < max_distance_m)
+    line = active & (k >= 0) & is_line[np.maximum(k, 0)]
+    k = np.maximum(k, 0)
+    nx, ny = normal[k, 0], normal[k, 1]
+    d = np.where(line, (qx - mean[k, 0]) * nx + (qy - mean[k, 1]) * ny, d)
+    d[~inside] = max_distance_m
+    jac = np.stack([np.where(line, nx, du / res), np.where(line, ny, dv / res), np.zeros(len(d))], axis=1)
+    jac[~active] = 0.0
+    jac[:, 2] = ry * -jac[:, 0] + rx * jac[:, 1]
+    return d, jac, active
+
+
+def numpy_ray_cells(start: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    delta = ends - start
+    steps = np.ceil(np.abs(delta).max(axis=1)).astype(np.int64) if len(ends) else np.zeros(0, np.int64)
+    total = int(steps.sum())
+    if total == 0:
+        return np.zeros((0, 2), np.int64)
+    ray = np.repeat(np.arange(len(ends)), steps)
+    t = (np.arange(total) - np.repeat(np.cumsum(steps) - steps, steps)) / steps[ray]
+    x = np.floor(start[0] + t * delta[:, 0][ray]).astype(np.int64)
+    y = np.floor(start[1] + t * delta[:, 1][ray]).astype(np.int64)
+    keep = (x != np.floor(ends[:, 0]).astype(np.int64)[ray]) | (y != np.floor(ends[:, 1]).astype(np.int64)[ray])
+    return np.stack([y[keep], x[keep]], axis=1)
+
+
+def numpy_update(log_odds: np.ndarray, observed: np.ndarray, moments: np.ndarray, hit_flat: np.ndarray,
+                 crossed_flat: np.ndarray, offsets: np.ndarray, l_hit: float, l_miss: float, l_min: float,
+                 l_max: float) -> None:
+    if len(hit_flat):
+        u, v = offsets.T
+        for k, values in enumerate((np.ones_like(u), u, v, u * u, u * v, v * v)):
+            np.add.at(moments[k].reshape(-1), hit_flat, values.astype(np.float32))
+    is_hit = np.zeros(log_odds.size, bool)
+    is_hit[hit_flat] = True
+    free_flat = crossed_flat[~is_hit[crossed_flat]]
+    flat = log_odds.reshape(-1)
+    flat[free_flat] = np.maximum(flat[free_flat] + l_miss, l_min)
+    flat[hit_flat] = np.minimum(flat[hit_flat] + l_hit, l_max)
+    seen = observed.reshape(-1)
+    seen[free_flat] = True
+    seen[hit_flat] = True
+
+
+def numpy_neighbourhood_moments(moments: np.ndarray, log_odds: np.ndarray, rows: np.ndarray, cols: np.ndarray
+                                ) -> tuple[np.ndarray, np.ndarray]:
+    height, width = log_odds.shape
+    m = moments[:, rows, cols].astype(np.float64)
+    mean = np.stack([cols + m[1] / m[0], rows + m[2] / m[0]], axis=1)
+    sums = np.zeros((len(rows), 6))
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            r, c = rows + dr, cols + dc
+            ok = (r >= 0) & (c >= 0) & (r < height) & (c < width)
+            ok[ok] &= log_odds[r[ok], c[ok]] > 0.0
+            n = moments[:, r[ok], c[ok]].astype(np.float64)
+            ox, oy = c[ok] - mean[ok, 0], r[ok] - mean[ok, 1]
+            sums[ok] += np.stack([n[0], n[1] + ox * n[0], n[2] + oy * n[0], n[3] + 2 * ox * n[1] + ox * ox * n[0],
+                                  n[4] + ox * n[2] + oy * n[1] + ox * oy * n[0],
+                                  n[5] + 2 * oy * n[2] + oy * oy * n[0]], axis=1)
+    return mean, sums
+
+
+def likelihoods(shape: tuple[int, int]) -> st.SearchStrategy[np.ndarray]:
+    """Float32 fields as the likelihood field holds them: 0, or exp(-d^2 / 2) for d up to 4."""
+    value = st.one_of(st.just(0.0), st.floats(0.0, 4.0).map(lambda d: math.exp(-0.5 * d * d)))
+    return hnp.arrays(np.float32, shape, elements=value.map(np.float32))
+
+
+@st.composite
+def search_problems(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A grid, the flat cells of rotated points at offset (0, 0), and candidates whose cells stay inside."""
+    height, width, limit = draw(st.integers(3, 30)), draw(st.integers(3, 30)), draw(st.integers(0, 2))
+    limit = min(limit, (height - 1) // 2, (width - 1) // 2)
+    angles, points = draw(st.integers(1, 4)), draw(st.integers(0, 40))
+    grid = draw(likelihoods((height, width)))
+    rows = draw(hnp.arrays(np.int64, (angles, points), elements=st.integers(0, height - 1 - 2 * limit)))
+    cols = draw(hnp.arrays(np.int64, (angles, points), elements=st.integers(0, width - 1 - 2 * limit)))
+    count = draw(st.integers(1, 30))
+    candidates = np.stack([draw(hnp.arrays(np.int64, count, elements=st.integers(0, angles - 1))),
+                           draw(hnp.arrays(np.int64, count, elements=st.integers(0, 2 * limit))),
+                           draw(hnp.arrays(np.int64, count, elements=st.integers(0, 2 * limit)))], axis=1)
+    return grid, rows * width + cols, candidates
+
+
+@EXAMPLES
+@given(search_problems())
+def test_block_scores_equal_numpy_to_the_bit(problem: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    grid, base, candidates = problem
+    np.testing.assert_array_equal(block_scores(grid, base, candidates), numpy_block_scores(grid, base, candidates))
+
+
+coordinates = st.floats(-3.0, 40.0, allow_nan=False)
+
+
+@st.composite
+def field_points(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A float32 distance field (m) and continuous coordinates in and around it."""
+    height, width, n = draw(st.integers(1, 25)), draw(st.integers(1, 25)), draw(st.integers(0, 30))
+    field = draw(hnp.arrays(np.float32, (height, width), elements=st.floats(0.0, 0.5, width=32)))
+    cx, cy = (draw(hnp.arrays(np.float64, n, elements=coordinates)) for _ in range(2))
+    return field, cx, cy
+
+
+def assert_same(actual: tuple[np.ndarray, ...], expected: tuple[np.ndarray, ...]) -> None:
+    for a, e in zip(actual, expected, strict=True):
+        np.testing.assert_allclose(a, e, rtol=1e-12, atol=1e-12)
+
+
+@EXAMPLES
+@given(field_points())
+def test_bilinear_equals_numpy(problem: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    field, u, v = problem
+    assert_same(bilinear(field, u, v), numpy_bilinear(field, u, v))
+
+
+@EXAMPLES
+@given(field_points(), st.integers(-3, 3), st.integers(-3, 3), st.floats(0.01, 0.2), st.floats(0.05, 0.7))
+def test_field_residuals_equal_numpy(problem: tuple[np.ndarray, np.ndarray, np.ndarray], row0: int, col0: int,
+                                     res: float, max_distance_m: float) -> None:
+    field, cx, cy = problem
+    rx, ry = 0.3 * cx - 1.0, 0.2 * cy + 0.5
+    assert_same(field_residuals(field, *NO_WALLS, row0, col0, cx, cy, 0.3, -0.2, rx, ry, res, max_distance_m),
+                numpy_field_residuals(field, row0, col0, cx, cy, rx, ry, res, max_distance_m))
+
+
+@EXAMPLES
+@given(field_points(), st.integers(0, 3), st.integers(0, 3), st.integers(1, 12), st.integers(0, 2**32 - 1),
+       st.floats(-2.0, 2.0), st.floats(-2.0, 2.0))
+def test_line_residuals_equal_numpy(problem: tuple[np.ndarray, np.ndarray, np.ndarray], row0: int, col0: int,
+                                    walls: int, seed: int, pose_x: float, pose_y: float) -> None:
+    field, cx, cy = problem
+    rng = np.random.default_rng(seed)
+    nearest = rng.integers(-1, walls, size=field.shape).astype(np.int32)   # the refinement has walls when it reads them
+    mean = rng.uniform(-1.0, 2.0, (walls, 2))
+    angle = rng.uniform(-math.pi, math.pi, walls)
+    normal = np.stack([-np.sin(angle), np.cos(angle)], axis=1)
+    is_line = rng.random(walls) < 0.7
+    rx, ry = 0.05 * cx - 0.5, 0.05 * cy + 0.2
+    arguments = (field, nearest, mean, normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx, ry, 0.05, 0.5)
+    assert_same(field_residuals(*arguments), numpy_line_residuals(*arguments))
+
+
+ends = st.floats(-60.0, 60.0, allow_nan=False)
+
+
+@EXAMPLES
+@given(st.floats(-20.0, 20.0), st.floats(-20.0, 20.0), hnp.arrays(np.float64, st.tuples(st.integers(0, 20), st.just(2)),
+                                                                  elements=ends))
+def test_ray_cells_equal_numpy_to_the_bit(x: float, y: float, targets: np.ndarray) -> None:
+    start = np.array([x, y])
+    np.testing.assert_array_equal(ray_cells(start, targets), numpy_ray_cells(start, targets))
+
+
+def sparse(moments: np.ndarray, holding: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Dense moments (6, H, W) as the grid keeps them: a slot per cell (0: none) into rows; row 0 zero.
+    The cells ``holding`` returns get a row in the order of their flat index."""
+    slots = np.zeros(holding.shape, np.int32)
+    cells = np.flatnonzero(holding)
+    slots.reshape(-1)[cells] = np.arange(1, len(cells) + 1)
+    rows = np.zeros((1 + holding.size + 100, 6), np.float32)   # room for a row per return
+    rows[1:len(cells) + 1] = moments.reshape(6, -1)[:, cells].T
+    return slots, rows, len(cells) + 1
+
+
+@EXAMPLES
+@given(st.integers(1, 12), st.integers(1, 12), st.integers(0, 2**32 - 1), st.integers(0, 25), st.integers(0, 60))
+def test_cell_updates_equal_numpy_to_the_bit(height: int, width: int, seed: int, hits: int, crossed: int) -> None:
+    """Log-odds (clamped, once per scan however many rays cross a cell), observed flags and moments."""
+    rng = np.random.default_rng(seed)
+    log_odds = rng.uniform(-2.0, 3.5, (height, width)).astype(np.float32)
+    observed = rng.random((height, width)) < 0.5
+    holding = rng.random((height, width)) < 0.3
+    moments = np.where(holding, rng.uniform(0.0, 5.0, (6, height, width)), 0.0).astype(np.float32)
+    slots, rows, count = sparse(moments, holding)
+    hit_flat = rng.integers(0, height * width, hits)
+    crossed_flat = rng.integers(0, height * width, crossed)
+    offsets = rng.random((hits, 2))
+    expected = (log_odds.copy(), observed.copy(), moments.copy())
+    numpy_update(*expected, hit_flat, crossed_flat, offsets, 0.8473, -0.4055, -2.0, 3.5)
+    count = add_moments(slots, rows, count, hit_flat, offsets)
+    update_cells(log_odds, observed, hit_flat, crossed_flat, 0.8473, -0.4055, -2.0, 3.5)
+    assert count == 1 + int(np.count_nonzero(expected[2][0]))
+    for actual, wanted in zip((log_odds, observed, rows[slots].transpose(2, 0, 1)), expected, strict=True):
+        np.testing.assert_array_equal(actual, wanted)
+
+
+@EXAMPLES
+@given(st.integers(1, 12), st.integers(1, 12), st.integers(0, 2**32 - 1))
+def test_neighbourhood_moments_equal_numpy(height: int, width: int, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    log_odds = rng.uniform(-2.0, 3.5, (height, width)).astype(np.float32)
+    counts = rng.integers(1, 6, (height, width)).astype(np.float32)
+    u, v = rng.random((2, height, width)), rng.random((2, height, width))
+    moments = np.stack([counts, counts * u[0], counts * v[0], counts * u[1] ** 2, counts * u[1] * v[1],
+                        counts * v[1] ** 2]).astype(np.float32)
+    slots, table, _ = sparse(moments, np.ones((height, width), bool))
+    rows, cols = np.nonzero(log_odds > 0.0)
+    assert_same(neighbourhood_moments(slots, table, log_odds, rows, cols),
+                numpy_neighbourhood_moments(moments, log_odds, rows, cols))

@@ -132,6 +132,15 @@ class MarkerPose:
         return Rotation.from_matrix(self.rotation).as_quat()
 
 
+def resolvable(corners: np.ndarray, cells: int) -> bool:
+    """True when every side of the quad ``corners`` (4, 2) spans at least one pixel per cell of a
+    marker ``cells`` wide (bits plus border). A narrower candidate cannot show its bits: OpenCV
+    still reads a code from it, and a noisy JPEG frame gave a valid id of a marker that was not in
+    the image (7 x 22 px for a 6x6 marker's 8 cells)."""
+    sides = np.hypot(*(np.roll(corners, -1, axis=0) - corners).T)
+    return bool(sides.min() >= cells)
+
+
 class MarkerDetector:
     """An ArUco detector for one dictionary (it keeps OpenCV's detector object between frames).
 
@@ -164,6 +173,7 @@ class MarkerDetector:
             Marker(int(i), np.asarray(c, dtype=np.float64).reshape(4, 2))
             for i, c in zip(ids.ravel(), corners, strict=True)
         ]
+        found = [f for f in found if resolvable(f.corners, self._bits)]
         if self.refinement == "edges":
             grey = (image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)).astype(np.float32)
             found = [Marker(f.id, refine_on_edges(grey, f.corners, self._bits)) for f in found]

@@ -15,7 +15,14 @@ from scipy.spatial.transform import Rotation
 from tests.conftest import shared_file
 from trundle.logs.errors import UserError
 from trundle.logs.messages import CameraInfo
-from trundle.perception.markers import Marker, MarkerDetector, dictionary_by_name, marker_object_points, marker_pose
+from trundle.perception.markers import (
+    Marker,
+    MarkerDetector,
+    dictionary_by_name,
+    marker_object_points,
+    marker_pose,
+    resolvable,
+)
 
 PHOTOS = ["singlemarkersoriginal.jpg", "choriginal.jpg", "chocclusion_original.jpg"]
 
@@ -158,3 +165,23 @@ def test_pose_needs_a_positive_size() -> None:
     marker = Marker(1, np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 4.0], [0.0, 4.0]]))
     with pytest.raises(ValueError):
         marker_pose(marker, CAMERA, 0.0)
+
+
+def test_a_candidate_narrower_than_the_markers_cells_is_not_a_marker() -> None:
+    # the false id 201 of a demo run (issue 23, item 10): a 7 x 22 px quad where no marker was, read as a
+    # valid code of the 6x6 dictionary, whose markers are 8 cells wide with their border
+    seen = np.array([[144.7, 214.5], [151.0, 216.0], [151.0, 237.0], [144.0, 237.0]])
+    cells = dictionary_by_name("DICT_6X6_250").markerSize + 2
+    assert not resolvable(seen, cells)
+    square = np.array([[0.0, 0.0], [8.0, 0.0], [8.0, 8.0], [0.0, 8.0]])
+    assert resolvable(square, cells) and not resolvable(square * 7 / 8, cells)
+
+
+def test_a_marker_squeezed_below_a_pixel_per_cell_gives_no_detection() -> None:
+    marker = cv2.aruco.generateImageMarker(dictionary_by_name("DICT_6X6_250"), 201, 160)
+    image = np.full((480, 640), 255, np.uint8)
+    image[100:260, 100:260] = marker
+    assert [m.id for m in MarkerDetector().detect(image)] == [201]
+    squeezed = np.full((480, 640), 255, np.uint8)
+    squeezed[100:260, 300:307] = cv2.resize(marker, (7, 160), interpolation=cv2.INTER_AREA)
+    assert MarkerDetector().detect(squeezed) == []

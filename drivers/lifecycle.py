@@ -153,6 +153,7 @@ class Driver(ABC):
         self._connected_at: float | None = None  # monotonic s of the last successful open
         self._usable_count = 0
         self._usable_at = 0.0  # monotonic s when the usable counter last moved (or the device first opened)
+        self._answered = False  # the last error came from a device that opened and answered (bad data)
 
     @abstractmethod
     def open(self) -> None:
@@ -199,6 +200,7 @@ class Driver(ABC):
             except (DeviceError, OSError) as error:
                 self.counters["errors"] += 1
                 self.last_error = f"{type(error).__name__}: {error}"
+                self._answered = opened and isinstance(error, DeviceError)
                 if not opened:
                     hint = open_hint(error)
                     self.open_error = f"{error}" + (f" ({hint})" if hint else "")
@@ -251,21 +253,29 @@ class Driver(ABC):
             return m.STALE, "stopped"
         if self.state == "crashed":
             return m.ERROR, f"driver crashed: {self.last_error}"
-        connected_at = self._connected_at
-        if self.state != "streaming" or connected_at is None:
-            if self.open_error:
-                named = self.hardware_id and self.hardware_id in self.open_error
-                return m.ERROR, self.open_error if named else f"cannot open {self.hardware_id}: {self.open_error}"
+        if self.state != "streaming" and self.open_error:
+            named = self.hardware_id and self.hardware_id in self.open_error
+            return m.ERROR, self.open_error if named else f"cannot open {self.hardware_id}: {self.open_error}"
+        silent_s = self._silent_s(now)
+        if silent_s >= self.silence_s and (self.state == "streaming" or self._answered):
+            # a device that opens but never gives usable data also cycles through reconnects: the
+            # silence and its reason are the news, whichever phase of the cycle this call lands in
+            reason = self.silence_reason()
+            again = "" if self.state == "streaming" else f"; {self.state} after {self.last_error}"
+            return m.WARN, (f"connected, but no {self.usable.replace('_', ' ')} for {silent_s:.0f} s"
+                            + (f": {reason}" if reason else "") + again)
+        if self.state != "streaming" or self._connected_at is None:
             return m.WARN, f"{self.state}" + (f" after {self.last_error}" if self.last_error else "")
+        return m.OK, "streaming"
+
+    def _silent_s(self, now: float) -> float:
+        """Seconds since the usable counter last moved (0 before the first connection)."""
+        if not self._usable_at:
+            return 0.0
         count = self.counters[self.usable]
         if count != self._usable_count:
             self._usable_count, self._usable_at = count, now
-        silent_s = now - self._usable_at
-        if silent_s >= self.silence_s:
-            reason = self.silence_reason()
-            return m.WARN, (f"connected, but no {self.usable.replace('_', ' ')} for {silent_s:.0f} s"
-                            + (f": {reason}" if reason else ""))
-        return m.OK, "streaming"
+        return now - self._usable_at
 
     def diagnostics(self) -> m.DiagnosticStatus:
         level, message = self.health_status()

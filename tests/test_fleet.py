@@ -467,17 +467,22 @@ def test_characterize_over_two_robots_on_a_local_ray_gives_per_robot_noise(tmp_p
 
 
 def test_ctrl_c_cancels_the_rest_leaves_complete_results_and_a_rerun_finishes(tmp_path) -> None:
-    logs = [robot_log(tmp_path / "logs" / f"run{i}.mcap", "robot-a", START_NS + i * HOUR_NS, scans=60, offset=4 * i)
-            for i in range(5)]
+    # the first log short, the others long enough that Ctrl-C, sent the moment the first is done,
+    # finds them still to do on a loaded machine as on a quiet one
+    logs = [robot_log(tmp_path / "logs" / f"run{i}.mcap", "robot-a", START_NS + i * HOUR_NS,
+                      scans=40 if i == 0 else 160, offset=12 * i) for i in range(5)]
     out = tmp_path / "out"
     argv = [TRUNDLE, "fleet", "slam", str(tmp_path / "logs"), "-o", str(out), "--num-cpus", "1"]
     run = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     line = ""
+    while not line.startswith("Ray ready in "):
+        line = run.stderr.readline()
+        assert line or run.poll() is None, run.stderr.read()
+    addresses = _listening(_descendants(run.pid))  # Ray's own ports, while it works on the first log
+    assert addresses and all(a.startswith(("127.0.0.1:", "[::ffff:127.0.0.1]:")) for a in addresses), addresses
     while not line.startswith("[1] "):
         line = run.stderr.readline()
         assert line or run.poll() is None, run.stderr.read()
-    addresses = _listening(_descendants(run.pid))
-    assert addresses and all(a.startswith(("127.0.0.1:", "[::ffff:127.0.0.1]:")) for a in addresses), addresses
     run.send_signal(signal.SIGINT)
     stdout, stderr = run.communicate(timeout=120)
     assert run.returncode == 130, stderr

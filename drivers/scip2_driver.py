@@ -368,7 +368,10 @@ class ScipDriver(Driver):
     def _reboot(self, status: str) -> None:
         """RB twice within a second; the sensor then drops the link and restarts."""
         first = self._status(self._request(b"RB\n"))
-        second = self._status(self._request(b"RB\n"))
+        try:
+            second = self._status(self._request(b"RB\n"))
+        except (DeviceError, OSError):  # the sensor restarts at once: the link can drop before its reply is read
+            second = "none, the link dropped"
         self.counters["reboots"] += 1
         raise DeviceError(
             f"sensor in abnormal state (status {status}); rebooted it with RB (replies {first}, {second})"

@@ -57,8 +57,10 @@ def running(server: DeviceServer, driver: Driver) -> Iterator[tuple[DeviceServer
     finally:
         driver.stop()
         try:
-            wait_until(lambda: time.time_ns() - server.last_input_ns > 300_000_000, "the device to read the rest",
-                       timeout_s=10.0)
+            # nothing left unread, and the last read long enough ago to have been handled (a loaded
+            # machine can leave the server thread unscheduled for longer than the driver's pause)
+            wait_until(lambda: not server.unread() and time.time_ns() - server.last_input_ns > 300_000_000,
+                       "the device to read the rest", timeout_s=10.0)
         finally:
             server.stop()
 

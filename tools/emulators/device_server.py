@@ -9,9 +9,11 @@ bytes are dropped beyond it.
 
 from __future__ import annotations
 
+import fcntl
 import os
 import select
 import socket
+import termios
 import threading
 import time
 from pathlib import Path
@@ -32,6 +34,14 @@ class Device(Protocol):
     def next_event_ns(self) -> int | None: ...
 
     def power_on(self, now_ns: int) -> None: ...
+
+
+def _unread(fd: int) -> int:
+    """Bytes waiting to be read on ``fd`` (a pty master or a socket); 0 if it cannot be asked."""
+    try:
+        return int.from_bytes(fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"), "little")
+    except OSError:
+        return 0
 
 
 class _Pty:
@@ -154,6 +164,13 @@ class DeviceServer:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.lock = threading.Lock()  # held while the device is being driven
+
+    def unread(self) -> int:
+        """Bytes the host sent that the device has not read yet (on the pty or the TCP client)."""
+        fds = self.transport.fds()
+        if isinstance(self.transport, _Tcp):
+            fds = [self.transport.client.fileno()] if self.transport.client is not None else []
+        return sum(_unread(fd) for fd in fds)
 
     @property
     def port(self) -> int:

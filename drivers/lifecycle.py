@@ -23,12 +23,14 @@ instead of reconnecting in silence (``trundle record``).
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import signal
 import threading
 import time
 from abc import ABC, abstractmethod
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Protocol
 
 from trundle.logs import messages as m
@@ -101,6 +103,20 @@ class SignalFlag:
         while not self.raised and (left := deadline - time.monotonic()) > 0:
             time.sleep(min(self.poll_s, left))
         return self.raised
+
+
+@contextlib.contextmanager
+def stop_signals() -> Iterator[SignalFlag]:
+    """A :class:`SignalFlag` that Ctrl-C (SIGINT) and SIGTERM raise while the block runs, the previous
+    handlers back after it. Enter it before making anything the stop must clean up (a link, a file):
+    a signal that lands earlier would end the program without the cleanup."""
+    flag = SignalFlag()
+    previous = {sig: signal.signal(sig, flag.raise_) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield flag
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 class Backoff:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -24,3 +25,9 @@ def shared_file(relative: str) -> Path:
 settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
+
+# Tests press Ctrl-C on the commands they start (SIGINT). A shell's background job (`make test &`, a CI
+# runner) starts with SIGINT ignored, and an ignored signal stays ignored in every child, so those
+# commands would never see it: Python's own handler here means the children start with the default.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)

@@ -12,13 +12,12 @@ heartbeat-stop, heartbeat-resume, silent, alive (node), errors, bus-off, noise, 
 from __future__ import annotations
 
 import argparse
-import signal
 import time
 from pathlib import Path
 
 from trundle.drivers import cia406
 from trundle.drivers.dbc_wheels import VESC_DBC
-from trundle.drivers.lifecycle import SignalFlag
+from trundle.drivers.lifecycle import stop_signals
 from trundle.logs.errors import UserError
 from trundle.tools.config.arguments import number_in, positive
 from trundle.tools.emulators.can_nodes import (
@@ -119,47 +118,47 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"cannot emulate {args.protocol} nodes {ids}: {error}") from None
     if not args.link.parent.is_dir():
         raise UserError(f"no directory for the link: {args.link.parent}")
-    adapter = SlcanEmulator(str(args.link)).start()
-    runner = CanNodeRunner(adapter.bus, nodes, WheelMotion(script, start_s=float("inf")), adapter=adapter)
-    runner.drop_probability = args.drop
     spec = {"odrive": "odrive", "cia406": "cia406", "dbc": f"dbc:{VESC_DBC}"}[args.protocol]
     encoders = spec if args.protocol == "dbc" else f"{spec}:{','.join(map(str, ids))}"
     motion = ("the wheels stand still (give --script to drive them)" if not script.speeds.any()
               else f"wheel speeds (turns/s) {args.script}")
-    print(f"SLCAN adapter on {args.link} ({args.protocol} nodes {ids}); {motion}; record with:\n"
-          f"  trundle record --can slcan://{args.link} --encoders {encoders} -o run.mcap", flush=True)
-    if args.protocol == "cia406":
-        print(f"  (EDS of the emulated encoders: {cia406.DEFAULT_EDS})", flush=True)
-    if args.protocol == "dbc":
-        signals = ", ".join(f'"VESC_Status5_id{i}.Tachometer"' for i in ids)
-        print(f"  with --config holding:\n  [can.dbc]\n  signals = [{signals}]\n  units_per_rev = 42", flush=True)
-    stop = SignalFlag()
-    # Ctrl-C and SIGTERM end the emulator alike: its link removed, its counts said, exit 0
-    previous = {sig: signal.signal(sig, stop.raise_) for sig in (signal.SIGINT, signal.SIGTERM)}
-    runner.start()
-    start = None
-    try:
-        while not stop.raised:
-            if start is None:
-                if not adapter.is_open:
-                    stop.wait(0.005)
-                    continue
-                start = time.monotonic()
-                runner.motion = WheelMotion(script, start_s=runner.t)
-                print("host opened the adapter: script and fault clock started", flush=True)
-            elapsed = time.monotonic() - start
-            while faults and faults[0][0] <= elapsed:
-                at, kind, wheel = faults.pop(0)
-                apply_fault(kind, nodes[wheel], runner, adapter)
-                print(f"{at:8.2f} s  fault: {kind}" + (f" (wheel {wheel})" if kind in NODE_FAULTS else ""), flush=True)
-            if args.duration is not None and elapsed >= args.duration:
-                break
-            stop.wait(0.05)
-    finally:
-        runner.stop()
-        adapter.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    # Ctrl-C and SIGTERM end the emulator alike: its link removed, its counts said, exit 0. The handlers
+    # come first: a signal landing between making the link and handling it would leave the link behind
+    with stop_signals() as stop:
+        adapter = SlcanEmulator(str(args.link)).start()
+        runner = CanNodeRunner(adapter.bus, nodes, WheelMotion(script, start_s=float("inf")), adapter=adapter)
+        runner.drop_probability = args.drop
+        try:
+            print(f"SLCAN adapter on {args.link} ({args.protocol} nodes {ids}); {motion}; record with:\n"
+                  f"  trundle record --can slcan://{args.link} --encoders {encoders} -o run.mcap", flush=True)
+            if args.protocol == "cia406":
+                print(f"  (EDS of the emulated encoders: {cia406.DEFAULT_EDS})", flush=True)
+            if args.protocol == "dbc":
+                signals = ", ".join(f'"VESC_Status5_id{i}.Tachometer"' for i in ids)
+                print(f"  with --config holding:\n  [can.dbc]\n  signals = [{signals}]\n  units_per_rev = 42",
+                      flush=True)
+            runner.start()
+            start = None
+            while not stop.raised:
+                if start is None:
+                    if not adapter.is_open:
+                        stop.wait(0.005)
+                        continue
+                    start = time.monotonic()
+                    runner.motion = WheelMotion(script, start_s=runner.t)
+                    print("host opened the adapter: script and fault clock started", flush=True)
+                elapsed = time.monotonic() - start
+                while faults and faults[0][0] <= elapsed:
+                    at, kind, wheel = faults.pop(0)
+                    apply_fault(kind, nodes[wheel], runner, adapter)
+                    print(f"{at:8.2f} s  fault: {kind}" + (f" (wheel {wheel})" if kind in NODE_FAULTS else ""),
+                          flush=True)
+                if args.duration is not None and elapsed >= args.duration:
+                    break
+                stop.wait(0.05)
+        finally:
+            runner.stop()
+            adapter.close()
     print(f"frames sent {runner.stats['sent']}, dropped {runner.stats['dropped']}, "
           f"to host {adapter.stats['to_host']}, from host {adapter.stats['from_host']}")
     return 0

@@ -11,12 +11,11 @@ described in ``tools/emulators/faults.py``, scenes in ``tools/emulators/scene.py
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import time
 from pathlib import Path
 
-from trundle.drivers.lifecycle import SignalFlag
+from trundle.drivers.lifecycle import stop_signals
 from trundle.logs.errors import UserError
 from trundle.tools.config.arguments import positive, tcp_port
 from trundle.tools.emulators import rplidar_emulator, scip2_emulator
@@ -61,25 +60,24 @@ def run(args: argparse.Namespace) -> int:
     device = build_device(args.protocol, args.model, args.scene, args.faults, time.time_ns())
     if args.link is not None and not args.link.parent.is_dir():
         raise UserError(f"folder for --link does not exist: {args.link.parent}")
-    try:
-        server = DeviceServer(device, link_path=args.link) if args.link is not None else DeviceServer(
-            device, tcp_port=args.tcp)
-    except OSError as error:
-        raise UserError(f"cannot serve the emulator: {error.strerror or error}") from None
-    where = f"{args.link} -> {args.link.resolve()}" if args.link is not None else f"tcp://127.0.0.1:{server.port}"
-    print(f"emulating {args.protocol} {device.model.name} on {where} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-    stop = SignalFlag()
-    # Ctrl-C and SIGTERM (systemd, kill, a test harness) end the emulator alike: its link removed
-    previous = {sig: signal.signal(sig, stop.raise_) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        server.start()
-        deadline = None if args.duration is None else time.monotonic() + args.duration
-        while not stop.raised and (deadline is None or time.monotonic() < deadline):
-            stop.wait(0.2 if deadline is None else max(0.0, min(0.2, deadline - time.monotonic())))
-    finally:
-        server.stop()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    # Ctrl-C and SIGTERM (systemd, kill, a test harness) end the emulator alike: its link removed. The
+    # handlers come first: a signal landing between making the link and handling it would leave it
+    with stop_signals() as stop:
+        try:
+            server = DeviceServer(device, link_path=args.link) if args.link is not None else DeviceServer(
+                device, tcp_port=args.tcp)
+        except OSError as error:
+            raise UserError(f"cannot serve the emulator: {error.strerror or error}") from None
+        try:
+            where = f"{args.link} -> {args.link.resolve()}" if args.link is not None else f"tcp://127.0.0.1:{server.port}"
+            print(f"emulating {args.protocol} {device.model.name} on {where} (Ctrl-C to stop)", file=sys.stderr,
+                  flush=True)
+            server.start()
+            deadline = None if args.duration is None else time.monotonic() + args.duration
+            while not stop.raised and (deadline is None or time.monotonic() < deadline):
+                stop.wait(0.2 if deadline is None else max(0.0, min(0.2, deadline - time.monotonic())))
+        finally:
+            server.stop()
     faults = ", ".join(f"{k} {v}" for k, v in sorted(device.injected.items())) or "none"
     print(f"sent {len(device.sent)} scans; faults injected: {faults}; unplugs {server.unplugs}", file=sys.stderr)
     return 0

@@ -404,7 +404,7 @@ def test_record_on_a_bad_disk(bad_disk, capsys) -> None:
     assert left_in(disk) == before
 
 
-@pytest.mark.parametrize("command", ["export", "perceive", "recover", "inject-faults", "import"])
+@pytest.mark.parametrize("command", ["export", "perceive", "recover", "inject-faults", "import", "replay"])
 def test_a_log_writing_command_on_a_bad_disk(bad_disk, command, tmp_path, capsys) -> None:
     disk, cause = bad_disk
     before = left_in(disk)
@@ -413,7 +413,8 @@ def test_a_log_writing_command_on_a_bad_disk(bad_disk, command, tmp_path, capsys
             "perceive": ["perceive", str(DEMO_LOG), "--pipeline", "markers", "-o", str(out)],
             "recover": ["recover", str(DEMO_LOG), str(out)],
             "inject-faults": ["inject-faults", str(DEMO_LOG), "--slip", "5:2:0.3", "-o", str(out)],
-            "import": ["import", "breezyslam", str(breezyslam_dat(tmp_path / "run.dat")), "-o", str(out)]}[command]
+            "import": ["import", "breezyslam", str(breezyslam_dat(tmp_path / "run.dat")), "-o", str(out)],
+            "replay": ["replay", str(DEMO_LOG), "--rate", "0", "--end", "2", "-o", str(out)]}[command]
     refused(capsys, main(argv), cause, out)
     assert left_in(disk) == before
 

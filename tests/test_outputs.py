@@ -253,6 +253,12 @@ def test_a_results_folder_loses_only_what_the_failed_run_wrote(tmp_path) -> None
         write_json(new / "report.json", {"x": 1})
         raise DataError("the last step failed")
     assert sorted(os.listdir(tmp_path)) == ["kept"]
+    demo = tmp_path / "demo"  # what the user is told is kept stays, with the folder's marker
+    with pytest.raises(KeyboardInterrupt), writing_folder(demo, marker=".made-by-us", keep=("run.partial*",)):
+        write_text(demo / "report.md", "# half a report")
+        write_text(demo / "run.partial.mcap", "the log so far")
+        raise KeyboardInterrupt
+    assert sorted(os.listdir(demo)) == [".made-by-us", "run.partial.mcap"]
 
 
 def test_json_is_strict_with_non_finite_numbers_as_null(tmp_path) -> None:
@@ -439,16 +445,17 @@ def test_characterize_localize_and_match_on_a_bad_disk(bad_disk, slam_map, image
     assert left_in(disk) == before
 
 
-@pytest.mark.parametrize("bad_disk", ["read-only"], indirect=True)  # full: see the next test
-def test_fleet_and_demo_on_a_read_only_folder(bad_disk, capsys) -> None:
+def test_fleet_and_demo_on_a_bad_disk(bad_disk, capsys) -> None:
+    """Both said before their long work (Ray's start, the recording); the folders they made go again."""
     disk, cause = bad_disk
     refused(capsys, main(["fleet", "info", str(DEMO_LOG), "-o", str(disk / "fleet")]), cause, disk / "fleet")
     refused(capsys, main(["demo", "-o", str(disk / "demo")]), cause, disk / "demo")
     assert left_in(disk) == []
 
 
+@pytest.mark.parametrize("job", ["slam", "info"])  # info: the job itself writes nothing, its report.json fails
 @pytest.mark.parametrize("bad_disk", ["full"], indirect=True)
-def test_a_fleet_task_and_its_results_on_a_full_disk(bad_disk, tmp_path) -> None:
+def test_a_fleet_task_and_its_results_on_a_full_disk(bad_disk, job, tmp_path) -> None:
     """A failed task's row says the cause; the results files are refused whole (Ray's own start is left out)."""
     from tests.fleet_logs import robot_log
     from trundle.tools.fleet.jobs import options_key
@@ -458,8 +465,8 @@ def test_a_fleet_task_and_its_results_on_a_full_disk(bad_disk, tmp_path) -> None
     disk, _ = bad_disk
     log = robot_log(tmp_path / "run1.mcap", "robot-a")
     (disk / ".fleet").mkdir()  # what the run's lock made
-    row = process_log(Task("slam", str(log), "run1", str(disk), {}, options_key("slam", {})))
+    row = process_log(Task(job, str(log), "run1", str(disk), {}, options_key(job, {})))
     assert row["status"] == "failed" and "No space left on device" in row["error"], row
     with pytest.raises(OutputError, match=f"cannot write {disk / 'results.csv'}: No space left on device"):
-        write_results(FleetRun("slam", {}, [row]), disk)
+        write_results(FleetRun(job, {}, [row]), disk)
     assert [name for name in left_in(disk) if not (disk / name).is_dir()] == []  # the run's state folders, empty

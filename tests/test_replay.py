@@ -297,6 +297,20 @@ def test_what_the_log_lacks_is_said_before_it_starts(capsys):
     assert "slam: 0 scans processed" in out
 
 
+def test_a_log_without_odometry_is_said_before_it_starts(tmp_path, capsys):
+    scans_only, with_wheels = tmp_path / "scans.mcap", tmp_path / "wheels.mcap"
+    trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "2", "--topics", "/scan", "/tf_static",
+            "-o", scans_only)
+    trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "2", "--topics", "/scan", "/tf_static", "/wheels",
+            "-o", with_wheels)
+    out, err = trundle(capsys, "replay", scans_only, "--rate", "0", "--slam")
+    assert err.splitlines() == [f"trundle replay: {scans_only} has no odometry (SLAM matches the scans alone)"]
+    scans = LogReader(scans_only).info().topics["/scan"].count
+    assert f"slam: {scans} scans processed, 0 skipped to keep up" in out and scans > 0
+    _, err = trundle(capsys, "replay", with_wheels, "--rate", "0", "--slam")
+    assert err == ""  # the wheels' joint states and the log's wheel model are its odometry
+
+
 @pytest.mark.parametrize(("argv", "words"), [
     (["--topics", "/nope"], "--topics /nope: no such topic in"),
     (["--start", "5", "--end", "3"], "--start 5 is not before --end 3"),

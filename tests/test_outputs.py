@@ -7,12 +7,15 @@ every JSON file trundle writes is strict JSON."""
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import hashlib
 import itertools
 import json
 import os
+import signal
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -22,6 +25,7 @@ import cv2
 import numpy as np
 import pytest
 
+import trundle
 from tests.test_daemon import Running, ScriptedDriver, config, wait_for
 from trundle.logs.errors import DataError, OutputError, UserError
 from trundle.logs.outputs import write_json, write_text, writing_file, writing_files, writing_folder
@@ -316,6 +320,45 @@ def test_perceive_with_a_bad_detector_parameter_leaves_no_file(tmp_path, capsys)
     assert os.listdir(tmp_path) == ["pc7.mcap"] and LogReader(out).info().complete
 
 
+@pytest.fixture(scope="module")
+def camera_log(tmp_path_factory) -> Path:
+    """A camera log of 627 frames, as in the issue: the demo log's 67 JPEG frames again and again at
+    3 Hz, with its camera info and mount."""
+    from trundle.logs.writer import Logger
+
+    path = tmp_path_factory.mktemp("camera") / "camera.mcap"
+    frames = [x.msg for x in LogReader(DEMO_LOG).messages(["/camera/image_raw/compressed"])]
+    latched = list(LogReader(DEMO_LOG).raw_messages(["/tf_static", "/camera/camera_info"]))
+    start = max(raw.log_time_ns for raw in latched)
+    with Logger(path, salvage=False, metadata={"command": "test"}) as logger:
+        for raw in latched:
+            logger.write_encoded(raw.topic, raw.ros_type, raw.data, raw.log_time_ns, raw.publish_time_ns)
+        for k in range(627):
+            stamp = start + (k + 1) * 1_000_000_000 // 3
+            logger.write("/camera/image_raw/compressed", dataclasses.replace(frames[k % len(frames)], stamp_ns=stamp),
+                         stamp)
+    return path
+
+
+def test_perceive_stopped_by_ctrl_c_leaves_no_file(camera_log, tmp_path) -> None:
+    """Ctrl-C (SIGINT to the command's own process) once frames are being written: no pc.mcap, no partial file."""
+    out = tmp_path / "pc.mcap"
+    perceive = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "perceive", str(camera_log),
+                                 "--pipeline", "markers", "-o", str(out)],
+                                env={**os.environ, "PYTHONPATH": str(Path(trundle.__file__).parent.parent)},
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        writing = tmp_path / f".pc.mcap.{perceive.pid}.partial.active"  # the output helper's name, the logger's suffix
+        wait_for(lambda: writing.exists() and writing.stat().st_size > 1_000_000, timeout_s=60)
+        perceive.send_signal(signal.SIGINT)
+        printed, said = perceive.communicate(timeout=60)
+    finally:
+        perceive.kill()
+    assert perceive.returncode == 130 and said == "trundle perceive: interrupted\n", said
+    assert "wrote" not in printed
+    assert os.listdir(tmp_path) == []
+
+
 def interrupt_after(monkeypatch, owner: object, name: str, calls: int) -> None:
     """Make ``owner.name`` raise KeyboardInterrupt (Ctrl-C) on its ``calls``-th call."""
     real = getattr(owner, name)
@@ -368,6 +411,37 @@ def test_import_with_a_missing_reference_writes_neither_file(tmp_path, capsys) -
                  "--reference", str(out / "truth.csv")]) == 2
     assert "no Robot2_Groundtruth.dat" in capsys.readouterr().err
     assert os.listdir(out) == []
+
+
+@pytest.mark.parametrize("fault", ["Ctrl-C", "name taken"])
+def test_localize_and_match_stopped_while_writing_leave_nothing_half_written(fault, slam_map, images, tmp_path,
+                                                                             capsys, monkeypatch) -> None:
+    """Ctrl-C, or another program making a file of the output's name, at the last moment: the result
+    is whole under its temporary name, not yet under its own. Nothing of the run stays; the other
+    program's file is kept and said."""
+    import trundle.logs.outputs as outputs
+
+    real = outputs._install
+
+    def at_install(tmp: Path, final: Path, replace: bool) -> None:
+        assert tmp.stat().st_size > 0 and not final.exists()
+        if fault == "Ctrl-C":
+            raise KeyboardInterrupt
+        final.write_text("theirs")
+        real(tmp, final, replace)
+    monkeypatch.setattr(outputs, "_install", at_install)
+    poses, picture = tmp_path / "poses.csv", tmp_path / "matches.png"
+    for argv, out in ((["localize", str(DEMO_LOG), "--map", str(slam_map), "-o", str(poses)], poses),
+                      (["match", *map(str, images), "--features", "orb", "--draw", str(picture)], picture)):
+        code = main(argv)
+        err = capsys.readouterr().err
+        if fault == "Ctrl-C":
+            assert (code, err) == (130, f"trundle {argv[0]}: interrupted\n")
+        else:
+            assert (code, err) == (2, f"trundle {argv[0]}: {out} appeared while it was being written: it is kept, "
+                                      "and this result was not written (run again with another name)\n")
+            assert out.read_text() == "theirs"
+    assert sorted(os.listdir(tmp_path)) == ([] if fault == "Ctrl-C" else ["matches.png", "poses.csv"])
 
 
 def test_slam_interrupted_while_writing_leaves_no_folder(tmp_path, capsys, monkeypatch) -> None:

@@ -12,6 +12,8 @@ MCAP metadata is a map of strings, so structured values are stored as JSON. Keys
 - ``odometry``: the odometry source a log was made with (importers: ``odom``, ``laser``, ``none``);
 - ``recovered_from``: JSON object, the crash file a recovered log was made from: its ``name``,
   ``size_bytes`` and ``mtime_ns`` (:mod:`trundle.logs.recover`: a crash file is recovered once);
+- ``log_damage``: JSON object, what the damage of the log a replay read skipped
+  (:func:`trundle.logs.reader.damage_dict`, as a report's ``log_damage``; null when it was intact);
 - anything else a writer adds (``source``, ``config_file``, ``malformed_lines``, ...): JSON
   when it is not a string (and read back as such when it is a JSON object or array).
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fnmatch
 import glob
 import json
 import math
@@ -146,13 +147,14 @@ def writing_file(path: str | os.PathLike[str], what: str = "output", replace: bo
 
 
 @contextlib.contextmanager
-def writing_folder(path: str | os.PathLike[str], *, empty: bool = True,
-                   marker: str | None = None) -> Iterator[Path]:
+def writing_folder(path: str | os.PathLike[str], *, empty: bool = True, marker: str | None = None,
+                   keep: tuple[str, ...] = ()) -> Iterator[Path]:
     """The results folder ``path``, checked and made as :func:`~trundle.logs.paths.output_folder`
     does; results go into it in the block (each file through :func:`writing_file`). On any failure
     what this run added to it is removed (what it held before stays), and the folder itself (and
-    any parent made for it) if this run made it and it is left empty. A failure to write a file
-    in it is an OutputError naming that file."""
+    any parent made for it) if this run made it and it is left empty. ``keep``: glob patterns of
+    names that stay even then (a partial recording the user is told about), and with them the
+    ``marker``. A failure to write a file in it is an OutputError naming that file."""
     path = Path(path)
     made = [p for p in (path, *path.parents) if not p.exists()][::-1]  # outermost first
     before = set(os.listdir(path)) if path.is_dir() else set()
@@ -161,12 +163,16 @@ def writing_folder(path: str | os.PathLike[str], *, empty: bool = True,
         yield path
     except BaseException as error:
         with contextlib.suppress(OSError):
-            for name in set(os.listdir(path)) - before:
-                added = path / name
-                if added.is_dir() and not added.is_symlink():
-                    shutil.rmtree(added, ignore_errors=True)
+            added = set(os.listdir(path)) - before
+            kept = {name for name in added if any(fnmatch.fnmatchcase(name, pattern) for pattern in keep)}
+            if kept and marker is not None:
+                kept.add(marker)
+            for name in added - kept:
+                new = path / name
+                if new.is_dir() and not new.is_symlink():
+                    shutil.rmtree(new, ignore_errors=True)
                 else:
-                    added.unlink(missing_ok=True)
+                    new.unlink(missing_ok=True)
         for folder in reversed(made):
             try:
                 folder.rmdir()

@@ -32,6 +32,7 @@ from tests.test_daemon import Running, config, wait_for
 from tests.test_slam import loop_path
 from trundle.logs import messages as m
 from trundle.logs.errors import DataError
+from trundle.logs.metadata import read_metadata
 from trundle.logs.reader import LogReader
 from trundle.logs.writer import Logger
 from trundle.tools.cli.main import main
@@ -241,8 +242,11 @@ def test_localize_says_it_and_its_report_records_it(damaged: Damaged, tmp_path: 
 def test_replay_export_and_recover_say_it_and_do_their_job(damaged: Damaged, tmp_path: Path,
                                                            capsys: pytest.CaptureFixture[str]) -> None:
     kept = damaged.total - sum(damaged.lost.values())
-    assert main(["replay", str(damaged.bad), "--rate", "0"]) == 0
+    assert main(["replay", str(damaged.bad), "--rate", "0", "-o", str(tmp_path / "replayed.mcap")]) == 0
     assert f"replayed {kept} messages" in said(capsys, "replay", damaged)
+    replayed = LogReader(tmp_path / "replayed.mcap").info()
+    assert replayed.damage is None and replayed.message_count == kept
+    recorded(read_metadata(replayed.metadata).fields["log_damage"], damaged)  # in the output, as in a report
     assert main(["export", str(damaged.bad), "--topic", "/odom", "-o", str(tmp_path / "odom.csv")]) == 0
     said(capsys, "export", damaged)
     with open(tmp_path / "odom.csv") as f:
@@ -251,11 +255,13 @@ def test_replay_export_and_recover_say_it_and_do_their_job(damaged: Damaged, tmp
     assert f"recovered {kept} messages" in said(capsys, "recover", damaged)
     assert main(["info", str(tmp_path / "fixed.mcap")]) == 0
     silent(capsys)
-    for argv in (["replay", str(damaged.original), "--rate", "0"],
+    for argv in (["replay", str(damaged.original), "--rate", "0", "-o", str(tmp_path / "intact.mcap")],
                  ["export", str(damaged.original), "--topic", "/odom", "-o", str(tmp_path / "all.csv")],
                  ["recover", str(damaged.original), str(tmp_path / "copy.mcap")]):
         assert main(argv) == 0
         silent(capsys)
+    intact = LogReader(tmp_path / "intact.mcap").info().metadata["trundle"]["log_damage"]
+    assert json.loads(intact) is None  # null, as a report's log_damage of an intact log
 
 
 def test_characterize_says_it_and_its_report_records_it(damaged: Damaged, tmp_path: Path,

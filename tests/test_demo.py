@@ -19,7 +19,7 @@ from trundle.logs.paths import output_folder
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.demo import camera_size
 from trundle.tools.cli.main import main
-from trundle.tools.demo.report import ATE_LIMIT_M, MARKER_MAP_LIMIT_M
+from trundle.tools.demo.report import ATE_LIMIT_M, MARKER_MAP_LIMIT_M, markers_seen
 from trundle.tools.demo.run import DEMO_MARKER
 from trundle.tools.sim.world import load_world
 
@@ -132,6 +132,24 @@ def test_what_the_demo_says_reads_well(demo):
     assert config.startswith("# The configuration the demo's daemon ran with")
     urls = [line for line in config.splitlines() if line.startswith("url = ")]
     assert len(urls) == 3 and all(line.endswith("  # the demo's own, gone when it ends") for line in urls)
+
+
+def test_the_markers_line_names_markers_detected_beyond_the_in_view_limits():
+    """A marker detected where it was in the image but not *in view* (smaller or more oblique than the
+    limits) is named as such: a true detection, not a false one and not one the checks require."""
+    rows = [{"id": 96, "frames_detected": 9, "false_detections": 0},
+            {"id": 3, "frames_detected": 2, "false_detections": 0},
+            {"id": 5, "frames_detected": 1, "false_detections": 0},
+            {"id": 7, "frames_detected": 1, "false_detections": 1}]
+    report = {"markers_expected": [96], "markers_detected": rows, "markers": {"detected_beyond_view": [3]}}
+    beyond = "in the image but smaller or more oblique than in view: true detections beyond what is required"
+    assert markers_seen(report) == f"In view: 96; detected: 96, 3, 5 (3 also where it was {beyond}); " \
+                                   "false detections of 7"
+    report["markers"]["detected_beyond_view"] = [3, 5]
+    assert markers_seen(report) == f"In view: 96; detected: 96, 3, 5 (3, 5 also where they were {beyond}); " \
+                                   "false detections of 7"
+    report["markers"]["detected_beyond_view"] = []
+    assert markers_seen(report) == "In view: 96; detected: 96, 3, 5; false detections of 7"
 
 
 def test_map_files_load_as_map_server_reads_them(demo):

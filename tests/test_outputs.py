@@ -7,12 +7,15 @@ every JSON file trundle writes is strict JSON."""
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import hashlib
 import itertools
 import json
 import os
+import signal
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -22,6 +25,7 @@ import cv2
 import numpy as np
 import pytest
 
+import trundle
 from tests.test_daemon import Running, ScriptedDriver, config, wait_for
 from trundle.logs.errors import DataError, OutputError, UserError
 from trundle.logs.outputs import write_json, write_text, writing_file, writing_files, writing_folder
@@ -253,6 +257,12 @@ def test_a_results_folder_loses_only_what_the_failed_run_wrote(tmp_path) -> None
         write_json(new / "report.json", {"x": 1})
         raise DataError("the last step failed")
     assert sorted(os.listdir(tmp_path)) == ["kept"]
+    demo = tmp_path / "demo"  # what the user is told is kept stays, with the folder's marker
+    with pytest.raises(KeyboardInterrupt), writing_folder(demo, marker=".made-by-us", keep=("run.partial*",)):
+        write_text(demo / "report.md", "# half a report")
+        write_text(demo / "run.partial.mcap", "the log so far")
+        raise KeyboardInterrupt
+    assert sorted(os.listdir(demo)) == [".made-by-us", "run.partial.mcap"]
 
 
 def test_json_is_strict_with_non_finite_numbers_as_null(tmp_path) -> None:
@@ -310,6 +320,45 @@ def test_perceive_with_a_bad_detector_parameter_leaves_no_file(tmp_path, capsys)
     assert os.listdir(tmp_path) == ["pc7.mcap"] and LogReader(out).info().complete
 
 
+@pytest.fixture(scope="module")
+def camera_log(tmp_path_factory) -> Path:
+    """A camera log of 627 frames, as in the issue: the demo log's 67 JPEG frames again and again at
+    3 Hz, with its camera info and mount."""
+    from trundle.logs.writer import Logger
+
+    path = tmp_path_factory.mktemp("camera") / "camera.mcap"
+    frames = [x.msg for x in LogReader(DEMO_LOG).messages(["/camera/image_raw/compressed"])]
+    latched = list(LogReader(DEMO_LOG).raw_messages(["/tf_static", "/camera/camera_info"]))
+    start = max(raw.log_time_ns for raw in latched)
+    with Logger(path, salvage=False, metadata={"command": "test"}) as logger:
+        for raw in latched:
+            logger.write_encoded(raw.topic, raw.ros_type, raw.data, raw.log_time_ns, raw.publish_time_ns)
+        for k in range(627):
+            stamp = start + (k + 1) * 1_000_000_000 // 3
+            logger.write("/camera/image_raw/compressed", dataclasses.replace(frames[k % len(frames)], stamp_ns=stamp),
+                         stamp)
+    return path
+
+
+def test_perceive_stopped_by_ctrl_c_leaves_no_file(camera_log, tmp_path) -> None:
+    """Ctrl-C (SIGINT to the command's own process) once frames are being written: no pc.mcap, no partial file."""
+    out = tmp_path / "pc.mcap"
+    perceive = subprocess.Popen([sys.executable, "-m", "trundle.tools.cli", "perceive", str(camera_log),
+                                 "--pipeline", "markers", "-o", str(out)],
+                                env={**os.environ, "PYTHONPATH": str(Path(trundle.__file__).parent.parent)},
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        writing = tmp_path / f".pc.mcap.{perceive.pid}.partial.active"  # the output helper's name, the logger's suffix
+        wait_for(lambda: writing.exists() and writing.stat().st_size > 1_000_000, timeout_s=60)
+        perceive.send_signal(signal.SIGINT)
+        printed, said = perceive.communicate(timeout=60)
+    finally:
+        perceive.kill()
+    assert perceive.returncode == 130 and said == "trundle perceive: interrupted\n", said
+    assert "wrote" not in printed
+    assert os.listdir(tmp_path) == []
+
+
 def interrupt_after(monkeypatch, owner: object, name: str, calls: int) -> None:
     """Make ``owner.name`` raise KeyboardInterrupt (Ctrl-C) on its ``calls``-th call."""
     real = getattr(owner, name)
@@ -364,6 +413,37 @@ def test_import_with_a_missing_reference_writes_neither_file(tmp_path, capsys) -
     assert os.listdir(out) == []
 
 
+@pytest.mark.parametrize("fault", ["Ctrl-C", "name taken"])
+def test_localize_and_match_stopped_while_writing_leave_nothing_half_written(fault, slam_map, images, tmp_path,
+                                                                             capsys, monkeypatch) -> None:
+    """Ctrl-C, or another program making a file of the output's name, at the last moment: the result
+    is whole under its temporary name, not yet under its own. Nothing of the run stays; the other
+    program's file is kept and said."""
+    import trundle.logs.outputs as outputs
+
+    real = outputs._install
+
+    def at_install(tmp: Path, final: Path, replace: bool) -> None:
+        assert tmp.stat().st_size > 0 and not final.exists()
+        if fault == "Ctrl-C":
+            raise KeyboardInterrupt
+        final.write_text("theirs")
+        real(tmp, final, replace)
+    monkeypatch.setattr(outputs, "_install", at_install)
+    poses, picture = tmp_path / "poses.csv", tmp_path / "matches.png"
+    for argv, out in ((["localize", str(DEMO_LOG), "--map", str(slam_map), "-o", str(poses)], poses),
+                      (["match", *map(str, images), "--features", "orb", "--draw", str(picture)], picture)):
+        code = main(argv)
+        err = capsys.readouterr().err
+        if fault == "Ctrl-C":
+            assert (code, err) == (130, f"trundle {argv[0]}: interrupted\n")
+        else:
+            assert (code, err) == (2, f"trundle {argv[0]}: {out} appeared while it was being written: it is kept, "
+                                      "and this result was not written (run again with another name)\n")
+            assert out.read_text() == "theirs"
+    assert sorted(os.listdir(tmp_path)) == ([] if fault == "Ctrl-C" else ["matches.png", "poses.csv"])
+
+
 def test_slam_interrupted_while_writing_leaves_no_folder(tmp_path, capsys, monkeypatch) -> None:
     import trundle.tools.jobs.slam as slam_job
 
@@ -404,7 +484,7 @@ def test_record_on_a_bad_disk(bad_disk, capsys) -> None:
     assert left_in(disk) == before
 
 
-@pytest.mark.parametrize("command", ["export", "perceive", "recover", "inject-faults", "import"])
+@pytest.mark.parametrize("command", ["export", "perceive", "recover", "inject-faults", "import", "replay"])
 def test_a_log_writing_command_on_a_bad_disk(bad_disk, command, tmp_path, capsys) -> None:
     disk, cause = bad_disk
     before = left_in(disk)
@@ -413,7 +493,8 @@ def test_a_log_writing_command_on_a_bad_disk(bad_disk, command, tmp_path, capsys
             "perceive": ["perceive", str(DEMO_LOG), "--pipeline", "markers", "-o", str(out)],
             "recover": ["recover", str(DEMO_LOG), str(out)],
             "inject-faults": ["inject-faults", str(DEMO_LOG), "--slip", "5:2:0.3", "-o", str(out)],
-            "import": ["import", "breezyslam", str(breezyslam_dat(tmp_path / "run.dat")), "-o", str(out)]}[command]
+            "import": ["import", "breezyslam", str(breezyslam_dat(tmp_path / "run.dat")), "-o", str(out)],
+            "replay": ["replay", str(DEMO_LOG), "--rate", "0", "--end", "2", "-o", str(out)]}[command]
     refused(capsys, main(argv), cause, out)
     assert left_in(disk) == before
 
@@ -438,16 +519,17 @@ def test_characterize_localize_and_match_on_a_bad_disk(bad_disk, slam_map, image
     assert left_in(disk) == before
 
 
-@pytest.mark.parametrize("bad_disk", ["read-only"], indirect=True)  # full: see the next test
-def test_fleet_and_demo_on_a_read_only_folder(bad_disk, capsys) -> None:
+def test_fleet_and_demo_on_a_bad_disk(bad_disk, capsys) -> None:
+    """Both said before their long work (Ray's start, the recording); the folders they made go again."""
     disk, cause = bad_disk
     refused(capsys, main(["fleet", "info", str(DEMO_LOG), "-o", str(disk / "fleet")]), cause, disk / "fleet")
     refused(capsys, main(["demo", "-o", str(disk / "demo")]), cause, disk / "demo")
     assert left_in(disk) == []
 
 
+@pytest.mark.parametrize("job", ["slam", "info"])  # info: the job itself writes nothing, its report.json fails
 @pytest.mark.parametrize("bad_disk", ["full"], indirect=True)
-def test_a_fleet_task_and_its_results_on_a_full_disk(bad_disk, tmp_path) -> None:
+def test_a_fleet_task_and_its_results_on_a_full_disk(bad_disk, job, tmp_path) -> None:
     """A failed task's row says the cause; the results files are refused whole (Ray's own start is left out)."""
     from tests.fleet_logs import robot_log
     from trundle.tools.fleet.jobs import options_key
@@ -457,8 +539,8 @@ def test_a_fleet_task_and_its_results_on_a_full_disk(bad_disk, tmp_path) -> None
     disk, _ = bad_disk
     log = robot_log(tmp_path / "run1.mcap", "robot-a")
     (disk / ".fleet").mkdir()  # what the run's lock made
-    row = process_log(Task("slam", str(log), "run1", str(disk), {}, options_key("slam", {})))
+    row = process_log(Task(job, str(log), "run1", str(disk), {}, options_key(job, {})))
     assert row["status"] == "failed" and "No space left on device" in row["error"], row
     with pytest.raises(OutputError, match=f"cannot write {disk / 'results.csv'}: No space left on device"):
-        write_results(FleetRun("slam", {}, [row]), disk)
+        write_results(FleetRun(job, {}, [row]), disk)
     assert [name for name in left_in(disk) if not (disk / name).is_dir()] == []  # the run's state folders, empty

@@ -276,14 +276,15 @@ def test_loop_plays_the_window_again_until_ctrl_c(tmp_path):
 def test_ctrl_c_leaves_a_complete_output(tmp_path):
     out = tmp_path / "cut.mcap"
     replay = run_replay(DEMO_LOG, "--rate", "0.5", "--slam", "-o", out)  # 45 s: Ctrl-C comes long before the end
-    wait_for(lambda: (tmp_path / "cut.mcap.active").exists(), timeout_s=30)
-    wait_for(lambda: (tmp_path / "cut.mcap.active").stat().st_size > 200_000, timeout_s=30)
+    active = tmp_path / f".cut.mcap.{replay.pid}.partial.active"  # the output helper's name until it is complete
+    wait_for(active.exists, timeout_s=30)
+    wait_for(lambda: active.stat().st_size > 200_000, timeout_s=30)
     replay.send_signal(signal.SIGINT)
     printed, err = replay.communicate(timeout=60)
     assert replay.returncode == 0 and "Traceback" not in err, err
     assert "(stopped by Ctrl-C)" in printed
     info = LogReader(out).info()
-    assert info.complete and not (tmp_path / "cut.mcap.active").exists()
+    assert info.complete and os.listdir(tmp_path) == ["cut.mcap"]
     assert info.topics["/path"].count == 1 and info.topics["/map"].count >= 1  # the SLAM finished
 
 
@@ -294,6 +295,20 @@ def test_what_the_log_lacks_is_said_before_it_starts(capsys):
                                 f"trundle replay: {DEMO_LOG} has no scans on /scan (SLAM maps nothing), "
                                 "no camera images (no markers to detect)"]
     assert "slam: 0 scans processed" in out
+
+
+def test_a_log_without_odometry_is_said_before_it_starts(tmp_path, capsys):
+    scans_only, with_wheels = tmp_path / "scans.mcap", tmp_path / "wheels.mcap"
+    trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "2", "--topics", "/scan", "/tf_static",
+            "-o", scans_only)
+    trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "2", "--topics", "/scan", "/tf_static", "/wheels",
+            "-o", with_wheels)
+    out, err = trundle(capsys, "replay", scans_only, "--rate", "0", "--slam")
+    assert err.splitlines() == [f"trundle replay: {scans_only} has no odometry (SLAM matches the scans alone)"]
+    scans = LogReader(scans_only).info().topics["/scan"].count
+    assert f"slam: {scans} scans processed, 0 skipped to keep up" in out and scans > 0
+    _, err = trundle(capsys, "replay", with_wheels, "--rate", "0", "--slam")
+    assert err == ""  # the wheels' joint states and the log's wheel model are its odometry
 
 
 @pytest.mark.parametrize(("argv", "words"), [

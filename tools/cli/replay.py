@@ -8,6 +8,7 @@ replayed messages with the processing's results (``-o OUT.mcap``). The work is
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -15,7 +16,7 @@ from pathlib import Path
 from trundle.logs.errors import UsageError
 from trundle.logs.metadata import read_metadata
 from trundle.logs.paths import input_file
-from trundle.logs.reader import LogReader
+from trundle.logs.reader import LogReader, damage_dict
 from trundle.tools.cli.damage import say_damage
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.arguments import host_port, non_negative, positive
@@ -27,9 +28,9 @@ from trundle.tools.daemon.replay import (
     live_channels,
     missing_inputs,
     no_interrupts,
-    open_output,
     output_topics,
     replay_window,
+    writing_output,
 )
 from trundle.tools.jobs.slam import replay_estimator
 
@@ -78,22 +79,24 @@ def run(args: argparse.Namespace) -> int:
         if replaced:
             print(f"trundle replay: the log's own {', '.join(replaced)} are left out: the processing makes them anew",
                   file=sys.stderr)
-    live = output = None
-    try:
+    live: LiveView | None = None
+    output = None
+    with contextlib.ExitStack() as stack:
         if args.live is not None:
             host, port = args.live
             live = LiveView(host, port, name=f"trundle replay {log.name}", log_time=True,
                             channels=live_channels(info, topics, probe if probe.active else None))
+            stack.callback(_close_live, live)
             print(f"live view: ws://{host}:{live.port} (Foxglove: open connection, Foxglove WebSocket)",
                   flush=True)
         if args.output is not None:
             source = read_metadata(info.metadata)
             fields = {k: v for k, v in source.fields.items() if k not in ("trundle_version", "host")}
-            output = open_output(args.output, {
+            output = stack.enter_context(writing_output(args.output, {
                 **fields, "robot": dict(source.robot), "devices": {k: dict(v) for k, v in source.devices.items()},
                 "command": "replay", "source": str(log), "source_command": source.command,
                 "config_file": config.source, "processing": {"slam": wanted.slam, "markers": wanted.markers},
-                "rate": args.rate})
+                "rate": args.rate, "log_damage": damage_dict(info.damage)}))
         t0 = info.start_ns or 0
         window_s = ((end_ns if end_ns is not None else info.end_ns or t0) - start_ns) * 1e-9
         progress = Progress("replay", max(window_s, 1e-9))
@@ -102,12 +105,6 @@ def run(args: argparse.Namespace) -> int:
                            map_frames=(config.frames.map, config.frames.odom), progress=progress.update)
         result = replay.run()
         progress.close()
-    finally:
-        with no_interrupts():
-            if live is not None:
-                live.close()
-            if output is not None:
-                output.close()
     passes = f" in {result.passes} passes" if result.passes > 1 else ""
     print(f"replayed {result.messages} messages ({result.log_s:.2f} s of log{passes}) in {result.wall_s:.2f} s: "
           f"rate achieved {result.rate:.2f}x" + (" (stopped by Ctrl-C)" if result.interrupted else ""))
@@ -123,3 +120,9 @@ def run(args: argparse.Namespace) -> int:
     if output is not None:
         print(f"wrote {args.output}")
     return 0
+
+
+def _close_live(live: LiveView) -> None:
+    """Close the live view, Ctrl-C ignored meanwhile."""
+    with no_interrupts():
+        live.close()

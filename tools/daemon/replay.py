@@ -22,12 +22,13 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from trundle.logs import messages as m
 from trundle.logs import ros2
 from trundle.logs.errors import DataError, UsageError
 from trundle.logs.frames import links
-from trundle.logs.paths import new_file
+from trundle.logs.outputs import writing_file
 from trundle.logs.reader import LogInfo, LogReader, RawMessage
 from trundle.logs.replay import play
 from trundle.logs.topics import LANDMARK_TOPIC, MAP_TOPIC, PATH_TOPIC, SLAM_POSE_TOPIC, TF_STATIC_TOPIC, TF_TOPIC
@@ -43,14 +44,23 @@ IMAGE_TYPES = ("sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image")
 ODOMETRY_TYPES = ("nav_msgs/msg/Odometry",)
 
 
-def open_output(path: str | os.PathLike[str], metadata: Mapping[str, object]) -> Logger:
+@contextlib.contextmanager
+def writing_output(path: str | os.PathLike[str], metadata: Mapping[str, object]) -> Iterator[Logger]:
     """The output log ``path`` (an ``.mcap`` that must not exist: never overwritten), written as the
-    daemon writes its logs (``.active`` until closed, ``/tf_static`` latched). The one place a
-    replay's output is opened."""
-    path = new_file(path)
+    daemon writes its logs (``/tf_static`` latched) under the output helper's temporary name
+    (:func:`trundle.logs.outputs.writing_file`): it takes its name closed and complete, and a
+    failure (a read-only folder, a full disk) leaves nothing. The one place a replay's output is
+    opened; the logger is closed when the block ends, Ctrl-C ignored meanwhile."""
+    path = Path(path)
     if path.suffix != ".mcap":
         raise UsageError(f"output must be an .mcap file, got {path}")
-    return Logger(path, metadata=metadata, latched_topics=(TF_STATIC_TOPIC,), salvage=False)
+    with writing_file(path) as tmp:
+        logger = Logger(tmp, metadata=metadata, latched_topics=(TF_STATIC_TOPIC,), salvage=False)
+        try:
+            yield logger
+        finally:
+            with no_interrupts():
+                logger.close()
 
 
 def replay_window(log: str | os.PathLike[str], info: LogInfo, topics: Iterable[str] | None, start_s: float,

@@ -40,7 +40,7 @@ import numpy as np
 from trundle.fusion.geometry import compose, inverse
 from trundle.fusion.mapping.map_io import save_map, write_trajectory_csv
 from trundle.logs.errors import UserError
-from trundle.logs.outputs import write_text
+from trundle.logs.outputs import write_text, writing_folder
 from trundle.logs.paths import output_folder
 from trundle.tools.config.toml_text import format_config
 from trundle.tools.daemon.status import query_status
@@ -57,6 +57,8 @@ from trundle.tools.sim.world import DEFAULT_WORLD, World, load_world
 
 LOG_NAME = "demo.mcap"
 DEMO_MARKER = ".trundle-demo"  # left in every folder the demo writes: it rewrites only those
+PARTIAL_LOG = "demo.partial"  # an interrupted recording's log: demo.partial.mcap, demo.partial-1.mcap, ...
+PARTIAL_LOGS = f"{PARTIAL_LOG}*"
 STREAM_TIMEOUT_S = 90.0     # daemon start-up to every device streaming, on a loaded machine
 STOP_TIMEOUT_S = 60.0       # SIGTERM to a closed log
 LEAD_S = 1.0                # the robot stands this long in the log before it drives
@@ -266,7 +268,7 @@ def _keep_partial_log(folder: Path, out: Path, say: Say) -> None:
     logs = sorted(folder.glob("*.mcap")) + sorted(folder.glob("*.mcap.active"))
     for i, path in enumerate(logs):
         suffix = ".mcap.active" if path.name.endswith(".active") else ".mcap"
-        target = out / (f"demo.partial{'' if i == 0 else f'-{i}'}{suffix}")
+        target = out / (f"{PARTIAL_LOG}{'' if i == 0 else f'-{i}'}{suffix}")
         path.replace(target)
         say(f"the recording was interrupted; its log so far is {target}"
             + (" (trundle recover it)" if suffix.endswith(".active") else ""))
@@ -303,9 +305,17 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), say: Say = prin
     """Record the simulated robot with the real daemon, then map, detect, score and write ``out``;
     return the report. ``say`` tells each stage, ``progress`` makes each long stage's display."""
     started = time.monotonic()
-    output_folder(out, create=False, marker=DEMO_MARKER)  # made by record() once the world is read
+    output_folder(out, create=False, marker=DEMO_MARKER)  # made once the world is read
     world = load_world(settings.world)
     sim = RobotSim(world, seed=settings.seed)
+    # a failure (a full disk, Ctrl-C) takes back what this run added; only a partial recording stays
+    with writing_folder(out.resolve(), marker=DEMO_MARKER, keep=(PARTIAL_LOGS,)):
+        return _record_and_report(out, world, sim, settings, say, progress, started)
+
+
+def _record_and_report(out: Path, world: World, sim: RobotSim, settings: DemoSettings, say: Say,
+                       progress: ProgressFactory, started: float) -> dict[str, Any]:
+    """:func:`run_demo`'s work in its folder ``out`` (``started``: its monotonic start time, s)."""
     say("[1/4] recording: world simulator -> device emulators -> trundle daemon -> log")
     recording = record(out, sim, settings, say, progress)
     write_trajectory_csv(out / "ground_truth.csv", recording.scans.stamps_ns, recording.scans.poses, replace=True)

@@ -7,6 +7,7 @@ result already installed stays complete and readable (see :mod:`trundle.tools.fl
 from __future__ import annotations
 
 import fcntl
+import os
 import shutil
 import signal
 import time
@@ -17,8 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from trundle.logs.errors import UserError
-from trundle.logs.outputs import is_output_failure, output_error
-from trundle.logs.paths import output_folder
+from trundle.logs.outputs import is_output_failure, output_error, writing_folder
 from trundle.tools.fleet.cluster import Cluster
 from trundle.tools.fleet.inputs import expand, folder_names
 from trundle.tools.fleet.jobs import options_key
@@ -55,21 +55,31 @@ class FleetRun:
 
 @contextmanager
 def _lock(output: Path) -> Iterator[None]:
-    """Hold OUT/.fleet/lock for the run, so two runs never write one output folder."""
-    state = output_folder(output, empty=False) / STATE
-    try:
-        state.mkdir(exist_ok=True)
-        lock = open(state / "lock", "w")  # noqa: SIM115  held by the with below
-    except OSError as error:
-        if is_output_failure(error):
-            raise output_error(error, state) from None
-        raise
-    with lock as f:
+    """Hold OUT/.fleet/lock for the run, so two runs never write one output folder. The lock holds
+    the run's pid, written at once: a full disk is said before Ray starts. A run that fails takes
+    back what it added to OUT (:func:`trundle.logs.outputs.writing_folder`)."""
+    with writing_folder(output, empty=False):
+        state = output / STATE
         try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            raise UserError(f"another trundle fleet is writing to {output}") from None
-        yield
+            state.mkdir(exist_ok=True)
+            lock = open(state / "lock", "a")  # noqa: SIM115  held by the with below; not emptied: another run's
+        except OSError as error:
+            if is_output_failure(error):
+                raise output_error(error, state) from None
+            raise
+        with lock as f:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                raise UserError(f"another trundle fleet is writing to {output}") from None
+            try:
+                os.ftruncate(f.fileno(), 0)
+                os.write(f.fileno(), f"{os.getpid()}\n".encode())
+            except OSError as error:
+                if is_output_failure(error):
+                    raise output_error(error, state / "lock") from None
+                raise
+            yield
 
 
 @contextmanager

@@ -124,15 +124,16 @@ def process_log(task: Task) -> dict[str, Any]:
                 return {**done["row"], "status": "skipped"}
             row.update(size_bytes=path.stat().st_size, sha256=digest, **_log_columns(path, task.source))
             report = run_job(task.job, path, work, task.options)
-        row.update(status="ok", seconds=time.perf_counter() - started, cpu_seconds=time.process_time() - cpu_started,
+        row.update(seconds=time.perf_counter() - started, cpu_seconds=time.process_time() - cpu_started,
                    **flatten(report))
+        ok = {**row, "status": "ok"}  # once its results are in place: a report that cannot be written fails it
         if not (work / REPORT).exists():
             write_json(work / REPORT, report)
         write_json(work / MARKER, {"key": task.key, "identity": fingerprint, "sha256": digest, "job": task.job,
-                                   "options": task.options, "version": __version__, "row": row})
+                                   "options": task.options, "version": __version__, "row": ok})
         _install(work, task.folder)
         task.error_file.unlink(missing_ok=True)
-        return row
+        return ok
     except Exception as error:  # a bad log or a job's failure fails this row alone, never the fleet
         row.update(seconds=time.perf_counter() - started, cpu_seconds=time.process_time() - cpu_started,
                    error=one_line(str(error) if isinstance(error, TrundleError)

@@ -218,18 +218,21 @@ def placed(new: SessionGraph, transform: np.ndarray, session: int) -> SessionGra
 class CrossSessionStats:
     """The cross-session closures: searched keyframes, match attempts, candidates the ICP check refused,
     accepted (kept after the optimisation) and rejected ones (disagreeing with the graph: by the loop
-    closer's agreement test or after the optimisation), each as (old node, new node)."""
+    closer's agreement test or after the optimisation), each as (old node, new node, the new node's pose
+    in the old one's frame)."""
 
     searched: int = 0
     attempts: int = 0
     unverified: int = 0
-    accepted: list[tuple[int, int]] = field(default_factory=list)
-    rejected: list[tuple[int, int]] = field(default_factory=list)
+    accepted: list[tuple[int, int, np.ndarray]] = field(default_factory=list)
+    rejected: list[tuple[int, int, np.ndarray]] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
+        def said(closures: list[tuple[int, int, np.ndarray]]) -> list[dict[str, Any]]:
+            return [{"old": a, "new": b, "measurement": [float(v) for v in z]} for a, b, z in closures]
         return {"searched_keyframes": self.searched, "attempts": self.attempts, "unverified": self.unverified,
                 "accepted": len(self.accepted), "rejected": len(self.rejected),
-                "accepted_pairs": [list(p) for p in self.accepted], "rejected_pairs": [list(p) for p in self.rejected]}
+                "accepted_closures": said(self.accepted), "rejected_closures": said(self.rejected)}
 
 
 def cross_closures(old: SessionGraph, new: SessionGraph, placement_covariance: np.ndarray,
@@ -263,7 +266,7 @@ def cross_closures(old: SessionGraph, new: SessionGraph, placement_covariance: n
         dense = samples_walls_densely(new.points[node], config.submaps.resolution)
         closures.extend(closer.search(len(old) + node, points, poses, dense))
     out.attempts, out.unverified = stats.loop_attempts, stats.loop_unverified
-    out.rejected = [(c.anchor, c.node) for c in closer.dropped]
+    out.rejected = [(c.anchor, c.node, c.measurement) for c in closer.dropped]
     return closures, out
 
 
@@ -325,15 +328,16 @@ def optimize(graph: SessionGraph, config: SlamConfig, freeze: bool, stats: Cross
     kernel = config.optimization.kernel
     pose_graph.optimize(max_iterations=100, robust_kernel=kernel, kernel_width=3.0)
     last = graph.sessions - 1
-    ij = pose_graph.edges[0]
+    ij, z, _ = pose_graph.edges
     cross = np.flatnonzero((graph.session[ij[:, 0]] != graph.session[ij[:, 1]]) & (graph.session[ij[:, 1]] == last))
     bad = cross[pose_graph.edge_chi2()[cross] > CHI2_3DOF_999]
     if len(bad):
-        stats.rejected.extend((int(a), int(b)) for a, b in ij[bad])
+        stats.rejected.extend((int(a), int(b), zz) for (a, b), zz in zip(ij[bad], z[bad], strict=True))
         pose_graph.remove_edges(bad)
         pose_graph.optimize(max_iterations=100, robust_kernel=kernel, kernel_width=3.0)
-    ij = pose_graph.edges[0]
-    stats.accepted = [(int(a), int(b)) for a, b in ij if graph.session[a] != graph.session[b] == last]
+    ij, z, _ = pose_graph.edges
+    stats.accepted = [(int(a), int(b), zz) for (a, b), zz in zip(ij, z, strict=True)
+                      if graph.session[a] != graph.session[b] == last]
     moved = move_landmarks(graph, pose_graph.poses)
     return SessionGraph(graph.session, graph.stamps, pose_graph.poses, graph.scans, graph.mounts, graph.points,
                         graph.free, pose_graph.edges, graph.scan_stamps, graph.scan_session, graph.scan_nodes,

@@ -10,6 +10,9 @@ import csv
 import json
 import math
 import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,8 +22,10 @@ from trundle.fusion.geometry import relative, wrap_angle
 from trundle.fusion.mapping.map_io import load_map, read_trajectory_csv
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
+from trundle.tools.fleet.run import sessions_in_order
 from trundle.tools.jobs.sessions import read_bundle
 
+TRUNDLE = str(Path(sys.executable).with_name("trundle"))
 LOOP = room_loop()
 LAP = 113
 B_START = 56   # the second session starts half-way round the first one's lap, a day later
@@ -186,3 +191,27 @@ def test_every_bad_mapdir_is_one_line_and_writes_nothing(maps, tmp_path, capsys)
         code, _, stderr = trundle(capsys, "slam", *argv, "-o", str(out))
         assert code == 2 and message in stderr and len(stderr.strip().splitlines()) == 1, (argv, stderr)
         assert "Traceback" not in stderr and not out.exists()
+
+
+def test_fleet_orders_each_robots_sessions_in_time(tmp_path) -> None:
+    logs = [room_session(tmp_path / name, LOOP[:3], START_NS + k * DAY_NS, robot=robot) for name, k, robot in
+            (("late.mcap", 2, "robot-a"), ("early.mcap", 0, "robot-a"), ("other.mcap", 1, "robot-b"),
+             ("middle.mcap", 1, "robot-a"))]
+    previous = sessions_in_order([str(p) for p in logs], ["late", "early", "other", "middle"])
+    assert previous == [3, None, None, 1]
+
+
+def test_fleet_slam_continue_chains_one_robots_sessions(maps, tmp_path) -> None:
+    root, b = maps
+    logs = tmp_path / "logs"
+    later = room_session(logs / "c.mcap", LOOP[B_START + 20:B_START + 20 + LAP], START_NS + 2 * DAY_NS, seed=2000)
+    shutil.copy(b, logs / "b.mcap")
+    out = tmp_path / "out"
+    run = subprocess.run([TRUNDLE, "fleet", "slam", str(later), str(logs / "b.mcap"), "-o", str(out), "--num-cpus", "1",
+                          "--continue", str(root / "a")], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    first = json.loads((out / "b" / "session" / "session.json").read_text())
+    second = json.loads((out / "c" / "session" / "session.json").read_text())
+    assert [Path(s["log"]).name for s in first["sessions"]] == ["a.mcap", "b.mcap"]
+    assert [Path(s["log"]).name for s in second["sessions"]] == ["a.mcap", "b.mcap", "c.mcap"]
+    assert json.loads((out / "c" / "report.json").read_text())["cross_session_closures"]["accepted"] >= 1

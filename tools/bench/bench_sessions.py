@@ -12,7 +12,14 @@ within 0.2 m and 3 deg of the reference's), the relation error (consecutive scan
 of continuing against mapping the half alone (``processing_s`` of the run; ``continue_s`` the
 placement, cross-session search, optimisation and joint map check on top).
 The logs are imported as the issue says (fr079 ``--odometry none``, Intel ``--drift``).
-Run: python tools/bench/bench_sessions.py [--work DIR] [--dataset fr079|intel]
+
+The demo world (``--dataset demo``): two ``trundle demo`` runs, the first from the office's start with
+seed 0, the second with seed 1 from another start, the route's third corner (the office world with its
+route turned to begin there, :func:`turned_world`); the second run's log continues the first's map
+(both with the markers the daemon saw in their pose graphs). Figures: each marker's error against the
+world file (the joint map placed in the world by the ATE alignment of both sessions' trajectories to the
+simulator's ground truth, as the demo's own report does), the map check, the placement.
+Run: python tools/bench/bench_sessions.py [--work DIR] [--dataset fr079|intel|foreign|demo]
 """
 
 from __future__ import annotations
@@ -32,16 +39,19 @@ import numpy as np
 
 from trundle.fusion.evaluation.trajectory_errors import (
     Trajectory,
+    absolute_trajectory_error,
     align_se2,
+    landmark_error,
     poses_at,
     read_carmen_trajectory,
 )
 from trundle.fusion.geometry import compose, relative, wrap_angle
-from trundle.fusion.mapping.map_io import read_trajectory_csv
+from trundle.fusion.mapping.map_io import read_landmarks_csv, read_trajectory_csv
 from trundle.tools.bench import report
 from trundle.tools.bench.session_halves import split_index, write_halves
 from trundle.tools.cli.main import main
 from trundle.tools.cli.slam_eval import evaluate
+from trundle.tools.sim.world import DEFAULT_WORLD, load_world
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 DATASETS = {"fr079": ("fr079/fr079-corrected-gfs.log.gz", ["--odometry", "none"]),
@@ -181,19 +191,63 @@ def foreign(work: Path) -> dict[str, Any]:
             "foreign new area cross closures": result["cross_session_closures"]["accepted"]}
 
 
+def turned_world(path: Path, corner: int = 2) -> Path:
+    """The default world with its closed route turned to begin at waypoint ``corner`` (and its start pose
+    there, facing the next one), written to ``path``."""
+    world = json.loads(DEFAULT_WORLD.read_text())
+    route = np.array(world["route"], np.float64)
+    corners = route[:-1] if np.allclose(route[0], route[-1]) else route
+    turned = np.roll(corners, -corner, axis=0)
+    turned = np.vstack([turned, turned[:1]])
+    heading = math.atan2(turned[1, 1] - turned[0, 1], turned[1, 0] - turned[0, 0])
+    world.update(route=turned.tolist(), start=[float(turned[0, 0]), float(turned[0, 1]), heading])
+    path.write_text(json.dumps(world))
+    return path
+
+
+def demo(work: Path) -> dict[str, Any]:
+    """Two demo runs, the second continuing the first's map: markers against the world, map check."""
+    runs = [(work / "demo1", 0, DEFAULT_WORLD), (work / "demo2", 1, turned_world(work / "office_turned.json"))]
+    for folder, seed, world in runs:
+        if not (folder / "report.json").is_file():
+            code, _, err = trundle("demo", "-o", str(folder), "--seed", str(seed), "--world", str(world))
+            if not (folder / "demo.mcap").is_file():
+                raise SystemExit(f"trundle demo failed ({code}): {err.strip()}")
+    first, second = work / "demo1_map", work / "demo_continued"
+    if not (first / "report.json").is_file():
+        run(str(runs[0][0] / "demo.mcap"), "-o", str(first))
+    result, wall = run(str(runs[1][0] / "demo.mcap"), "-o", str(second), "--continue", str(first))
+    stamps, poses = read_trajectory_csv(second / "trajectory.csv")
+    truth_parts = [read_trajectory_csv(folder / "ground_truth.csv") for folder, _, _ in runs]
+    truth = Trajectory(np.concatenate([t for t, _ in truth_parts]), np.concatenate([p for _, p in truth_parts]))
+    ate = absolute_trajectory_error(Trajectory(stamps, poses), truth)
+    markers = load_world(DEFAULT_WORLD).markers
+    ids, positions, _ = read_landmarks_csv(second / "landmarks.csv")
+    known = [d for d in markers if str(d.marker_id) in ids]
+    error = landmark_error(ids, positions, [str(d.marker_id) for d in known], np.array([[d.x, d.y] for d in known]),
+                           ate.alignment_xyt)
+    closures = result["cross_session_closures"]
+    return {"demo markers in world": len(markers), "demo markers mapped": len(known),
+            "demo marker errors m": error.per_landmark_m, "demo marker max error m": error.max_m,
+            "demo ate rmse m": ate.rmse_m, "demo map check": result["map_check"]["status"],
+            "demo placed": result["placement"]["placed"], "demo closures accepted": closures["accepted"],
+            "demo closures rejected": closures["rejected"], "demo continue wall s": wall}
+
+
 def cli() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", type=Path, help="folder for the logs and outputs (default: a temporary one)")
-    parser.add_argument("--dataset", choices=[*DATASETS, "foreign"], action="append",
-                        help="only these (default: fr079, intel and foreign)")
+    parser.add_argument("--dataset", choices=[*DATASETS, "foreign", "demo"], action="append",
+                        help="only these (default: fr079, intel, foreign and demo)")
     args = parser.parse_args()
-    chosen = args.dataset or [*DATASETS, "foreign"]
+    chosen = args.dataset or [*DATASETS, "foreign", "demo"]
     with tempfile.TemporaryDirectory() as scratch:
         work = args.work or Path(scratch)
         work.mkdir(parents=True, exist_ok=True)
         figures: dict[str, Any] = {}
+        special = {"foreign": foreign, "demo": demo}
         for name in chosen:
-            figures.update(foreign(work) if name == "foreign" else dataset(name, work))
+            figures.update(special[name](work) if name in special else dataset(name, work))
         report.write("sessions" if not args.dataset else "sessions_" + "_".join(chosen), figures)
 
 

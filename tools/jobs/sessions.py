@@ -154,7 +154,8 @@ def read_bundle(mapdir: Path) -> tuple[SessionGraph, SlamConfig, dict[str, Any]]
     slam output, one from a trundle before session bundles or of another bundle version, and a damaged
     bundle are one line each (UserError / DataError)."""
     if not mapdir.is_dir():
-        raise UserError(f"--continue {mapdir}: no such folder (give the output folder of a trundle slam run)")
+        what = "not a folder" if mapdir.exists() else "no such folder"
+        raise UserError(f"--continue {mapdir}: {what} (give the output folder of a trundle slam run)")
     folder = mapdir / BUNDLE
     if not (folder / "session.json").is_file():
         if (mapdir / "map.yaml").is_file() or (mapdir / "report.json").is_file():

@@ -51,6 +51,7 @@ from trundle.tools.bench import report
 from trundle.tools.bench.session_halves import split_index, write_halves
 from trundle.tools.cli.main import main
 from trundle.tools.cli.slam_eval import evaluate
+from trundle.tools.jobs.sessions import read_bundle
 from trundle.tools.sim.world import DEFAULT_WORLD, load_world
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
@@ -186,9 +187,14 @@ def foreign(work: Path) -> dict[str, Any]:
     code, _, err = trundle("slam", str(intel_b), "-o", str(work / "foreign"), "--continue", str(fr079_a))
     result, _ = run(str(intel_b), "-o", str(work / "foreign_new_area"), "--continue", str(fr079_a),
                     "--allow-new-area")
+    graph = read_bundle(work / "foreign_new_area")[0]
+    old, new = graph.poses[graph.session == 0], graph.poses[graph.session == 1]
     return {"foreign exit code": code, "foreign stderr lines": len(err.strip().splitlines()),
             "foreign message": err.strip(), "foreign new area placed": result["placement"]["placed"],
-            "foreign new area cross closures": result["cross_session_closures"]["accepted"]}
+            "foreign new area cross closures": result["cross_session_closures"]["accepted"],
+            "foreign new area cross edges": int(graph.cross_edges().size),
+            "foreign new area gap m": float(new[:, 0].min() - old[:, 0].max()),
+            "foreign new area continue s": result["continue_s"]}
 
 
 def turned_world(path: Path, corner: int = 2) -> Path:

@@ -43,6 +43,8 @@ def register(p: argparse.ArgumentParser) -> None:
 def say_continued(args: argparse.Namespace, report: dict[str, Any]) -> None:
     """The summary of a continued map: where the log was placed, the cross-session closures, the map check."""
     placement, closures, check = report["placement"], report["cross_session_closures"], report["map_check"]
+    if report.get("other_laser"):
+        print(f"trundle slam: warning: {report['other_laser']}", file=sys.stderr)
     x, y, theta = placement["first_pose"]
     if placement["placed"]:
         print(f"placed in the map of {args.continue_from}: starts at ({x:.2f} m, {y:.2f} m, "

@@ -249,9 +249,11 @@ def check_config(mapdir: Path, there: SlamConfig, here: SlamConfig) -> None:
         raise UserError(f"--continue {mapdir}: the map was made with another [slam] config: {differences[0]}{more}")
 
 
-def check_laser(mapdir: Path, meta: dict[str, Any], scan: m.LaserScan, mount: np.ndarray) -> None:
+def check_laser(mapdir: Path, meta: dict[str, Any], scan: m.LaserScan, mount: np.ndarray,
+                allow_new_area: bool = False) -> str | None:
     """A map continues only with the laser it was made with: beams, field of view, range limits and mount
-    (1 mm, 1 mrad); one line saying both."""
+    (1 mm, 1 mrad); else one line saying both. With ``allow_new_area`` (the log may be of somewhere else)
+    that line is returned for the report instead (None: the same laser)."""
     there = meta.get("laser")
     here = laser_description(scan, mount)
     if not isinstance(there, dict):
@@ -269,6 +271,9 @@ def check_laser(mapdir: Path, meta: dict[str, Any], scan: m.LaserScan, mount: np
         return (f"{d.get('beams')} beams over {fov:.1f} deg to {float(d.get('range_max', math.nan)):.1f} m at "
                 f"({x:.3f} m, {y:.3f} m, {math.degrees(yaw):.1f} deg)")
 
-    if not same:
-        raise UserError(f"--continue {mapdir}: the map was made with another laser: {said(there)} there, "
-                        f"{said(here)} here")
+    if same:
+        return None
+    line = f"the map was made with another laser: {said(there)} there, {said(here)} here"
+    if not allow_new_area:
+        raise UserError(f"--continue {mapdir}: {line} (--allow-new-area adds the log as a part of its own)")
+    return line

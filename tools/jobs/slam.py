@@ -143,11 +143,12 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
         raise UserError(f"{log}: no scans on {slam_config.scan.topic}")
     landmarks = slam.landmarks()
     if old is not None and continue_from is not None:
-        check_laser(continue_from, old[2], slam.keyframe_scans_taken[0], slam.keyframe_mounts[0])
+        laser = check_laser(continue_from, old[2], slam.keyframe_scans_taken[0], slam.keyframe_mounts[0],
+                            allow_new_area)
         timing = {"duration_s": info.duration_s, "processing_s": processing_s, "cpu_s": cpu_s}
         return continue_log(log, continue_from, output, old, from_slam(slam, landmarks), slam_config,
-                            {"log_damage": damage_dict(reader.last_damage), "odometry_source": odometry, **timing},
-                            freeze, allow_new_area)
+                            {"log_damage": damage_dict(reader.last_damage), "odometry_source": odometry,
+                             "other_laser": laser, **timing}, freeze, allow_new_area)
 
     stamps, poses = slam.trajectory()
     end_ns = int(stamps.max())

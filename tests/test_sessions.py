@@ -20,6 +20,7 @@ import pytest
 from tests.session_logs import OTHER_ROOM, START_NS, other_room_drive, room_loop, room_session
 from trundle.fusion.geometry import relative, wrap_angle
 from trundle.fusion.mapping.map_io import load_map, read_trajectory_csv
+from trundle.fusion.slam.sessions import session_submaps
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
 from trundle.tools.fleet.run import sessions_in_order
@@ -71,7 +72,11 @@ def test_slam_writes_a_bundle_readable_as_plain_files(maps) -> None:
     edges = read_csv(bundle / "edges.csv")
     assert len(edges) == meta["edges"] >= len(nodes) - 1
     stamps, poses = read_trajectory_csv(root / "a" / "trajectory.csv")
-    graph, _, _ = read_bundle(root / "a")
+    graph, config, _ = read_bundle(root / "a")
+    members = {}
+    for row in read_csv(bundle / "submaps.csv"):
+        members.setdefault(int(row["submap"]), []).append(int(row["node"]))
+    assert [s.nodes for s in session_submaps(graph, config)] == list(members.values())  # as the submaps are built
     joined_stamps, joined, _ = graph.trajectory()
     np.testing.assert_array_equal(joined_stamps, stamps)
     np.testing.assert_allclose(joined, poses, atol=2e-6)   # the trajectory from keyframes + offsets in the bundle

@@ -28,6 +28,7 @@ first keyframe is then fixed where it is, beside the old map.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -80,6 +81,7 @@ class SessionGraph:
     scan_offsets: np.ndarray
     landmarks: LandmarkMap | None = None
     fixed: set[int] = field(default_factory=lambda: {0})
+    submaps: list[Submap] | None = None  # built once by :func:`session_submaps`; they move with their anchors
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -136,6 +138,18 @@ def session_submaps(graph: SessionGraph, config: SlamConfig) -> list[Submap]:
         for submap in stack.submaps:
             submap.index = len(out)
             out.append(submap)
+    graph.submaps = out
+    return out
+
+
+def submap_members(graph: SessionGraph, config: SlamConfig) -> list[list[int]]:
+    """The keyframes (nodes) of every submap :func:`session_submaps` makes, without building them: in each
+    session a submap starts every ``scans_per_submap`` keyframes and holds twice that many (fewer at the end)."""
+    per = config.submaps.scans_per_submap
+    out = []
+    for session in range(graph.sessions):
+        nodes = np.flatnonzero(graph.session == session).tolist()
+        out += [nodes[start:start + 2 * per] for start in range(0, len(nodes), per)]
     return out
 
 
@@ -211,7 +225,8 @@ def placed(new: SessionGraph, transform: np.ndarray, session: int) -> SessionGra
                                 landmarks.sightings.copy(), landmarks.yaw + transform[2])
     return SessionGraph(np.full(len(new), session, np.int64), new.stamps, compose(transform, new.poses), new.scans,
                         new.mounts, new.points, new.free, new.edges, new.scan_stamps,
-                        np.full(len(new.scan_stamps), session, np.int64), new.scan_nodes, new.scan_offsets, landmarks)
+                        np.full(len(new.scan_stamps), session, np.int64), new.scan_nodes, new.scan_offsets, landmarks,
+                        set(new.fixed), new.submaps)
 
 
 @dataclass
@@ -284,7 +299,11 @@ def join(old: SessionGraph, new: SessionGraph) -> SessionGraph:
                         np.concatenate([old.scan_session, new.scan_session]),
                         np.concatenate([old.scan_nodes, new.scan_nodes + offset]),
                         np.concatenate([old.scan_offsets, new.scan_offsets]), landmarks,
-                        set(old.fixed) | {k + offset for k in new.fixed})
+                        set(old.fixed) | {k + offset for k in new.fixed},
+                        None if old.submaps is None or new.submaps is None else
+                        old.submaps + [dataclasses.replace(s, index=len(old.submaps) + s.index,
+                                                           anchor_node=s.anchor_node + offset,
+                                                           nodes=[n + offset for n in s.nodes]) for s in new.submaps])
 
 
 def merge_landmarks(old: LandmarkMap | None, new: LandmarkMap | None) -> LandmarkMap | None:
@@ -341,7 +360,7 @@ def optimize(graph: SessionGraph, config: SlamConfig, freeze: bool, stats: Cross
     moved = move_landmarks(graph, pose_graph.poses)
     return SessionGraph(graph.session, graph.stamps, pose_graph.poses, graph.scans, graph.mounts, graph.points,
                         graph.free, pose_graph.edges, graph.scan_stamps, graph.scan_session, graph.scan_nodes,
-                        graph.scan_offsets, moved, graph.fixed)
+                        graph.scan_offsets, moved, graph.fixed, graph.submaps)
 
 
 def move_landmarks(graph: SessionGraph, poses: np.ndarray) -> LandmarkMap | None:

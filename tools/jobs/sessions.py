@@ -33,7 +33,7 @@ import numpy as np
 
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.landmark_slam import LandmarkMap
-from trundle.fusion.slam.sessions import SessionGraph, keyframe_points, session_submaps
+from trundle.fusion.slam.sessions import SessionGraph, keyframe_points, submap_members
 from trundle.logs import messages as m
 from trundle.logs.errors import DataError, UserError
 from trundle.logs.importers import write_log
@@ -105,7 +105,7 @@ def write_bundle(output: Path, graph: SessionGraph, config: SlamConfig, logs: li
           [[int(t), int(s), int(n), *map(_f, o)] for t, s, n, o in
            zip(graph.scan_stamps, graph.scan_session, graph.scan_nodes, graph.scan_offsets, strict=True)])
     _rows(folder / "submaps.csv", SUBMAPS_HEADER,
-          [[s.index, s.anchor_node, n] for s in session_submaps(graph, config) for n in s.nodes])
+          [[k, nodes[0], n] for k, nodes in enumerate(submap_members(graph, config)) for n in nodes])
     landmarks = graph.landmarks
     if landmarks is not None:
         _rows(folder / "landmarks.csv", LANDMARKS_HEADER,
@@ -222,6 +222,11 @@ def read_bundle(mapdir: Path) -> tuple[SessionGraph, SlamConfig, dict[str, Any]]
                          list(free), (ij.reshape(-1, 2), edges[:, 2:5].reshape(-1, 3), info),
                          scans_rows[:, 0].astype(np.int64), scans_rows[:, 1].astype(np.int64), scan_nodes,
                          scans_rows[:, 3:6], landmarks, set(fixed))
+    members: dict[str, list[int]] = {}
+    for row in _table(folder / "submaps.csv", SUBMAPS_HEADER, damaged):
+        members.setdefault(row[0], []).append(int(row[2]) if row[2].isdigit() else -1)
+    if list(members.values()) != submap_members(graph, config):
+        raise DataError(f"{damaged}: submaps.csv does not hold the submaps its keyframes make")
     return graph, config, meta
 
 

@@ -26,17 +26,35 @@ OTHER_ROOM = np.array([
 OTHER_WAYPOINTS = np.array([(-4.0, -1.0), (4.0, -1.0), (4.0, 1.0), (-4.0, 1.0), (-4.0, -1.0)])
 
 
+# Point landmarks (marker ids) on ROOM's walls, seen within MARKER_RANGE_M
+ROOM_MARKERS = {"3": (-4.9, 0.5), "17": (0.9, -2.0), "42": (4.9, 2.0), "71": (-1.0, 3.9)}
+MARKER_RANGE_M = 4.0
+MARKER_SIGMA_M = 0.01
+
+
 def room_session(path: Path, truth: np.ndarray, start_ns: int = START_NS, walls: np.ndarray = ROOM,
-                 seed: int = 0, beams: int = 181, robot: str = "robot-a") -> Path:
+                 seed: int = 0, beams: int = 181, robot: str = "robot-a",
+                 markers: dict[str, tuple[float, float]] | None = None) -> Path:
     """An MCAP log of the robot ``robot`` at the ``truth`` poses (the walls' frame), 2 scans a second,
-    270-degree scans of ``beams`` beams with 1 cm noise; its odometry is exact but starts at zero."""
+    270-degree scans of ``beams`` beams with 1 cm noise; its odometry is exact but starts at zero. With
+    ``markers`` (id -> position in the walls' frame) each scan comes with a LandmarkList of those within
+    MARKER_RANGE_M (positions with MARKER_SIGMA_M noise)."""
     items = [("/tf_static", m.TFMessage((m.TransformStamped.planar(start_ns, "base_link", "laser", 0.0, 0.0, 0.0),)),
               start_ns)]
+    rng = np.random.default_rng(seed)
     for k, pose in enumerate(truth):
         stamp = start_ns + 10**9 * (k + 1) // 2
         items.append(("/odom", m.Odometry(stamp, "odom", "base_link", *relative(truth[0], pose)), stamp))
         items.append(("/scan", scan(walls, pose, beams=beams, fov=math.radians(270.0), noise_m=0.01, seed=seed + k,
                                     stamp_ns=stamp, max_range=10.0), stamp))
+        seen = []
+        for name, where in (markers or {}).items():
+            local = relative(pose, np.array([*where, 0.0]))[:2]
+            if np.hypot(*local) <= MARKER_RANGE_M:
+                seen.append(m.LandmarkObservation.from_position(name, local + rng.normal(0.0, MARKER_SIGMA_M, 2),
+                                                                np.eye(2) * MARKER_SIGMA_M ** 2))
+        if seen:
+            items.append(("/landmarks", m.LandmarkList(stamp, "base_link", tuple(seen)), stamp))
     path.parent.mkdir(parents=True, exist_ok=True)
     write_log(items, path, metadata={"command": "test", "host": robot})
     return path

@@ -17,9 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.session_logs import OTHER_ROOM, START_NS, other_room_drive, room_loop, room_session
+from tests.session_logs import OTHER_ROOM, ROOM_MARKERS, START_NS, other_room_drive, room_loop, room_session
+from trundle.fusion.evaluation.trajectory_errors import align_se2, landmark_error
 from trundle.fusion.geometry import relative, wrap_angle
-from trundle.fusion.mapping.map_io import load_map, read_trajectory_csv
+from trundle.fusion.mapping.map_io import load_map, read_landmarks_csv, read_trajectory_csv
 from trundle.fusion.slam.sessions import session_submaps
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
@@ -220,3 +221,25 @@ def test_fleet_slam_continue_chains_one_robots_sessions(maps, tmp_path) -> None:
     assert [Path(s["log"]).name for s in first["sessions"]] == ["a.mcap", "b.mcap"]
     assert [Path(s["log"]).name for s in second["sessions"]] == ["a.mcap", "b.mcap", "c.mcap"]
     assert json.loads((out / "c" / "report.json").read_text())["cross_session_closures"]["accepted"] >= 1
+
+
+def test_landmarks_of_both_sessions_are_optimised_together(tmp_path, capsys) -> None:
+    a = room_session(tmp_path / "a.mcap", LOOP[:LAP], markers=ROOM_MARKERS)
+    b = room_session(tmp_path / "b.mcap", LOOP[B_START:B_START + LAP], START_NS + DAY_NS, seed=1000,
+                     markers=ROOM_MARKERS)
+    assert main(["slam", str(a), "-o", str(tmp_path / "a")]) == 0
+    graph, _, _ = read_bundle(tmp_path / "a")
+    assert len(graph.sightings) == len(read_csv(tmp_path / "a" / "session" / "sightings.csv")) > 0
+    code, _, stderr = trundle(capsys, "slam", str(b), "-o", str(tmp_path / "ab"), "--continue", str(tmp_path / "a"))
+    assert code == 0, stderr
+    joint = read_bundle(tmp_path / "ab")[0]
+    assert len(joint.sightings) > len(graph.sightings) and {s.node for s in joint.sightings} & set(
+        np.flatnonzero(joint.session == 1).tolist())
+    # the joint map placed on the truth by its trajectories (as the demo scores markers): every marker where it is
+    _, poses, sessions = joint.trajectory()
+    truth = np.concatenate([LOOP[:LAP], LOOP[B_START:B_START + LAP]])
+    order = np.concatenate([np.flatnonzero(sessions == 0), np.flatnonzero(sessions == 1)])
+    alignment = align_se2(poses[order, :2], truth[:, :2])
+    ids, positions, _ = read_landmarks_csv(tmp_path / "ab" / "landmarks.csv")
+    error = landmark_error(ids, positions, list(ROOM_MARKERS), np.array(list(ROOM_MARKERS.values())), alignment)
+    assert error.count == len(ROOM_MARKERS) and error.max_m < 0.03, error

@@ -18,7 +18,9 @@ Continuing a map with a new session (:func:`continue_map`):
    against the old sessions' submaps by the loop closer (:class:`trundle.fusion.slam.loop_closure.LoopCloser`,
    the same search, ICP verification and agreement test as within a session; the chain's uncertainty
    starts from the placement's). A placement no closure confirms is no placement.
-3. One optimisation of the joint graph (robust kernel); cross-session closures that still disagree
+3. One optimisation of the joint graph (robust kernel), with every session's landmark sightings as
+   constraints (:class:`trundle.fusion.slam.landmark_grid_slam.LandmarkConstraints`: a marker seen in two
+   sessions ties them as a loop closure does); cross-session closures that still disagree
    are dropped (rejected) and it is optimised again. The old sessions move only through accepted
    cross-session closures (their own edges are at their optimum), or not at all with ``freeze``.
 
@@ -53,6 +55,7 @@ from trundle.fusion.optimization.pose_graph import PoseGraph
 from trundle.fusion.slam.backend import check_keyframes, keyframe_grid
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.grid_slam import Slam
+from trundle.fusion.slam.landmark_grid_slam import LandmarkConstraints, Sighting
 from trundle.fusion.slam.landmark_slam import LandmarkMap
 from trundle.fusion.slam.loop_closure import CHI2_3DOF_999, Closure, LoopCloser
 from trundle.fusion.slam.stats import SlamStats
@@ -65,7 +68,8 @@ class SessionGraph:
     ``session``, ``stamps`` (ns), map ``poses`` (K, 3), ``scans`` as logged, laser ``mounts`` (K, 3,
     base_link), robot-frame ``points`` and no-return ends ``free`` (derived from the scans); ``edges``:
     node pairs (E, 2), measurements (E, 3) and information matrices (E, 3, 3); per scan: stamp,
-    session, keyframe and pose relative to it; ``fixed``: the nodes the optimisation keeps."""
+    session, keyframe and pose relative to it; ``fixed``: the nodes the optimisation keeps; ``sightings``: the
+    landmark sightings, each tied to its keyframe (the joint optimisation's landmark constraints)."""
 
     session: np.ndarray
     stamps: np.ndarray
@@ -82,6 +86,7 @@ class SessionGraph:
     landmarks: LandmarkMap | None = None
     fixed: set[int] = field(default_factory=lambda: {0})
     submaps: list[Submap] | None = None  # built once by :func:`session_submaps`; they move with their anchors
+    sightings: list[Sighting] = field(default_factory=list)  # landmark sightings tied to keyframes (time offset in)
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -120,9 +125,11 @@ def from_slam(slam: Slam, landmarks: LandmarkMap | None = None) -> SessionGraph:
     stamps, _ = slam.trajectory()
     nodes, offsets = slam.backend.scan_keyframes()
     count = len(slam.graph)
+    constraints = slam.landmark_constraints
     return SessionGraph(np.zeros(count, np.int64), slam.keyframe_stamps(), slam.keyframe_poses(),
                         list(slam.keyframe_scans_taken), np.array(slam.keyframe_mounts).reshape(-1, 3), points, free,
-                        slam.graph.edges, stamps, np.zeros(len(stamps), np.int64), nodes, offsets, landmarks)
+                        slam.graph.edges, stamps, np.zeros(len(stamps), np.int64), nodes, offsets, landmarks,
+                        sightings=[] if constraints is None else constraints.applied_sightings())
 
 
 def session_submaps(graph: SessionGraph, config: SlamConfig) -> list[Submap]:
@@ -226,7 +233,7 @@ def placed(new: SessionGraph, transform: np.ndarray, session: int) -> SessionGra
     return SessionGraph(np.full(len(new), session, np.int64), new.stamps, compose(transform, new.poses), new.scans,
                         new.mounts, new.points, new.free, new.edges, new.scan_stamps,
                         np.full(len(new.scan_stamps), session, np.int64), new.scan_nodes, new.scan_offsets, landmarks,
-                        set(new.fixed), new.submaps)
+                        set(new.fixed), new.submaps, new.sightings)
 
 
 @dataclass
@@ -303,7 +310,8 @@ def join(old: SessionGraph, new: SessionGraph) -> SessionGraph:
                         None if old.submaps is None or new.submaps is None else
                         old.submaps + [dataclasses.replace(s, index=len(old.submaps) + s.index,
                                                            anchor_node=s.anchor_node + offset,
-                                                           nodes=[n + offset for n in s.nodes]) for s in new.submaps])
+                                                           nodes=[n + offset for n in s.nodes]) for s in new.submaps],
+                        old.sightings + [dataclasses.replace(s, node=s.node + offset) for s in new.sightings])
 
 
 def merge_landmarks(old: LandmarkMap | None, new: LandmarkMap | None) -> LandmarkMap | None:
@@ -345,7 +353,14 @@ def optimize(graph: SessionGraph, config: SlamConfig, freeze: bool, stats: Cross
         fixed |= set(np.flatnonzero(graph.session < graph.sessions - 1).tolist())
     pose_graph.fixed = fixed
     kernel = config.optimization.kernel
-    pose_graph.optimize(max_iterations=100, robust_kernel=kernel, kernel_width=3.0)
+    constraints = LandmarkConstraints.from_sightings(config, graph.sightings) if graph.sightings else None
+
+    def optimized() -> None:
+        """The joint graph optimised, with every session's landmark sightings when there are any."""
+        if constraints is None or not constraints.optimize(pose_graph, 100, kernel):
+            pose_graph.optimize(max_iterations=100, robust_kernel=kernel, kernel_width=3.0)
+
+    optimized()
     last = graph.sessions - 1
     ij, z, _ = pose_graph.edges
     cross = np.flatnonzero((graph.session[ij[:, 0]] != graph.session[ij[:, 1]]) & (graph.session[ij[:, 1]] == last))
@@ -353,14 +368,14 @@ def optimize(graph: SessionGraph, config: SlamConfig, freeze: bool, stats: Cross
     if len(bad):
         stats.rejected.extend((int(a), int(b), zz) for (a, b), zz in zip(ij[bad], z[bad], strict=True))
         pose_graph.remove_edges(bad)
-        pose_graph.optimize(max_iterations=100, robust_kernel=kernel, kernel_width=3.0)
+        optimized()
     ij, z, _ = pose_graph.edges
     stats.accepted = [(int(a), int(b), zz) for (a, b), zz in zip(ij, z, strict=True)
                       if graph.session[a] != graph.session[b] == last]
-    moved = move_landmarks(graph, pose_graph.poses)
+    moved = move_landmarks(graph, pose_graph.poses) if constraints is None else constraints.landmarks()
     return SessionGraph(graph.session, graph.stamps, pose_graph.poses, graph.scans, graph.mounts, graph.points,
                         graph.free, pose_graph.edges, graph.scan_stamps, graph.scan_session, graph.scan_nodes,
-                        graph.scan_offsets, moved, graph.fixed, graph.submaps)
+                        graph.scan_offsets, moved, graph.fixed, graph.submaps, graph.sightings)
 
 
 def move_landmarks(graph: SessionGraph, poses: np.ndarray) -> LandmarkMap | None:

@@ -17,7 +17,11 @@ The bundle is the folder ``session/`` of a slam output, readable without trundle
 - ``scans.csv``: ``t_ns,session,node,dx,dy,dtheta``: every scan's pose relative to its keyframe (the trajectory);
 - ``submaps.csv``: ``submap,anchor_node,node``: which keyframes make each submap (every session's keyframes in
   order, a new submap every ``submaps.scans_per_submap``, each keyframe in two);
-- ``landmarks.csv`` (when landmarks were mapped): ``id,x,y,c_xx,c_xy,c_yy,sightings,yaw``.
+- ``landmarks.csv`` (when landmarks were mapped): ``id,x,y,c_xx,c_xy,c_yy,sightings,yaw``;
+- ``sightings.csv`` (when landmarks were mapped): ``node,landmark,stamp_s,here_x,here_y,here_theta,vx,vy,wz,x,y,
+  c_xx,c_xy,c_yy,yaw,yaw_variance``: each sighting tied to its keyframe (the robot at the sighting in the
+  keyframe's frame, its velocity, what was seen in the robot frame with its covariance, a marker's yaw and
+  its variance, 0 for a point), so the next session optimises the landmarks with it.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from trundle.fusion.slam.config import SlamConfig
+from trundle.fusion.slam.landmark_grid_slam import Sighting
 from trundle.fusion.slam.landmark_slam import LandmarkMap
 from trundle.fusion.slam.sessions import SessionGraph, keyframe_points, submap_members
 from trundle.logs import messages as m
@@ -50,6 +55,8 @@ EDGES_HEADER = ["i", "j", "dx", "dy", "dtheta", "i_xx", "i_xy", "i_xt", "i_yy", 
 SCANS_HEADER = ["t_ns", "session", "node", "dx", "dy", "dtheta"]
 SUBMAPS_HEADER = ["submap", "anchor_node", "node"]
 LANDMARKS_HEADER = ["id", "x", "y", "c_xx", "c_xy", "c_yy", "sightings", "yaw"]
+SIGHTINGS_HEADER = ["node", "landmark", "stamp_s", "here_x", "here_y", "here_theta", "vx", "vy", "wz", "x", "y",
+                    "c_xx", "c_xy", "c_yy", "yaw", "yaw_variance"]
 _UPPER = ([0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2])
 
 
@@ -106,6 +113,11 @@ def write_bundle(output: Path, graph: SessionGraph, config: SlamConfig, logs: li
            zip(graph.scan_stamps, graph.scan_session, graph.scan_nodes, graph.scan_offsets, strict=True)])
     _rows(folder / "submaps.csv", SUBMAPS_HEADER,
           [[k, nodes[0], n] for k, nodes in enumerate(submap_members(graph, config)) for n in nodes])
+    if graph.sightings:
+        _rows(folder / "sightings.csv", SIGHTINGS_HEADER,
+              [[v.node, v.landmark, _f(v.stamp_s), *map(_f, v.here), *map(_f, v.velocity), *map(_f, v.position),
+                _f(v.position_covariance[0, 0]), _f(v.position_covariance[0, 1]), _f(v.position_covariance[1, 1]),
+                _f(v.yaw), _f(v.yaw_variance)] for v in graph.sightings])
     landmarks = graph.landmarks
     if landmarks is not None:
         _rows(folder / "landmarks.csv", LANDMARKS_HEADER,
@@ -207,10 +219,23 @@ def read_bundle(mapdir: Path) -> tuple[SessionGraph, SlamConfig, dict[str, Any]]
     landmarks = None
     if (folder / "landmarks.csv").is_file():
         rows = _table(folder / "landmarks.csv", LANDMARKS_HEADER, damaged)
-        values = _numbers(rows, slice(1, 8), "landmarks.csv", damaged).reshape(-1, 7)
+        values = _numbers(rows, slice(1, 7), "landmarks.csv", damaged).reshape(-1, 6)
+        try:  # a point landmark has no yaw (nan)
+            yaw = np.array([float(r[7]) for r in rows], np.float64)
+        except ValueError:
+            raise DataError(f"{damaged}: landmarks.csv holds a yaw that is not a number") from None
         covariances = np.stack([values[:, 2], values[:, 3], values[:, 3], values[:, 4]], axis=1).reshape(-1, 2, 2)
-        landmarks = LandmarkMap([r[0] for r in rows], values[:, :2], covariances, values[:, 5].astype(np.int64),
-                                values[:, 6])
+        landmarks = LandmarkMap([r[0] for r in rows], values[:, :2], covariances, values[:, 5].astype(np.int64), yaw)
+    sightings = []
+    if (folder / "sightings.csv").is_file():
+        rows = _table(folder / "sightings.csv", SIGHTINGS_HEADER, damaged)
+        values = _numbers([[r[0], *r[2:]] for r in rows], slice(0, 15), "sightings.csv", damaged).reshape(-1, 15)
+        if values.size and (values[:, 0].min() < 0 or values[:, 0].max() >= count):
+            raise DataError(f"{damaged}: sightings.csv names keyframes it does not hold")
+        for row, v in zip(rows, values, strict=True):
+            covariance = np.array([[v[10], v[11]], [v[11], v[12]]])
+            sightings.append(Sighting(int(v[0]), row[1], float(v[1]), v[2:5].copy(), v[5:8].copy(), v[8:10].copy(),
+                                      covariance, float(v[13]), float(v[14])))
     fixed = meta.get("fixed")
     if not isinstance(fixed, list) or any(not isinstance(k, int) or not 0 <= k < count for k in fixed):
         raise DataError(f"{damaged}: session.json's fixed nodes are not keyframes")
@@ -221,7 +246,7 @@ def read_bundle(mapdir: Path) -> tuple[SessionGraph, SlamConfig, dict[str, Any]]
     graph = SessionGraph(sessions, nodes[:, 2].astype(np.int64), nodes[:, 3:6], taken, mounts, list(points),
                          list(free), (ij.reshape(-1, 2), edges[:, 2:5].reshape(-1, 3), info),
                          scans_rows[:, 0].astype(np.int64), scans_rows[:, 1].astype(np.int64), scan_nodes,
-                         scans_rows[:, 3:6], landmarks, set(fixed))
+                         scans_rows[:, 3:6], landmarks, set(fixed), sightings=sightings)
     members: dict[str, list[int]] = {}
     for row in _table(folder / "submaps.csv", SUBMAPS_HEADER, damaged):
         members.setdefault(row[0], []).append(int(row[2]) if row[2].isdigit() else -1)

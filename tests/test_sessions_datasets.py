@@ -9,7 +9,7 @@ import pytest
 
 from tests.conftest import shared_file
 from trundle.fusion.evaluation.trajectory_errors import read_carmen_trajectory
-from trundle.tools.bench.bench_sessions import DATASETS, dataset, foreign
+from trundle.tools.bench.bench_sessions import DATASETS, dataset, demo, foreign
 from trundle.tools.bench.session_halves import split_index
 
 pytestmark = pytest.mark.slow
@@ -46,3 +46,12 @@ def test_the_cut_is_where_both_halves_go(name) -> None:
     stamps, positions = reference.stamps_ns, reference.poses[:, :2]
     for side in (stamps < stamps[k] - gap, stamps > stamps[k] + gap):
         assert np.hypot(*(positions[side] - positions[k]).T).min() < 1.0
+
+
+def test_demo_world_second_run_continues_the_first(tmp_path) -> None:
+    """Two demo runs (seeds 0 and 1, the second from another corner of the route), the second continuing
+    the first's map: every marker within 5 cm of the world file, the map check passing."""
+    figures = demo(tmp_path)
+    assert figures["demo placed"] and figures["demo closures accepted"] >= 1, figures
+    assert figures["demo markers mapped"] == figures["demo markers in world"], figures
+    assert figures["demo marker max error m"] <= 0.05 and figures["demo map check"] == "passed", figures

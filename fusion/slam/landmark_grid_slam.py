@@ -125,23 +125,6 @@ class LandmarkConstraints:
         self._sightings_at_optimization = 0
         self._nodes_at_landmark_optimization = 0
 
-    @classmethod
-    def from_sightings(cls, config: SlamConfig, sightings: list[Sighting]) -> LandmarkConstraints:
-        """Constraints of sightings already tied to keyframes (e.g. several sessions' in one graph, each
-        with its own time offset already applied, :meth:`applied_sightings`); no time offset is estimated."""
-        out = cls(config, max_time_offset_s=0.0)
-        out._sightings = list(sightings)
-        out.stats.sightings = len(sightings)
-        for s in sightings:
-            out._first_node[s.landmark] = min(out._first_node.get(s.landmark, s.node), s.node)
-        return out
-
-    def applied_sightings(self) -> list[Sighting]:
-        """Every sighting with the estimated time offset applied (the robot moved along by its velocity
-        times the offset), so it means the same with no offset."""
-        offset = self.stats.time_offset_s
-        return [dataclasses.replace(s, here=compose(s.here, s.velocity * offset)) for s in self._sightings]
-
     def add(self, msg: m.LandmarkList, anchor: tuple[int, np.ndarray, np.ndarray] | None, nodes: int) -> bool:
         """Tie the sightings to keyframe ``anchor`` = (node, the robot at their stamp in its frame, its
         velocity: vx, vy, wz); None before the first scan. ``nodes``: keyframes so far. Returns whether
@@ -367,6 +350,24 @@ class LandmarkConstraints:
                            np.array([covariance[n] for n in names]), np.array([counts.get(n, 0) for n in names]),
                            np.array([wrap_angle(float(self._estimates[n][2])) if len(self._estimates[n]) == 3
                                      else np.nan for n in names]))
+
+
+def from_sightings(config: SlamConfig, sightings: list[Sighting]) -> LandmarkConstraints:
+    """Constraints of sightings already tied to keyframes (e.g. several sessions' in one graph, each with
+    its own time offset already applied, :func:`applied_sightings`); no time offset is estimated."""
+    out = LandmarkConstraints(config, max_time_offset_s=0.0)
+    out._sightings = list(sightings)
+    out.stats.sightings = len(sightings)
+    for s in sightings:
+        out._first_node[s.landmark] = min(out._first_node.get(s.landmark, s.node), s.node)
+    return out
+
+
+def applied_sightings(constraints: LandmarkConstraints) -> list[Sighting]:
+    """Every sighting of ``constraints`` with its estimated time offset applied (the robot moved along by its
+    velocity times the offset), so it means the same with no offset."""
+    offset = constraints.stats.time_offset_s
+    return [dataclasses.replace(s, here=compose(s.here, s.velocity * offset)) for s in constraints._sightings]
 
 
 def _position_block(z: np.ndarray, covariance: np.ndarray) -> np.ndarray:

@@ -19,7 +19,7 @@ Continuing a map with a new session (:func:`continue_map`):
    the same search, ICP verification and agreement test as within a session; the chain's uncertainty
    starts from the placement's). A placement no closure confirms is no placement.
 3. One optimisation of the joint graph (robust kernel), with every session's landmark sightings as
-   constraints (:class:`trundle.fusion.slam.landmark_grid_slam.LandmarkConstraints`: a marker seen in two
+   constraints (:func:`trundle.fusion.slam.landmark_grid_slam.from_sightings`: a marker seen in two
    sessions ties them as a loop closure does); cross-session closures that still disagree
    are dropped (rejected) and it is optimised again. The old sessions move only through accepted
    cross-session closures (their own edges are at their optimum), or not at all with ``freeze``.
@@ -55,7 +55,7 @@ from trundle.fusion.optimization.pose_graph import PoseGraph
 from trundle.fusion.slam.backend import check_keyframes, keyframe_grid
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.grid_slam import Slam
-from trundle.fusion.slam.landmark_grid_slam import LandmarkConstraints, Sighting
+from trundle.fusion.slam.landmark_grid_slam import Sighting, applied_sightings, from_sightings
 from trundle.fusion.slam.landmark_slam import LandmarkMap
 from trundle.fusion.slam.loop_closure import CHI2_3DOF_999, Closure, LoopCloser
 from trundle.fusion.slam.stats import SlamStats
@@ -129,7 +129,7 @@ def from_slam(slam: Slam, landmarks: LandmarkMap | None = None) -> SessionGraph:
     return SessionGraph(np.zeros(count, np.int64), slam.keyframe_stamps(), slam.keyframe_poses(),
                         list(slam.keyframe_scans_taken), np.array(slam.keyframe_mounts).reshape(-1, 3), points, free,
                         slam.graph.edges, stamps, np.zeros(len(stamps), np.int64), nodes, offsets, landmarks,
-                        sightings=[] if constraints is None else constraints.applied_sightings())
+                        sightings=[] if constraints is None else applied_sightings(constraints))
 
 
 def session_submaps(graph: SessionGraph, config: SlamConfig) -> list[Submap]:
@@ -353,7 +353,7 @@ def optimize(graph: SessionGraph, config: SlamConfig, freeze: bool, stats: Cross
         fixed |= set(np.flatnonzero(graph.session < graph.sessions - 1).tolist())
     pose_graph.fixed = fixed
     kernel = config.optimization.kernel
-    constraints = LandmarkConstraints.from_sightings(config, graph.sightings) if graph.sightings else None
+    constraints = from_sightings(config, graph.sightings) if graph.sightings else None
 
     def optimized() -> None:
         """The joint graph optimised, with every session's landmark sightings when there are any."""

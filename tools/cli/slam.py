@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{landmarks['mapped']} landmarks from {landmarks['sightings']} sightings on {landmarks['topic']} in the "
               f"pose graph")
     print(f"wrote {args.output}/map.pgm, map.yaml, map.png, trajectory.png, scans.png, trajectory.csv, "
-          f"{'landmarks.csv, ' if landmarks else ''}report.json, slam.mcap")
+          f"{'landmarks.csv, ' if landmarks else ''}report.json, slam.mcap, session/ (to --continue from)")
     check = report.get("map_check")
     if check is not None and check["passed"] is None:
         print("trundle slam: the map's self-check was not made: no keyframe lies outside the submaps it was "

@@ -118,7 +118,7 @@ def test_continue_places_the_session_and_closes_loops_across_sessions(maps, cont
     assert len(pairs) > LAP // 2
     same = relative(poses[:LAP][[i for i, _ in pairs]], poses[LAP:][[k for _, k in pairs]])
     assert np.hypot(same[:, 0], same[:, 1]).max() < 0.03 and np.abs(wrap_angle(same[:, 2])).max() < math.radians(1.0)
-    for name in ("map.pgm", "map.yaml", "map.png", "trajectory.png", "slam.mcap"):
+    for name in ("map.pgm", "map.yaml", "map.png", "sessions.png", "trajectory.png", "slam.mcap"):
         assert (out / name).is_file()
     joint, alone = load_map(out / "map.yaml"), load_map(root / "a" / "map.yaml")
     assert np.abs(np.subtract(joint.data.shape, alone.data.shape)).max() <= 4   # one room, not two side by side

@@ -57,8 +57,8 @@ def say_continued(args: argparse.Namespace, report: dict[str, Any]) -> None:
     print(f"{len(report['sessions'])} sessions, {report['keyframes']} keyframes; mapping the log took "
           f"{report['processing_s']:.1f} s, continuing the map {report['continue_s']:.1f} s; "
           f"map check {check['status']}")
-    print(f"wrote {args.output}/map.pgm, map.yaml, map.png, trajectory.png, trajectory.csv, report.json, slam.mcap, "
-          "session/")
+    print(f"wrote {args.output}/map.pgm, map.yaml, map.png, sessions.png, trajectory.png, trajectory.csv, report.json, "
+          "slam.mcap, session/")
 
 
 def run(args: argparse.Namespace) -> int:

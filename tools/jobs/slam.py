@@ -24,9 +24,10 @@ from typing import Any
 
 import numpy as np
 
+from trundle.fusion.geometry import transform_points
 from trundle.fusion.mapping.map_check import MapCheck
 from trundle.fusion.mapping.map_io import save_map, write_trajectory_csv
-from trundle.fusion.mapping.map_plot import Track, plot_scans, plot_trajectory
+from trundle.fusion.mapping.map_plot import Track, plot_scans, plot_sessions, plot_trajectory
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.estimators import GRID, EstimatorInputs, make_estimator, resolve
 from trundle.fusion.slam.grid_slam import Slam
@@ -205,11 +206,12 @@ def continue_log(log: Path, mapdir: Path, output: Path, old: tuple[SessionGraph,
                  allow_new_area: bool = False) -> dict[str, Any]:
     """Continue the map of ``mapdir`` (its bundle ``old``) with ``new``, the session ``log`` was just mapped as
     (:func:`trundle.fusion.slam.sessions.continue_map`) and write the joint map into ``output``: ``map.pgm`` +
-    ``map.yaml`` + ``map.png``, ``trajectory.png`` (each session's path in its own colour, cross-session
-    closures as lines), ``trajectory.csv`` (``t_ns,x,y,theta,session``), ``report.json`` (where the session was
-    placed and how sure, the cross-session closures accepted and rejected, the map check), ``slam.mcap``
-    (``/map``, ``/path``) and ``session/``. A log that cannot be placed is one UserError line (unless
-    ``allow_new_area``: a disconnected new part of the map). ``run``: the report's figures of the run of ``log``."""
+    ``map.yaml`` + ``map.png``, ``sessions.png`` (each session's scan endpoints in its own colour),
+    ``trajectory.png`` (each session's path in its own colour, cross-session closures as lines),
+    ``trajectory.csv`` (``t_ns,x,y,theta,session``), ``report.json`` (where the session was placed and how
+    sure, the cross-session closures accepted and rejected, the map check), ``slam.mcap`` (``/map``,
+    ``/path``) and ``session/``. A log that cannot be placed is one UserError line (unless ``allow_new_area``:
+    a disconnected new part of the map). ``run``: the report's figures of the run of ``log``."""
     graph, _, meta = old
     started, cpu_started = time.perf_counter(), time.process_time()
     continued = continue_map(graph, new, config, freeze, allow_new_area)
@@ -252,6 +254,10 @@ def continue_log(log: Path, mapdir: Path, output: Path, old: tuple[SessionGraph,
         write_trajectory_csv(output / "trajectory.csv", stamps[order], poses[order], sessions=sessions[order])
         plot_trajectory(map_msg, output / "trajectory.png", tracks, f"{len(logs)} sessions, each in its colour",
                         loops=cross, landmarks=drawn)
+        endpoints = [transform_points(p, q) for p, q in zip(joined.poses, joined.points, strict=True)]
+        plot_sessions(map_msg, output / "sessions.png",
+                      [[e for e, k in zip(endpoints, joined.session, strict=True) if k == s] for s in range(len(logs))],
+                      [t.label for t in tracks], [t.colour for t in tracks], f"the map of {len(logs)} sessions")
         with writing_file(output / "slam.mcap") as tmp:
             write_log([(MAP_TOPIC, map_msg, end_ns), (PATH_TOPIC, m.Path(end_ns, "map", stamps[order], poses[order]),
                                                       end_ns)], tmp, metadata={"command": "slam", "source": str(log)})

@@ -24,3 +24,5 @@ MAP_TOPIC = "/map"                                  # nav_msgs/OccupancyGrid
 PATH_TOPIC = "/path"                                # nav_msgs/Path: the SLAM trajectory
 LANDMARK_TOPIC = "/landmarks"                       # trundle_msgs/LandmarkList: landmark sightings (robot frame)
 LANDMARK_MAP_TOPIC = "/landmarks/map"               # visualization_msgs/MarkerArray: the mapped landmarks
+SESSION_SCAN_TOPIC = "/session/keyframes/scan"      # sensor_msgs/LaserScan: a session bundle's keyframe scans
+SESSION_POSE_TOPIC = "/session/keyframes/pose"      # geometry_msgs/PoseWithCovarianceStamped: their map poses

@@ -113,7 +113,7 @@ def files(tmp_path_factory):
 # read), "config" (a TOML file, empty is fine), "map" (a map folder or YAML), "out" (a file to
 # create), "out or folder" (a file to create, or a folder to put it in), "folder" (a folder to
 # create or reuse), "new folder" (a folder to create, or an empty one), "link" (a path to create),
-# "socket" (a daemon's status socket)).
+# "socket" (a daemon's status socket), "mapdir" (a trundle slam output folder to continue)).
 PATH_OPTIONS: dict[tuple[str, ...], tuple[dict[str, str | None], dict[str, str]]] = {
     ("demo",): ({"-o": "{out}", "--world": "{binary}"}, {"-o": "folder", "--world": "in"}),
     ("record",): ({"--lrf": "scip2:///dev/null", "--duration": "1", "-o": "{out}.mcap"},
@@ -125,7 +125,8 @@ PATH_OPTIONS: dict[tuple[str, ...], tuple[dict[str, str | None], dict[str, str]]
     ("replay",): ({"file": "{log}", "--rate": "0", "-o": "{out}.mcap"},
                   {"file": "in", "--config": "config", "-o": "out"}),
     ("export",): ({"file": "{log}", "--topic": "/odom", "-o": "{out}.csv"}, {"file": "in", "-o": "out"}),
-    ("slam",): ({"log": "{log}", "-o": "{out}"}, {"log": "in", "-o": "new folder", "--config": "config"}),
+    ("slam",): ({"log": "{log}", "-o": "{out}"},
+               {"log": "in", "-o": "new folder", "--config": "config", "--continue": "mapdir"}),
     ("inject-faults",): ({"log": "{log}", "-o": "{out}.mcap", "--glitches": "1"},
                          {"log": "in", "-o": "out", "--config": "config"}),
     ("slam-eval",): ({"result": "{trajectory}", "reference": "{trajectory}"}, {"result": "in", "reference": "in"}),
@@ -143,7 +144,7 @@ PATH_OPTIONS: dict[tuple[str, ...], tuple[dict[str, str | None], dict[str, str]]
     ("emulate", "lrf"): ({"--tcp": "0", "--duration": "0.1"}, {"--link": "link", "--scene": "in"}),
     ("emulate", "can"): ({"--protocol": "odrive", "--link": "{out}", "--duration": "0.1"}, {"--link": "link"}),
     ("emulate", "camera"): ({"--port": "0", "--duration": "0.1"}, {"--source": "in"}),
-    ("fleet",): ({"job": "info", "logs": "{log}", "-o": "{out}"}, {"-o": "folder"}),
+    ("fleet",): ({"job": "info", "logs": "{log}", "-o": "{out}"}, {"-o": "folder", "--continue": "mapdir"}),
     ("characterize",): ({"log": "{log}", "--topic": "/scan", "-o": "{out}"},
                         {"log": "in", "--reference": "in", "-o": "folder"}),
 }
@@ -153,6 +154,7 @@ BAD = {  # kind of path -> the wrong things to give it
     "config": ["{missing}", "{folder}", "/dev/zero", "{binary}"],
     "dataset": ["{missing}", "{folder}", "/dev/zero", "{binary}"],
     "map": ["{missing}", "{folder}", "/dev/zero", "{binary}", "{map}/map.pgm"],
+    "mapdir": ["{missing}", "{folder}", "/dev/zero", "{binary}", "{map}"],
     "out": ["{folder}", "{existing}"],
     "out or folder": ["{existing}"],
     "folder": ["{existing}"],

@@ -61,7 +61,8 @@ def test_job_options_are_converted_by_the_job_functions_type_hints(tmp_path) -> 
 
 @pytest.mark.parametrize("job, items, message", [
     ("slam", ["loops=1"],
-     "slam has no option 'loops' (options: config=None (config), local_only=False (bool), estimator=None (text))"),
+     "slam has no option 'loops' (options: config=None (config), local_only=False (bool), estimator=None (text), "
+     "continue_from=None (path), freeze=False (bool), allow_new_area=False (bool))"),
     ("characterize", [], "characterize needs topic=... in --job-options"),
     ("localize", ["config={}"], "localize needs map_path=..."),
     ("slam", ["local_only=maybe"], "slam option local_only = 'maybe': expected true or false"),

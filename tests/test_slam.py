@@ -142,7 +142,7 @@ def test_config_from_mapping_checks_keys_and_types() -> None:
     ({"scan": {"min_range_m": 5, "max_range_m": 4}}, "max_range_m 4.0 must be above min_range_m 5.0"),
     ({"optimization": {"robust_kernel": "tukey"}}, "slam.optimization.robust_kernel = 'tukey': expected one of"),
     ({"resolution": 0.05}, "unknown key slam.resolution (known in [slam]: keyframes, loop_closure, map_check, "
-                           "odometry, optimization, scan, submaps, tracking)"),
+                           "odometry, optimization, scan, sessions, submaps, tracking)"),
     ({"submaps": {"resolutoin": 0.1}}, "unknown key slam.submaps.resolutoin (known in [slam.submaps]: resolution, "
                                        "scans_per_submap)"),
 ])

@@ -111,14 +111,17 @@ def load_map(yaml_path: str | os.PathLike[str], stamp_ns: int = 0, frame_id: str
 
 
 def write_trajectory_csv(path: str | os.PathLike[str], stamps_ns: np.ndarray, poses: np.ndarray,
-                         replace: bool = False) -> None:
-    """``t_ns,x,y,theta`` per row (metres, radians), header first; a new file (``replace``: or one of
-    a folder the command owns), complete or not at all (:func:`trundle.logs.outputs.writing_file`)."""
+                         replace: bool = False, sessions: np.ndarray | None = None) -> None:
+    """``t_ns,x,y,theta`` per row (metres, radians), header first, and a ``session`` column when ``sessions``
+    are given (the map of several sessions); a new file (``replace``: or one of a folder the command owns),
+    complete or not at all (:func:`trundle.logs.outputs.writing_file`)."""
+    poses = np.asarray(poses, np.float64)
     with writing_file(path, replace=replace) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["t_ns", "x", "y", "theta"])
-        for t, (x, y, theta) in zip(np.asarray(stamps_ns, np.int64), np.asarray(poses, np.float64), strict=True):
-            writer.writerow([int(t), f"{x:.6f}", f"{y:.6f}", f"{theta:.6f}"])
+        writer.writerow(["t_ns", "x", "y", "theta"] + ([] if sessions is None else ["session"]))
+        tail = [[]] * len(poses) if sessions is None else [[int(k)] for k in sessions]
+        for t, (x, y, theta), more in zip(np.asarray(stamps_ns, np.int64), poses, tail, strict=True):
+            writer.writerow([int(t), f"{x:.6f}", f"{y:.6f}", f"{theta:.6f}", *more])
 
 
 def read_trajectory_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:

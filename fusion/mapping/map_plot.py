@@ -20,7 +20,7 @@ import numpy as np
 from matplotlib.artist import Artist
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.colors import ListedColormap
+from matplotlib.colors import ListedColormap, to_rgb
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Ellipse, Patch
@@ -195,6 +195,41 @@ def scans_figure(grid: OccupancyGrid, points: Sequence[np.ndarray], title: str,
         handles.append(Patch(facecolor="magenta", edgecolor="black", label="scans failing the map self-check"))
     _legend(ax, handles)
     return fig
+
+
+def sessions_figure(grid: OccupancyGrid, sessions: Sequence[Sequence[np.ndarray]], labels: Sequence[str],
+                    colours: Sequence[str], title: str) -> Figure:
+    """``sessions.png``: the map's occupied cells in grey, and over them each session's scan endpoints
+    (``sessions[k]``: its keyframes' points, each (N, 2) m, map frame) in that session's colour, labelled;
+    a cell several sessions hit shows them mixed."""
+    fig, ax = _figure(grid, title)
+    height, width = grid.data.shape
+    total = np.zeros((height, width, 3))
+    hits = np.zeros((height, width))
+    for points, colour in zip(sessions, colours, strict=True):
+        seen = np.zeros((height, width), bool)
+        for xy in points:
+            cols = np.floor((xy[:, 0] - grid.origin_x) / grid.resolution).astype(np.int64)
+            rows = np.floor((xy[:, 1] - grid.origin_y) / grid.resolution).astype(np.int64)
+            inside = (cols >= 0) & (rows >= 0) & (cols < width) & (rows < height)
+            seen[rows[inside], cols[inside]] = True
+        total[seen] += to_rgb(colour)
+        hits += seen
+    rgb = np.ones((height, width, 3))
+    rgb[grid.data >= 50] = 0.75
+    rgb[hits > 0] = total[hits > 0] / hits[hits > 0, None]
+    ax.imshow(rgb, extent=_extent(grid), interpolation="nearest", origin="lower", zorder=0)
+    handles = [Patch(facecolor=colour, edgecolor="black", label=label) for label, colour in zip(labels, colours,
+                                                                                                strict=True)]
+    handles.append(Patch(facecolor=(0.75, 0.75, 0.75), edgecolor="black", label="occupied, no endpoint drawn"))
+    _legend(ax, handles)
+    return fig
+
+
+def plot_sessions(grid: OccupancyGrid, path: str | os.PathLike[str], sessions: Sequence[Sequence[np.ndarray]],
+                  labels: Sequence[str], colours: Sequence[str], title: str = "sessions over the map") -> Path:
+    """Write ``sessions.png`` (:func:`sessions_figure`)."""
+    return save_figure(sessions_figure(grid, sessions, labels, colours, title), path)
 
 
 def save_figure(fig: Figure, path: str | os.PathLike[str], replace: bool = False) -> Path:

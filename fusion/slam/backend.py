@@ -17,7 +17,7 @@ import numpy as np
 from trundle.fusion.geometry import compose, inverse, transform_points, voxel_filter
 from trundle.fusion.mapping.map_check import MapCheck, check_map
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
-from trundle.fusion.mapping.submaps import SubmapStack
+from trundle.fusion.mapping.submaps import Submap, SubmapStack
 from trundle.fusion.matching.scan_matching import refine_pose
 from trundle.fusion.optimization.pose_graph import PoseGraph
 from trundle.fusion.slam.config import SlamConfig
@@ -37,6 +37,39 @@ class ConstraintSource(Protocol):
     def finish(self, backend: PoseGraphBackend) -> None:
         """End of the run, after the back end's final optimisation (may optimise again)."""
         ...
+
+
+def keyframe_grid(poses: np.ndarray, points: list[np.ndarray], free: list[np.ndarray | None], mount: np.ndarray,
+                  resolution: float) -> LogOddsGrid:
+    """A fresh occupancy grid (``resolution`` m/cell) from keyframe scans: ``points`` and no-return ends
+    ``free`` (robot frame) at ``poses`` (map frame), a laser at ``mount`` (base_link; one for all or one per
+    keyframe), free wherever the laser only ever saw through (:meth:`LogOddsGrid.clear_seen_through`): a
+    short or stationary log's few keyframes carve free space too."""
+    grid = LogOddsGrid(resolution, mark_returns=True)
+    mounts = np.broadcast_to(np.asarray(mount, np.float64), (len(poses), 3))
+    for pose, laser, hits_local, free_local in zip(poses, mounts, points, free, strict=True):
+        origin = compose(pose, laser)[:2]
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        rot = np.array([[c, -s], [s, c]])
+        hits = hits_local @ rot.T + pose[:2]
+        free_ends = None if free_local is None else free_local @ rot.T + pose[:2]
+        grid.insert_rays(origin, hits, free_ends)
+    grid.clear_seen_through()
+    return grid
+
+
+def check_keyframes(config: SlamConfig, submaps: list[Submap], poses: np.ndarray, points: list[np.ndarray],
+                    spacing: np.ndarray, mount: np.ndarray) -> MapCheck:
+    """The map self-check (:func:`trundle.fusion.mapping.map_check.check_map`) of keyframes at ``poses``:
+    each against the ``submaps`` outside the two it was tracked against and inserted into (a laser at
+    ``mount``, one for all or one per keyframe; ``spacing``: each keyframe's angle between beams, rad)."""
+    frames = np.array([s.local_to_map(poses[s.anchor_node]) for s in submaps]).reshape(-1, 3)
+    thinned = [voxel_filter(p, config.scan.voxel_m) for p in points]
+    mounts = np.broadcast_to(np.asarray(mount, np.float64), (len(poses), 3))
+    ranges = [np.hypot(*(p - laser[:2]).T) for p, laser in zip(thinned, mounts, strict=True)]
+    opts = config.map_check
+    return check_map(submaps, frames, poses, thinned, ranges, np.asarray(spacing),
+                     2 * config.submaps.scans_per_submap, opts.tolerance_cells, opts.min_stretch)
 
 
 class PoseGraphBackend:
@@ -104,6 +137,10 @@ class PoseGraphBackend:
         self._scan_stamp.append(stamp_ns)
         self.mount = mount
 
+    def scan_keyframes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every scan's keyframe (node) and its pose relative to it (N, 3)."""
+        return np.array(self._scan_node, np.int64), np.array(self._scan_rel, np.float64).reshape(-1, 3)
+
     def latest_scan(self) -> tuple[int, np.ndarray] | None:
         """The latest scan's keyframe and its pose relative to it (None before the first scan)."""
         return (self._scan_node[-1], self._scan_rel[-1]) if self._scan_node else None
@@ -161,31 +198,22 @@ class PoseGraphBackend:
         return ij[np.abs(ij[:, 1] - ij[:, 0]) > 1]
 
     def build_map(self, resolution: float | None = None) -> LogOddsGrid:
-        """A fresh occupancy grid from every keyframe scan at its optimised pose, free wherever the
-        laser only ever saw through (:meth:`LogOddsGrid.clear_seen_through`): a short or stationary
-        log's few keyframes carve free space too."""
-        grid = LogOddsGrid(resolution or self.config.submaps.resolution, mark_returns=True)
-        mount = self.mount
-        for pose, points, free in zip(self.graph.poses, self._points, self._free, strict=True):
-            origin = compose(pose, mount)[:2]
-            c, s = math.cos(pose[2]), math.sin(pose[2])
-            rot = np.array([[c, -s], [s, c]])
-            hits = points @ rot.T + pose[:2]
-            free_ends = None if free is None else free @ rot.T + pose[:2]
-            grid.insert_rays(origin, hits, free_ends)
-        grid.clear_seen_through()
-        return grid
+        """A fresh occupancy grid from every keyframe scan at its optimised pose (:func:`keyframe_grid`)."""
+        return keyframe_grid(self.graph.poses, self._points, self._free, self.mount,
+                             resolution or self.config.submaps.resolution)
 
     def check_map(self) -> MapCheck:
-        """The map self-check (:func:`trundle.fusion.mapping.map_check.check_map`) at the optimised poses: each
-        keyframe against the submaps outside the two it was tracked against and inserted into."""
-        poses = self.graph.poses
-        frames = np.array([s.local_to_map(poses[s.anchor_node]) for s in self.submaps.submaps]).reshape(-1, 3)
-        points = [voxel_filter(p, self.config.scan.voxel_m) for p in self._points]
-        ranges = [np.hypot(*(p - self.mount[:2]).T) for p in points]
-        opts = self.config.map_check
-        return check_map(self.submaps.submaps, frames, poses, points, ranges, np.array(self._spacing),
-                         2 * self.config.submaps.scans_per_submap, opts.tolerance_cells, opts.min_stretch)
+        """The map self-check at the optimised poses (:func:`check_keyframes`)."""
+        return check_keyframes(self.config, self.submaps.submaps, self.graph.poses, self._points,
+                               np.array(self._spacing), self.mount)
+
+    def keyframe_points(self) -> tuple[list[np.ndarray], list[np.ndarray | None]]:
+        """Every keyframe's scan points and no-return ends (robot frame, m; None: none cleared)."""
+        return list(self._points), list(self._free)
+
+    def keyframe_spacing(self) -> np.ndarray:
+        """Every keyframe's angle between beams (rad)."""
+        return np.array(self._spacing)
 
     def keyframe_endpoints(self) -> list[np.ndarray]:
         """Every keyframe's scan points (N, 2) at its optimised pose, map frame."""

@@ -162,6 +162,16 @@ class MapCheckOptions(Schema):
     min_stretch: Annotated[int, Field(ge=1, le=1_000_000)] = 5
 
 
+class SessionOptions(Schema):
+    """Continuing a map with a new session (:mod:`trundle.fusion.slam.sessions`): two consecutive submaps of
+    the new session found in the old map agree on its placement within ``agree_m`` / ``agree_rad``; a session
+    that joins as a new area is drawn ``new_area_gap_m`` beside the old map."""
+
+    agree_m: Metres = 0.3
+    agree_rad: Radians = math.radians(3.0)
+    new_area_gap_m: Metres = 5.0
+
+
 class SlamConfig(Schema):
     """Parameters of :class:`trundle.fusion.slam.grid_slam.Slam` (the ``[slam]`` table), by component."""
 
@@ -173,6 +183,7 @@ class SlamConfig(Schema):
     loop_closure: LoopClosureOptions = LoopClosureOptions()
     optimization: OptimizationOptions = OptimizationOptions()
     map_check: MapCheckOptions = MapCheckOptions()
+    sessions: SessionOptions = SessionOptions()
 
     @classmethod
     def from_mapping(cls, table: Mapping[str, Any] | None, where: str = "slam") -> SlamConfig:

@@ -72,6 +72,8 @@ class Slam:
         self.landmark_constraints = landmarks
         self.map_to_odom = np.zeros(3)
         self.frames = FrameTree()
+        self.keyframe_scans_taken: list[m.LaserScan] = []  # each keyframe's scan as logged (the session bundle)
+        self.keyframe_mounts: list[np.ndarray] = []
 
     @property
     def graph(self) -> PoseGraph:
@@ -111,6 +113,9 @@ class Slam:
                  else self.frames.mount(scan.frame_id, unknown_is_base=True))
         local = self.local.add_scan(scan, mount)
         node = -1 if local.insertion is None else self.backend.add_keyframe(local.insertion)
+        if local.insertion is not None:
+            self.keyframe_scans_taken.append(scan)
+            self.keyframe_mounts.append(np.asarray(mount, np.float64).copy())
         self.backend.add_scan(local.stamp_ns, local.keyframe, local.offset, mount)
         pose_map = compose(self.backend.map_from_local, local.pose_local)
         if local.odometry is not None:

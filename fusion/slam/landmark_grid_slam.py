@@ -32,6 +32,7 @@ Three things are read from the data rather than assumed:
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -55,7 +56,7 @@ TIME_OFFSET_CHI2 = 10.83       # chi2, 1 degree of freedom, 99.9 %: an offset th
 
 
 @dataclass(frozen=True)
-class _Sighting:
+class Sighting:
     """One sighting: its keyframe, landmark, stamp (s), the robot at the stamp in the keyframe's frame
     (``here``), the robot's velocity then (vx, vy, wz, robot frame) and what was seen (robot frame)."""
 
@@ -116,7 +117,7 @@ class LandmarkConstraints:
         self.vce_rounds = vce_rounds
         self.max_time_offset_s = max_time_offset_s
         self.stats = LandmarkGridStats()
-        self._sightings: list[_Sighting] = []
+        self._sightings: list[Sighting] = []
         self._first_node: dict[str, int] = {}
         self._estimates: dict[str, np.ndarray] = {}
         self._graph: FactorGraph | None = None
@@ -139,7 +140,7 @@ class LandmarkConstraints:
             if not o.id:
                 st.anonymous += 1
                 continue
-            self._sightings.append(_Sighting(node, o.id, msg.stamp_ns * 1e-9, here, velocity,
+            self._sightings.append(Sighting(node, o.id, msg.stamp_ns * 1e-9, here, velocity,
                                              o.translation[:2].copy(), o.position_covariance(), o.yaw,
                                              o.yaw_variance))
             st.sightings += 1
@@ -190,12 +191,12 @@ class LandmarkConstraints:
         self.stats.joint_optimizations += 1
         return True
 
-    def _add_sightings(self, graph: FactorGraph, sightings: list[_Sighting], variables: dict[str, tuple[bool, int]],
-                       heading_variances: dict[int, float] | None = None) -> dict[bool, list[tuple[int, _Sighting]]]:
+    def _add_sightings(self, graph: FactorGraph, sightings: list[Sighting], variables: dict[str, tuple[bool, int]],
+                       heading_variances: dict[int, float] | None = None) -> dict[bool, list[tuple[int, Sighting]]]:
         """Landmark variables (first sight: the last estimate, else placed by its keyframe) and a factor
         per sighting, with the heading variance (rad^2) of keyframes held fixed; the factors' rows by
         kind (oriented or not), with their sightings."""
-        rows: dict[bool, list[tuple[int, _Sighting]]] = {True: [], False: []}
+        rows: dict[bool, list[tuple[int, Sighting]]] = {True: [], False: []}
         offset = self.stats.time_offset_s
         heading_variances = heading_variances or {}
         for s in sightings:
@@ -220,7 +221,7 @@ class LandmarkConstraints:
             nodes.setdefault(s.landmark, []).append(s.node)
         return {name for name, seen in nodes.items() if max(seen) - min(seen) >= self.config.loop_closure.min_node_gap}
 
-    def _groups(self, graph: FactorGraph, edges: int, rows: dict[bool, list[tuple[int, _Sighting]]]
+    def _groups(self, graph: FactorGraph, edges: int, rows: dict[bool, list[tuple[int, Sighting]]]
                 ) -> dict[str, tuple[str, np.ndarray]]:
         """The factor groups of the variance components: laser edges, marker and point sightings."""
         between = np.zeros(len(graph.factors(BETWEEN)[0]), bool)
@@ -231,7 +232,7 @@ class LandmarkConstraints:
         points[[row for row, _ in rows[False]]] = True
         return {"edges": (BETWEEN, between), "markers": (BETWEEN, markers), "points": (POSITION, points)}
 
-    def _estimate_noise(self, graph: FactorGraph, edges: int, rows: dict[bool, list[tuple[int, _Sighting]]], kernels,
+    def _estimate_noise(self, graph: FactorGraph, edges: int, rows: dict[bool, list[tuple[int, Sighting]]], kernels,
                         max_iterations: int) -> None:
         """Variance component estimation: each group's information divided by its chi2 over its redundancy."""
         groups = self._groups(graph, edges, rows)
@@ -255,7 +256,7 @@ class LandmarkConstraints:
             graph.optimize(max_iterations, kernels)
         self.stats.noise_scales = {name: float(math.sqrt(v)) for name, v in totals.items()}
 
-    def _decorrelate(self, graph: FactorGraph, rows: dict[bool, list[tuple[int, _Sighting]]]) -> None:
+    def _decorrelate(self, graph: FactorGraph, rows: dict[bool, list[tuple[int, Sighting]]]) -> None:
         """Reweight each kind's sightings by the correlation time of their residuals."""
         for oriented, chosen in rows.items():
             if not chosen:
@@ -349,6 +350,24 @@ class LandmarkConstraints:
                            np.array([covariance[n] for n in names]), np.array([counts.get(n, 0) for n in names]),
                            np.array([wrap_angle(float(self._estimates[n][2])) if len(self._estimates[n]) == 3
                                      else np.nan for n in names]))
+
+
+def from_sightings(config: SlamConfig, sightings: list[Sighting]) -> LandmarkConstraints:
+    """Constraints of sightings already tied to keyframes (e.g. several sessions' in one graph, each with
+    its own time offset already applied, :func:`applied_sightings`); no time offset is estimated."""
+    out = LandmarkConstraints(config, max_time_offset_s=0.0)
+    out._sightings = list(sightings)
+    out.stats.sightings = len(sightings)
+    for s in sightings:
+        out._first_node[s.landmark] = min(out._first_node.get(s.landmark, s.node), s.node)
+    return out
+
+
+def applied_sightings(constraints: LandmarkConstraints) -> list[Sighting]:
+    """Every sighting of ``constraints`` with its estimated time offset applied (the robot moved along by its
+    velocity times the offset), so it means the same with no offset."""
+    offset = constraints.stats.time_offset_s
+    return [dataclasses.replace(s, here=compose(s.here, s.velocity * offset)) for s in constraints._sightings]
 
 
 def _position_block(z: np.ndarray, covariance: np.ndarray) -> np.ndarray:

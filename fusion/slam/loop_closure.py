@@ -50,12 +50,15 @@ class LoopCloser:
         self._path_m: list[float] = []
         self._pending: list[Closure] = []
         self._last_loop_node: dict[int, int] = {}
+        self.dropped: list[Closure] = []  # verified candidates no partner or chain agreed with
 
-    def add_keyframe(self, edge_covariance: np.ndarray | None, previous_heading: float, path_m: float) -> None:
-        """A keyframe's sequential edge covariance (previous keyframe's frame; None for the first), that
-        keyframe's heading (rad) and the path length to the new one (m)."""
+    def add_keyframe(self, edge_covariance: np.ndarray | None, previous_heading: float, path_m: float,
+                     start_covariance: np.ndarray | None = None) -> None:
+        """A keyframe's sequential edge covariance (previous keyframe's frame; None for the first of a chain,
+        whose own uncertainty is ``start_covariance``, map frame, default none), that keyframe's heading (rad)
+        and the path length to the new one (m)."""
         if edge_covariance is None:
-            self._chain.append(np.zeros((3, 3)))
+            self._chain.append(np.zeros((3, 3)) if start_covariance is None else np.array(start_covariance))
         else:
             self._chain.append(self._chain[-1] + rotate_covariance(edge_covariance, previous_heading))
         self._path_m.append(path_m)
@@ -123,6 +126,7 @@ class LoopCloser:
         horizon = 2 * self.config.submaps.scans_per_submap
         expired = [p for p in self._pending if closure.node - p.node > horizon]
         self.stats.loop_inconsistent += len(expired)
+        self.dropped.extend(expired)
         self._pending = [p for p in self._pending if closure.node - p.node <= horizon]
         for partner in self._pending:
             predicted = compose(partner.implied, relative(poses[partner.node], poses[closure.node]))

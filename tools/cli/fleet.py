@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from trundle.logs.errors import UserError
+from trundle.logs.errors import UsageError, UserError
 from trundle.tools.cli.damage import say_damage
 from trundle.tools.cli.progress import Progress
 from trundle.tools.config.arguments import non_negative_int, positive, positive_int
@@ -49,6 +49,9 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--num-cpus", type=positive_int, help="CPUs of the local Ray (default: all of this machine)")
     p.add_argument("--cpus-per-log", type=positive, default=1.0, help="CPUs each log's task reserves (default 1)")
     p.add_argument("--force", action="store_true", help="recompute logs whose result is complete")
+    p.add_argument("--continue", dest="continue_from", type=Path, metavar="MAPDIR",
+                   help="slam only: each robot's logs are sessions in time order, the first continuing the map "
+                        "in MAPDIR (a trundle slam output), each next one the output of the one before")
     p.set_defaults(func=run)
 
 
@@ -66,13 +69,20 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("trundle fleet needs Ray: pip install 'trundle[fleet]'")
     from trundle.tools.fleet.jobs import parse_options
     from trundle.tools.fleet.run import figures, run_fleet
+    from trundle.tools.jobs.sessions import read_bundle
 
     options = parse_options(args.job, args.job_options)
+    if args.continue_from is not None:
+        if args.job != "slam":
+            raise UsageError("--continue goes with the slam job only")
+        if "continue_from" in options:
+            raise UsageError("give the map to continue once: --continue MAPDIR, not continue_from= as well")
+        read_bundle(args.continue_from)  # a bad MAPDIR is said before Ray starts
     bar_shown = sys.stderr.isatty()
     fleet = run_fleet(args.job, args.logs, args.output, options, address=args.address, retries=args.retries,
                       num_cpus=args.num_cpus, cpus_per_log=args.cpus_per_log, force=args.force,
                       progress=Progress, on_row=None if bar_shown else _line,
-                      say=lambda text: print(text, file=sys.stderr, flush=True))
+                      say=lambda text: print(text, file=sys.stderr, flush=True), continue_from=args.continue_from)
     counts = ", ".join(f"{fleet.count(s)} {s}" for s in ("ok", "failed", "skipped", "cancelled") if fleet.count(s))
     rate = figures(fleet)["logs_per_minute"]
     print(f"{len(fleet.rows)} logs: {counts} in {fleet.wall_s:.1f} s (Ray's start {fleet.ray_start_s:.1f} s; "

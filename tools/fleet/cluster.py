@@ -29,8 +29,9 @@ LOCAL = "local"
 CONNECT_TIMEOUT_S = 10.0
 
 
-def _run_on_worker(task: dict[str, Any]) -> dict[str, Any]:
-    """The Ray task: :func:`process_log` plus the IP of the node it ran on."""
+def _run_on_worker(task: dict[str, Any], *after: Any) -> dict[str, Any]:
+    """The Ray task: :func:`process_log` plus the IP of the node it ran on (``after``: the rows of the tasks
+    it waited for, resolved by Ray before it starts)."""
     import ray
 
     return {**process_log(Task(**task)), "node": ray.util.get_node_ip_address()}
@@ -81,11 +82,12 @@ class Cluster:
             raise UserError(f"cannot connect to the Ray cluster at {self.address}: {one_line(str(error))}") from None
         self._remote = ray.remote(_run_on_worker)
 
-    def submit(self, task: Task, retries: int, cpus_per_log: float) -> Any:
-        """Start ``task`` as a Ray task; returns its object reference."""
+    def submit(self, task: Task, retries: int, cpus_per_log: float, after: Any | None = None) -> Any:
+        """Start ``task`` as a Ray task (once the task of the reference ``after`` has finished, if given);
+        returns its object reference."""
         options = self._remote.options(num_cpus=cpus_per_log, max_retries=retries, retry_exceptions=False,
                                        name=f"trundle-fleet {task.job} {task.name}")
-        return options.remote(asdict(task))
+        return options.remote(asdict(task)) if after is None else options.remote(asdict(task), after)
 
     def wait(self, refs: Sequence[Any], timeout_s: float) -> tuple[list[Any], list[Any]]:
         """(finished, unfinished) references after at most ``timeout_s`` seconds."""

@@ -19,13 +19,14 @@ from typing import Any
 
 from trundle.logs.errors import UserError
 from trundle.logs.outputs import is_output_failure, output_error, writing_folder
+from trundle.logs.reader import LogReader
 from trundle.tools.fleet.cluster import Cluster
-from trundle.tools.fleet.inputs import expand, folder_names
+from trundle.tools.fleet.inputs import expand, folder_names, local_copy
 from trundle.tools.fleet.jobs import options_key
 from trundle.tools.fleet.results import write_csv, write_parquet, write_run
 from trundle.tools.fleet.rows import STATUSES
 from trundle.tools.fleet.summary import write_summary
-from trundle.tools.fleet.task import STATE, Task
+from trundle.tools.fleet.task import STATE, Task, robot_name
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
 
 POLL_S = 0.5          # how often the progress is redrawn while no task finishes
@@ -94,12 +95,33 @@ def _sigterm_interrupts() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def sessions_in_order(sources: Sequence[str], names: Sequence[str]) -> list[int | None]:
+    """For ``trundle fleet slam --continue MAPDIR``: each log's predecessor (the index of the log of the same
+    robot just before it in time; None: the robot's first, which continues MAPDIR). Reads each log's
+    robot (:func:`trundle.tools.fleet.task.robot_name`) and first message time."""
+    keys = []
+    for source in sources:
+        with local_copy(source) as path, LogReader(path) as reader:
+            info = reader.info()
+            keys.append((robot_name(info.metadata), info.start_ns or 0))
+    previous: list[int | None] = [None] * len(sources)
+    last: dict[str, int] = {}
+    for i in sorted(range(len(sources)), key=lambda k: (keys[k][0], keys[k][1], names[k])):
+        previous[i] = last.get(keys[i][0])
+        last[keys[i][0]] = i
+    return previous
+
+
 def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[str, Any], *,
               address: str | None = None, retries: int = 3, num_cpus: int | None = None,
               cpus_per_log: float = 1.0, force: bool = False, progress: ProgressFactory = NoProgress,
               on_row: Callable[[dict[str, Any], FleetRun], None] | None = None,
-              say: Callable[[str], None] = lambda text: None) -> FleetRun:
+              say: Callable[[str], None] = lambda text: None, continue_from: Path | None = None) -> FleetRun:
     """Run ``job`` with ``options`` on every log ``patterns`` name, outputs in ``output``/<name>/.
+
+    ``continue_from`` (the slam job only): each robot's logs are sessions mapped in time order, its first
+    continuing the map of ``continue_from``, each next one the output of the one before (a task starts
+    once its predecessor's has finished; a failed one fails the rest of its robot's chain).
 
     ``address``/``num_cpus``: see :class:`trundle.tools.fleet.cluster.Cluster`; ``retries``: how
     often a task lost with its worker is run again; ``force`` recomputes complete results;
@@ -120,8 +142,8 @@ def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[
         say(f"Ray ready in {run.ray_start_s:.1f} s")
         try:
             started = time.perf_counter()
-            refs = {cluster.submit(Task(job, s, n, str(output), dict(options), key, force), retries, cpus_per_log): i
-                    for i, (s, n) in enumerate(zip(sources, names, strict=True))}
+            refs = _submit(cluster, job, sources, names, output, options, key, force, retries, cpus_per_log,
+                           continue_from)
             bar = progress("fleet", len(sources))
             pending = list(refs)
             try:
@@ -172,6 +194,28 @@ def run_fleet(job: str, patterns: Sequence[str], output: Path, options: Mapping[
         run.wall_s = time.perf_counter() - called   # before the results are written, so run.json holds it
         run.files = write_results(run, output)
     return run
+
+
+def _submit(cluster: Cluster, job: str, sources: Sequence[str], names: Sequence[str], output: Path,
+            options: Mapping[str, Any], key: str, force: bool, retries: int, cpus_per_log: float,
+            continue_from: Path | None) -> dict[Any, int]:
+    """Every log's task submitted: reference -> index (chained per robot with ``continue_from``, see
+    :func:`run_fleet`)."""
+    if continue_from is None:
+        return {cluster.submit(Task(job, s, n, str(output), dict(options), key, force), retries, cpus_per_log): i
+                for i, (s, n) in enumerate(zip(sources, names, strict=True))}
+    previous = sessions_in_order(sources, names)
+    submitted: dict[int, Any] = {}
+    pending = list(range(len(sources)))
+    while pending:  # a log after its predecessor
+        for i in [k for k in pending if previous[k] is None or previous[k] in submitted]:
+            before = previous[i]
+            mapdir = continue_from.resolve() if before is None else output / names[before]
+            chained = {**options, "continue_from": str(mapdir)}
+            task = Task(job, sources[i], names[i], str(output), chained, options_key(job, chained), force)
+            submitted[i] = cluster.submit(task, retries, cpus_per_log, None if before is None else submitted[before])
+            pending.remove(i)
+    return {ref: i for i, ref in submitted.items()}
 
 
 def figures(run: FleetRun) -> dict[str, Any]:

@@ -4,7 +4,8 @@ Outputs: ``map.pgm`` + ``map.yaml`` (map_server), ``map.png``, ``trajectory.png`
 loop closures over the map, the stretches that fail the map self-check in magenta), ``scans.png``
 (every keyframe's scan endpoints at its optimised pose: doubled walls show here, not in the
 occupancy map), ``trajectory.csv`` (``t_ns,x,y,theta`` of every scan in the map frame),
-``report.json`` (with ``map_check``, see :mod:`trundle.fusion.mapping.map_check`) and ``slam.mcap``
+``report.json`` (with ``map_check``, see :mod:`trundle.fusion.mapping.map_check`), ``session/`` (what
+``--continue`` needs to map on from here, :mod:`trundle.tools.jobs.sessions`) and ``slam.mcap``
 with ``/map``, ``/tf`` (map -> odom per scan) and ``/path``. A log with landmark sightings
 (``/landmarks``) puts them into the pose graph (the ``grid-landmarks`` estimator of
 :mod:`trundle.fusion.slam.estimators`) and adds ``landmarks.csv`` (``id,x,y,sx,sy``), the landmarks
@@ -23,12 +24,14 @@ from typing import Any
 
 import numpy as np
 
+from trundle.fusion.geometry import transform_points
 from trundle.fusion.mapping.map_check import MapCheck
 from trundle.fusion.mapping.map_io import save_map, write_trajectory_csv
-from trundle.fusion.mapping.map_plot import Track, plot_scans, plot_trajectory
+from trundle.fusion.mapping.map_plot import Track, plot_scans, plot_sessions, plot_trajectory
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.estimators import GRID, EstimatorInputs, make_estimator, resolve
 from trundle.fusion.slam.grid_slam import Slam
+from trundle.fusion.slam.sessions import SessionGraph, build_grid, check_graph, continue_map, from_slam
 from trundle.fusion.slam.stats import summary
 from trundle.logs import messages as m
 from trundle.logs.errors import UsageError, UserError
@@ -41,6 +44,7 @@ from trundle.tools.config.robot import RobotConfig
 from trundle.tools.jobs.config import JobConfig, laser_pose, make_odometry, odometry_source, robot_config
 from trundle.tools.jobs.landmark_slam import landmark_markers, landmark_slam_log, landmark_topic, write_landmarks
 from trundle.tools.jobs.progress import NoProgress, ProgressFactory
+from trundle.tools.jobs.sessions import check_config, check_laser, read_bundle, write_bundle
 
 
 def map_check_report(check: MapCheck, stamps_ns: np.ndarray, t0_ns: int) -> dict[str, Any]:
@@ -80,7 +84,8 @@ def replay_estimator(info: LogInfo, config: JobConfig, markers: bool = False) ->
 
 
 def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool = False,
-             progress: ProgressFactory = NoProgress, estimator: str | None = None) -> dict[str, Any]:
+             progress: ProgressFactory = NoProgress, estimator: str | None = None,
+             continue_from: Path | None = None, freeze: bool = False, allow_new_area: bool = False) -> dict[str, Any]:
     """Run SLAM over ``log`` and write its outputs into the folder ``output`` (created; an existing
     one must be empty, so a result is never overwritten).
 
@@ -90,12 +95,16 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     ``grid-landmarks``, ``ekf``, ``landmark-graph``; the last two by :mod:`trundle.tools.jobs.landmark_slam`),
     or ``graph`` / None: the pose graph that fits the log (the grid SLAM, with the log's landmark
     sightings as constraints; a log with sightings but no scans gets the landmark graph).
+    ``continue_from``: the output folder of an earlier run (its session bundle,
+    :mod:`trundle.tools.jobs.sessions`) whose map this log continues (:func:`trundle.tools.jobs.sessions.continue_log`
+    writes the outputs then; ``freeze``, ``allow_new_area`` as there).
     Returns the report (also written as ``report.json``): what the log's damage skipped (``log_damage``,
     None for an intact log; see :class:`trundle.logs.reader.LogDamage`), the odometry it used (``odometry_source``:
     wheel encoders, odometry messages or ``none``), counts, timings (s), residuals (m), path length
     (m), map size and the SLAM options used.
     """
     config = robot_config(config)
+    old = None if continue_from is None else read_bundle(continue_from)  # a bad MAPDIR is said before any work
     reader = LogReader(log)
     info = reader.info()
     slam_config = SlamConfig.from_mapping(config.slam)
@@ -104,12 +113,16 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     topic = landmark_topic(info, config)
     name = resolve(estimator, has_scans, topic is not None)
     if name not in GRID:
+        if old is not None:
+            raise UsageError(f"--continue needs a grid SLAM estimator (grid, grid-landmarks), not {name}")
         return landmark_slam_log(log, output, config, name, progress)
     if name == "grid-landmarks" and topic is None:
         raise UsageError(f"{log}: the grid-landmarks estimator needs landmark sightings (a LandmarkList topic)")
     info.require(slam_config.scan.topic, "sensor_msgs/msg/LaserScan")
     slam = grid_estimator(info, config, name, topic, local_only)
     slam_config = slam.config
+    if old is not None and continue_from is not None:
+        check_config(continue_from, old[1], slam_config)
     odometry = odometry_source(info, config, slam.wheels) or "none"
     output_folder(output, create=False)  # checked before the work, made once there is a result
 
@@ -129,6 +142,14 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     bar.close()
     if slam.stats.scans == 0:
         raise UserError(f"{log}: no scans on {slam_config.scan.topic}")
+    landmarks = slam.landmarks()
+    if old is not None and continue_from is not None:
+        laser = check_laser(continue_from, old[2], slam.keyframe_scans_taken[0], slam.keyframe_mounts[0],
+                            allow_new_area)
+        timing = {"duration_s": info.duration_s, "processing_s": processing_s, "cpu_s": cpu_s}
+        return continue_log(log, continue_from, output, old, from_slam(slam, landmarks), slam_config,
+                            {"log_damage": damage_dict(reader.last_damage), "odometry_source": odometry,
+                             "other_laser": laser, **timing}, freeze, allow_new_area)
 
     stamps, poses = slam.trajectory()
     end_ns = int(stamps.max())
@@ -136,7 +157,6 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
     keyframes = slam.keyframe_poses()
     loops = [(keyframes[i], keyframes[j]) for i, j in slam.loop_edges()]
     check = slam.check_map()
-    landmarks = slam.landmarks()
     drawn = None if landmarks is None else (landmarks.ids, landmarks.positions, landmarks.covariances)
     path_msg = m.Path(end_ns, "map", stamps, poses)
     extra: list[tuple[str, m.Message, int]] = (
@@ -173,4 +193,76 @@ def slam_log(log: Path, output: Path, config: JobConfig = None, local_only: bool
         if landmarks is not None:
             write_landmarks(output / "landmarks.csv", landmarks)
         write_json(output / "report.json", report)
+        write_bundle(output, from_slam(slam, landmarks), slam_config, [str(log)])
+    return report
+
+
+SESSION_COLOURS = ("tab:blue", "tab:red", "tab:green", "tab:orange", "tab:purple", "tab:brown", "tab:pink",
+                   "tab:olive", "tab:cyan", "tab:gray")
+
+
+def continue_log(log: Path, mapdir: Path, output: Path, old: tuple[SessionGraph, SlamConfig, dict[str, Any]],
+                 new: SessionGraph, config: SlamConfig, run: dict[str, Any], freeze: bool = False,
+                 allow_new_area: bool = False) -> dict[str, Any]:
+    """Continue the map of ``mapdir`` (its bundle ``old``) with ``new``, the session ``log`` was just mapped as
+    (:func:`trundle.fusion.slam.sessions.continue_map`) and write the joint map into ``output``: ``map.pgm`` +
+    ``map.yaml`` + ``map.png``, ``sessions.png`` (each session's scan endpoints in its own colour),
+    ``trajectory.png`` (each session's path in its own colour, cross-session closures as lines),
+    ``trajectory.csv`` (``t_ns,x,y,theta,session``), ``report.json`` (where the session was placed and how
+    sure, the cross-session closures accepted and rejected, the map check), ``slam.mcap`` (``/map``,
+    ``/path``) and ``session/``. A log that cannot be placed is one UserError line (unless ``allow_new_area``:
+    a disconnected new part of the map). ``run``: the report's figures of the run of ``log``."""
+    graph, _, meta = old
+    started, cpu_started = time.perf_counter(), time.process_time()
+    continued = continue_map(graph, new, config, freeze, allow_new_area)
+    if continued is None:
+        raise UserError(f"{log}: cannot be placed in the map of {mapdir} (no place in it where two of its submaps "
+                        "agree and its scans close loops; another building or too little overlap); "
+                        "--allow-new-area adds it as a disconnected part")
+    joined = continued.graph
+    grid = build_grid(joined, config)
+    check = check_graph(joined, config)
+    continue_s, continue_cpu_s = time.perf_counter() - started, time.process_time() - cpu_started
+    stamps, poses, sessions = joined.trajectory()
+    order = np.argsort(stamps, kind="stable")
+    end_ns = int(stamps.max())
+    map_msg = grid.to_message(end_ns, "map")
+    logs = [str(s.get("log")) for s in meta["sessions"]] + [str(log)]
+    placement = continued.placement
+    report = {
+        "log": str(log), "continued": str(mapdir), "sessions": logs, **run,
+        "continue_s": continue_s, "continue_cpu_s": continue_cpu_s,
+        "placement": {"placed": placement is not None, "new_area": placement is None,
+                      "first_pose": [float(v) for v in continued.first_pose],
+                      **({} if placement is None else placement.as_dict())},
+        "cross_session_closures": continued.closures.as_dict(),
+        "freeze": freeze,
+        "keyframes": len(joined), "scans": int(stamps.size),
+        "map": {"resolution": float(map_msg.resolution), "width": map_msg.width, "height": map_msg.height},
+        "map_check": map_check_report(check, joined.stamps, int(joined.stamps.min())),
+        "config": config.model_dump(),
+    }
+    if joined.landmarks is not None:
+        report["landmarks"] = {"mapped": len(joined.landmarks.ids)}
+    tracks = [Track(poses[sessions == k], f"session {k}: {Path(name).name}", SESSION_COLOURS[k % len(SESSION_COLOURS)])
+              for k, name in enumerate(logs)]
+    cross = [(joined.poses[i], joined.poses[j]) for i, j in joined.edges[0][joined.cross_edges()]]
+    drawn = (None if joined.landmarks is None
+             else (joined.landmarks.ids, joined.landmarks.positions, joined.landmarks.covariances))
+    with writing_folder(output):  # every file or, on any failure, none
+        save_map(map_msg, output / "map", f"map of {len(logs)} sessions, the last {log.name}")
+        write_trajectory_csv(output / "trajectory.csv", stamps[order], poses[order], sessions=sessions[order])
+        plot_trajectory(map_msg, output / "trajectory.png", tracks, f"{len(logs)} sessions, each in its colour",
+                        loops=cross, landmarks=drawn)
+        endpoints = [transform_points(p, q) for p, q in zip(joined.poses, joined.points, strict=True)]
+        plot_sessions(map_msg, output / "sessions.png",
+                      [[e for e, k in zip(endpoints, joined.session, strict=True) if k == s] for s in range(len(logs))],
+                      [t.label for t in tracks], [t.colour for t in tracks], f"the map of {len(logs)} sessions")
+        with writing_file(output / "slam.mcap") as tmp:
+            write_log([(MAP_TOPIC, map_msg, end_ns), (PATH_TOPIC, m.Path(end_ns, "map", stamps[order], poses[order]),
+                                                      end_ns)], tmp, metadata={"command": "slam", "source": str(log)})
+        if joined.landmarks is not None:
+            write_landmarks(output / "landmarks.csv", joined.landmarks)
+        write_json(output / "report.json", report)
+        write_bundle(output, joined, config, logs)
     return report

@@ -13,6 +13,7 @@ update.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -315,6 +316,16 @@ class LogOddsGrid:
             raise ValueError("clear_seen_through needs a grid made with mark_returns=True")
         self.log_odds[self.observed & ~self.returned] = self.l_min
         self._changed()
+
+    def copy(self) -> LogOddsGrid:
+        """An independent copy of the grid (its cells, flags and moments; no cached fields)."""
+        clone = copy.copy(self)
+        clone.origin, clone.log_odds, clone.observed = self.origin.copy(), self.log_odds.copy(), self.observed.copy()
+        if self.moments is not None:
+            clone.moments = ReturnMoments(self.moments.slots.copy(), self.moments.rows.copy(), self.moments.count)
+        clone.returned = None if self.returned is None else self.returned.copy()
+        clone._cache = {}
+        return clone
 
     def probability(self) -> np.ndarray:
         """Occupancy probability of every cell (0.5 where never observed)."""

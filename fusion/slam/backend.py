@@ -10,6 +10,8 @@ through a :class:`ConstraintSource` (landmarks: :mod:`trundle.fusion.slam.landma
 from __future__ import annotations
 
 import math
+import threading
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -39,6 +41,51 @@ class ConstraintSource(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class MapInputs:
+    """The keyframes a map is made of: their map poses (K, 3), points (N, 2, base_link) and the ends of
+    their no-return rays (or None), the laser's mount on base_link, and the map's resolution (m)."""
+
+    poses: np.ndarray
+    points: tuple[np.ndarray, ...]
+    free: tuple[np.ndarray | None, ...]
+    mount: np.ndarray
+    resolution: float
+
+
+class MapBuilder:
+    """The occupancy map of the keyframes kept up to date: each keyframe's rays are cast once, when it is
+    new, and the whole map is cast again only when a pose it was cast at has moved (the graph was
+    optimised: a loop closed), the mount or the resolution changed. The grid so made equals the one
+    cast from the start, cell for cell (the same rays in the same order). Thread-safe: a map thread
+    builds while the caller's ``finish`` may build too."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._grid: LogOddsGrid | None = None
+        self._cast = MapInputs(np.zeros((0, 3)), (), (), np.zeros(3), 0.0)   # what the grid holds
+
+    def build(self, inputs: MapInputs) -> LogOddsGrid:
+        """The map of ``inputs``, seen-through cells cleared (a copy: the builder's grid goes on)."""
+        with self._lock:
+            done, cast = len(self._cast.poses), self._cast
+            moved = not np.array_equal(inputs.poses[:done], cast.poses) or not np.array_equal(inputs.mount, cast.mount)
+            if self._grid is None or moved or inputs.resolution != cast.resolution:
+                self._grid, done = LogOddsGrid(inputs.resolution, mark_returns=True), 0
+            grid = self._grid
+            for pose, points, free in zip(inputs.poses[done:], inputs.points[done:], inputs.free[done:], strict=True):
+                origin = compose(pose, inputs.mount)[:2]
+                c, s = math.cos(pose[2]), math.sin(pose[2])
+                rot = np.array([[c, -s], [s, c]])
+                hits = points @ rot.T + pose[:2]
+                free_ends = None if free is None else free @ rot.T + pose[:2]
+                grid.insert_rays(origin, hits, free_ends)
+            self._cast = inputs
+            out = grid.copy()
+        out.clear_seen_through()
+        return out
+
+
 class PoseGraphBackend:
     """Keyframes of the local builder in a pose graph, closed and optimised (see the module docstring)."""
 
@@ -61,6 +108,7 @@ class PoseGraphBackend:
         self._scan_rel: list[np.ndarray] = []
         self._scan_stamp: list[int] = []
         self._loop_edges: list[int] = []
+        self._map = MapBuilder()
         self._nodes_at_last_optimization = 0
         self._loops_at_last_optimization = 0
 
@@ -160,21 +208,17 @@ class PoseGraphBackend:
         ij = self.graph.edges[0]
         return ij[np.abs(ij[:, 1] - ij[:, 0]) > 1]
 
-    def build_map(self, resolution: float | None = None) -> LogOddsGrid:
-        """A fresh occupancy grid from every keyframe scan at its optimised pose, free wherever the
-        laser only ever saw through (:meth:`LogOddsGrid.clear_seen_through`): a short or stationary
-        log's few keyframes carve free space too."""
-        grid = LogOddsGrid(resolution or self.config.submaps.resolution, mark_returns=True)
-        mount = self.mount
-        for pose, points, free in zip(self.graph.poses, self._points, self._free, strict=True):
-            origin = compose(pose, mount)[:2]
-            c, s = math.cos(pose[2]), math.sin(pose[2])
-            rot = np.array([[c, -s], [s, c]])
-            hits = points @ rot.T + pose[:2]
-            free_ends = None if free is None else free @ rot.T + pose[:2]
-            grid.insert_rays(origin, hits, free_ends)
-        grid.clear_seen_through()
-        return grid
+    def map_inputs(self, resolution: float | None = None) -> MapInputs:
+        """What the map is made of now (the keyframes' optimised poses, points and free ends, the mount): a
+        snapshot another thread may build the map from while this one goes on."""
+        return MapInputs(self.graph.poses.copy(), tuple(self._points), tuple(self._free), self.mount.copy(),
+                         resolution or self.config.submaps.resolution)
+
+    def build_map(self, resolution: float | None = None, inputs: MapInputs | None = None) -> LogOddsGrid:
+        """An occupancy grid of every keyframe scan at its optimised pose (of ``inputs``, else now), free
+        wherever the laser only ever saw through (:meth:`LogOddsGrid.clear_seen_through`): a short or
+        stationary log's few keyframes carve free space too. Built incrementally (:class:`MapBuilder`)."""
+        return self._map.build(inputs or self.map_inputs(resolution))
 
     def check_map(self) -> MapCheck:
         """The map self-check (:func:`trundle.fusion.mapping.map_check.check_map`) at the optimised poses: each

@@ -2,8 +2,8 @@
 the camera images.
 
 The daemon offers every message to ``wants``; the chosen ones go through a bounded queue to one
-processing thread (a full queue drops and counts; behind real time, SLAM takes the newest scan
-and counts the others as skipped), and the results (``/slam/pose``, map -> odom
+processing thread (a full queue drops and counts; behind real time, SLAM skips and counts the scans
+more than ``max_scan_lag_s`` older than the newest waiting), and the results (``/slam/pose``, map -> odom
 on ``/tf``, ``/map``, ``.../markers``, ``.../marker_poses``, and the markers as landmark
 observations in the robot frame on ``/landmarks`` once ``/tf_static`` places the camera) go back
 through ``publish``. With both SLAM and markers on, the markers are landmarks of the SLAM's pose
@@ -166,10 +166,13 @@ class Processing:
             self.wake.wait(0.5)
             self.wake.clear()
             batch = [self.queue.popleft() for _ in range(len(self.queue))]
-            # behind real time: of the scans waiting, SLAM takes the newest (odometry is all used)
-            scans = [i for i, item in enumerate(batch) if item is not None and isinstance(item[1], m.LaserScan)]
-            self.skipped_scans += max(len(scans) - 1, 0)
-            stale = set(scans[:-1])
+            # behind real time: SLAM skips the scans waiting more than max_scan_lag_s older than the newest
+            # (odometry is all used); a driver that hands over two scans at once is not behind
+            stamps = {i: item[1].stamp_ns for i, item in enumerate(batch)
+                      if item is not None and isinstance(item[1], m.LaserScan)}
+            newest = max(stamps.values(), default=0)
+            stale = {i for i, stamp in stamps.items() if newest - stamp > self.config.max_scan_lag_s * 1e9}
+            self.skipped_scans += len(stale)
             for i, item in enumerate(batch):
                 if item is None:
                     return

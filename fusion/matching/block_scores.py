@@ -75,13 +75,17 @@ def _scores(pyramid: np.ndarray, level: int, base: np.ndarray, candidates: np.nd
 
 
 @numba.njit(cache=True, nogil=True)
-def _children(candidates: np.ndarray, level: int, limit: int) -> np.ndarray:
-    """The four sub-blocks at ``level - 1`` of blocks at ``level`` in order (offsets beyond ``limit`` dropped)."""
+def _children(candidates: np.ndarray, scores: np.ndarray, bound: float, level: int, limit: int) -> np.ndarray:
+    """The four sub-blocks at ``level - 1``, in order, of the blocks at ``level`` scoring at least ``bound``
+    (offsets beyond ``limit`` dropped)."""
     s = 1 << (level - 1)
     kids = np.empty((4 * candidates.shape[0], 3), np.int64)
     count = 0
     for m in range(candidates.shape[0]):
-        for dx, dy in ((0, 0), (s, 0), (0, s), (s, s)):
+        if not scores[m] >= bound:
+            continue
+        for j in range(4):
+            dx, dy = s * (j & 1), s * (j >> 1)   # (0, 0), (s, 0), (0, s), (s, s)
             if candidates[m, 1] + dx <= limit and candidates[m, 2] + dy <= limit:
                 kids[count, 0] = candidates[m, 0]
                 kids[count, 1] = candidates[m, 1] + dx
@@ -117,15 +121,22 @@ def branch_and_bound(pyramid: np.ndarray, base: np.ndarray, thetas: np.ndarray, 
     bound = 0.0 if weighted else min_score
 
     # Greedy dives from the best top blocks reach leaves at once: a lower bound to prune with.
-    order = np.argsort(scores)[::-1][:8]
-    dive = candidates[order].copy()
+    dive = np.empty((min(8, len(scores)), 3), np.int64)
+    taken = np.zeros(len(scores), np.bool_)
+    for i in range(len(dive)):   # the best eight, best first (of equal scores any: only the bound depends on them)
+        best = -1
+        for m in range(len(scores)):
+            if not taken[m] and (best < 0 or scores[m] > scores[best]):
+                best = m
+        taken[best] = True
+        dive[i] = candidates[best]
     for level in range(top, 0, -1):
         s = 1 << (level - 1)
         kids = np.empty((4 * len(dive), 3), np.int64)
         outside = np.zeros(4 * len(dive), np.bool_)
         for i in range(len(dive)):
-            for j, (dx, dy) in enumerate(((0, 0), (s, 0), (0, s), (s, s))):
-                x, y = dive[i, 1] + dx, dive[i, 2] + dy
+            for j in range(4):
+                x, y = dive[i, 1] + s * (j & 1), dive[i, 2] + s * (j >> 1)
                 outside[4 * i + j] = x > span or y > span
                 kids[4 * i + j, 0] = dive[i, 0]
                 kids[4 * i + j, 1] = min(x, span)   # scored in bounds, then discarded
@@ -144,7 +155,7 @@ def branch_and_bound(pyramid: np.ndarray, base: np.ndarray, thetas: np.ndarray, 
             bound = max(bound, kid_scores.max())
 
     for level in range(top, 0, -1):
-        candidates = _children(candidates[scores >= bound], level, span)
+        candidates = _children(candidates, scores, bound, level, span)
         scores = _scores(pyramid, level - 1, base, candidates, limit, resolution, thetas, theta0, prior_std_xy_m,
                          prior_std_theta_rad)
     if len(scores) == 0:

@@ -130,7 +130,8 @@ def solve_pose_in_window(distance: np.ndarray, nearest: np.ndarray, mean: np.nda
                 gradient[a] += jw * d[i]
                 for b in range(3):
                     hessian[a, b] += jw * jac[i, b]
-        diagonal = np.maximum(np.diag(hessian).copy(), min_diagonal)
+        diagonal = np.array([max(hessian[0, 0], min_diagonal), max(hessian[1, 1], min_diagonal),
+                             max(hessian[2, 2], min_diagonal)])
         accepted = False
         while iterations < max_iterations and not accepted:
             iterations += 1
@@ -138,7 +139,7 @@ def solve_pose_in_window(distance: np.ndarray, nearest: np.ndarray, mean: np.nda
             for a in range(3):
                 damped[a, a] += lam * diagonal[a]
             dx = solve3(damped, -gradient)
-            if not np.isfinite(dx).all():
+            if not (math.isfinite(dx[0]) and math.isfinite(dx[1]) and math.isfinite(dx[2])):
                 lam *= factor
                 continue
             candidate = x + dx
@@ -147,9 +148,14 @@ def solve_pose_in_window(distance: np.ndarray, nearest: np.ndarray, mean: np.nda
                                                                       origin, resolution, max_distance_m, huber_m)
             if not ok:
                 return GROW, box, x, iterations, d, jac, weight, active
-            predicted = -2.0 * np.dot(dx, gradient) - np.dot(dx, hessian @ dx)
+            predicted = 0.0   # -2 dx.g - dx.H.dx
+            small = True
+            for a in range(3):
+                predicted -= 2.0 * dx[a] * gradient[a]
+                for b in range(3):
+                    predicted -= dx[a] * hessian[a, b] * dx[b]
+                small = small and abs(dx[a]) < step_tolerance[a]
             fidelity = (current - new_cost) / predicted if predicted > 0 else -1.0
-            small = bool((np.abs(dx) < step_tolerance).all())
             if fidelity > min_fidelity:
                 accepted = True
                 decrease = current - new_cost

@@ -274,7 +274,10 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
                 STEP_TOLERANCE)
             if status == DONE:
                 return pose, iterations, tuple(state)
-            window = fields.around(box[:2], box[2:])
+            grown = fields.around(box[:2], box[2:])
+            if grown is window:   # cannot happen for finite points (the kernel asks what around() gives)
+                raise RuntimeError(f"the match field window does not grow to {box}")
+            window = grown
 
     pose, iterations, (d, jac, weight, active) = solve(initial_pose_xyt, False)
     walls = placed(pose)[2].lines if fields.lines and max_iterations > 0 else None

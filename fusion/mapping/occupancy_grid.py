@@ -120,6 +120,11 @@ class MatchFields:
         height, width = grid.shape
         self._bounds = (height, 0, width, 0)   # rows [r0, r1), cols [c0, c1) of the window: none yet
 
+    @property
+    def window(self) -> FieldWindow | None:
+        """The window computed so far (None before the first request)."""
+        return self._window
+
     def around(self, cols: np.ndarray, rows: np.ndarray) -> FieldWindow:
         """The fields over a window holding the cells at continuous cell coordinates ``cols``, ``rows``
         (x, y: column and row) and the cells next to them."""

@@ -260,8 +260,8 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
         cx, cy = (c * px - s * py + (pose[0] - origin[0])) / res, (s * px + c * py + (pose[1] - origin[1])) / res
         return cx, cy, fields.around(cx, cy)
 
-    def solve(start: np.ndarray, walls: bool) -> tuple[np.ndarray, int, tuple[np.ndarray, ...]]:
-        window = placed(start)[2]
+    def solve(start: np.ndarray, walls: bool, window: FieldWindow
+              ) -> tuple[np.ndarray, int, tuple[np.ndarray, ...], FieldWindow]:
         while True:   # the solve stops where a step leaves the window: grown, solved again
             height, width = window.distance.shape
             bounds = np.array([window.row0, window.row0 + height, window.col0, window.col0 + width], np.int64)
@@ -273,16 +273,18 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
                 np.asarray(start, np.float64), origin, res, max_distance_m, huber, max_iterations, SCHEDULE,
                 STEP_TOLERANCE)
             if status == DONE:
-                return pose, iterations, tuple(state)
+                return pose, iterations, tuple(state), window
             grown = fields.around(box[:2], box[2:])
             if grown is window:   # cannot happen for finite points (the kernel asks what around() gives)
                 raise RuntimeError(f"the match field window does not grow to {box}")
             window = grown
 
-    pose, iterations, (d, jac, weight, active) = solve(initial_pose_xyt, False)
-    walls = placed(pose)[2].lines if fields.lines and max_iterations > 0 else None
+    # the window the search left (the solve grows it where its points go), else one where they start
+    window = fields.window if fields.window is not None else placed(np.asarray(initial_pose_xyt, np.float64))[2]
+    pose, iterations, (d, jac, weight, active), window = solve(initial_pose_xyt, False, window)
+    walls = window.lines if fields.lines and max_iterations > 0 else None
     if walls is not None and len(walls.mean):  # from the field's wide basin to the walls
-        pose, more, (d, jac, weight, active) = solve(pose, True)
+        pose, more, (d, jac, weight, active), window = solve(pose, True, window)
         iterations += more
     inliers = active & (np.abs(d) <= inlier)
     n_in = int(inliers.sum())

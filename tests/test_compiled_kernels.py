@@ -11,17 +11,25 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from trundle.fusion.mapping.nearest_cells import squared_distances, stamped_fields
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, _likelihood
 from trundle.fusion.mapping.ray_casting import add_moments, ray_cells, update_cells
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
-from trundle.fusion.matching.block_scores import block_scores
+from trundle.fusion.matching.block_scores import block_scores, branch_and_bound, max_pool
 from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear, field_residuals
+from trundle.fusion.matching.pose_solver import DONE, solve3, solve_pose_in_window
+from trundle.fusion.matching.scan_matching import SCHEDULE, STEP_TOLERANCE, score_pyramid, solve_pose
+from trundle.fusion.optimization.robust_kernels import robust_loss
 
 EXAMPLES = settings(max_examples=60, deadline=None)
+DISTANCE_TRANSFORM = (cv2.DIST_L2, cv2.DIST_MASK_PRECISE)   # the match fields' OpenCV transform before the kernel
 
 
 def numpy_block_scores(grid: np.ndarray, base: np.ndarray, candidates: np.ndarray) -> np.ndarray:
@@ -272,3 +280,196 @@ def test_neighbourhood_moments_equal_numpy(height: int, width: int, seed: int) -
     rows, cols = np.nonzero(log_odds > 0.0)
     assert_same(neighbourhood_moments(slots, table, log_odds, rows, cols),
                 numpy_neighbourhood_moments(moments, log_odds, rows, cols))
+
+
+def numpy_max_pool(prev: np.ndarray, s: int) -> np.ndarray:
+    level = prev.copy()
+    np.maximum(level[:, :-s], prev[:, s:], out=level[:, :-s])
+    np.maximum(level[:-s, :], level[s:, :], out=level[:-s, :])
+    return level
+
+
+@EXAMPLES
+@given(st.integers(1, 20), st.integers(1, 20), st.integers(1, 24), st.integers(0, 2**32 - 1))
+def test_max_pool_equals_numpy_to_the_bit(height: int, width: int, shift: int, seed: int) -> None:
+    level = np.random.default_rng(seed).random((height, width)).astype(np.float32)
+    np.testing.assert_array_equal(max_pool(level, shift, np.empty_like(level)), numpy_max_pool(level, shift))
+
+
+@EXAMPLES
+@given(st.integers(1, 40), st.integers(1, 40), st.floats(0.0, 0.08), st.integers(0, 2**32 - 1), st.integers(1, 12),
+       st.integers(0, 6), st.integers(0, 6))
+def test_stamped_fields_equal_opencv(height: int, width: int, density: float, seed: int, radius: int, top: int,
+                                     left: int) -> None:
+    """The match fields from stamped distances against the OpenCV transform of the padded window they replaced:
+    distances (cells) equal to float32 rounding up to the radius, inf beyond; the distance and likelihood
+    fields as _compute made them from OpenCV's distances."""
+    occupied = np.random.default_rng(seed).random((height, width)) < density
+    rows, cols = np.nonzero(occupied)
+    top, left = min(top, height - 1), min(left, width - 1)
+    inner = (slice(top, height), slice(left, width))   # a window inside the padded array
+    cells = squared_distances(radius)
+    tables = np.stack([cells, np.minimum(cells * np.float32(0.05), np.float32(0.5)), _likelihood(cells, 0.05, 0.05)])
+    stamped, distance, likelihood = stamped_fields(rows, cols, top, left, height - top, width - left, radius, tables)
+    if not occupied.any():
+        assert np.all(np.isinf(stamped)) and np.all(distance == np.float32(0.5)) and np.all(likelihood == 0.0)
+        return
+    expected = cv2.distanceTransform(np.where(occupied, 0, 255).astype(np.uint8), *DISTANCE_TRANSFORM)[inner]
+    within = expected <= radius - 1e-3
+    np.testing.assert_allclose(stamped[within], expected[within], rtol=1e-6)
+    assert np.all(stamped[expected > radius + 1e-3] == np.inf)
+    np.testing.assert_allclose(distance[within], np.minimum(expected * np.float32(0.05), np.float32(0.5))[within],
+                               rtol=1e-6)
+    np.testing.assert_allclose(likelihood[within], _likelihood(expected, 0.05, 0.05)[within], rtol=1e-5, atol=1e-7)
+
+
+@st.composite
+def matching_problems(draw: st.DrawFn) -> tuple[LogOddsGrid, np.ndarray, np.ndarray]:
+    """A grid of a few random rooms' walls seen from random places, a scan's points and a start pose."""
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    grid = LogOddsGrid(0.05, subcell=True)
+    angles = np.linspace(-math.pi, math.pi, 120, endpoint=False)
+    rays = np.column_stack([np.cos(angles), np.sin(angles)])
+    walls = rng.uniform(1.0, 4.0, (120, 1)) * rays
+    for _ in range(draw(st.integers(1, 3))):
+        sensor = rng.uniform(-0.3, 0.3, 2)
+        grid.insert_rays(sensor, walls + 0.01 * rng.standard_normal(walls.shape))
+    points = walls[rng.random(120) < draw(st.floats(0.2, 1.0))] + 0.01 * rng.standard_normal((1, 2))
+    start = np.array([draw(st.floats(-0.2, 0.2)), draw(st.floats(-0.2, 0.2)), draw(st.floats(-0.1, 0.1))])
+    return grid, points, start
+
+
+@settings(max_examples=40, deadline=None)
+@given(matching_problems(), st.booleans(), st.integers(0, 20))
+def test_compiled_refinement_equals_the_python_loop(problem: tuple[LogOddsGrid, np.ndarray, np.ndarray],
+                                                    walls: bool, iterations: int) -> None:
+    """The whole solve in one kernel against the loop it replaced: the LM core (solve_pose) over numpy
+    Huber weights of field_residuals, growing the window where a step leaves it."""
+    grid, points, start = problem
+    fields = grid.match_fields(0.5, 0.05, lines=True)
+    px, py = points[:, 0], points[:, 1]
+
+    def placed(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        rx, ry = c * px - s * py, s * px + c * py
+        return rx, ry, (rx + (pose[0] - grid.origin[0])) / 0.05, (ry + (pose[1] - grid.origin[1])) / 0.05
+
+    def evaluate(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        rx, ry, cx, cy = placed(pose)
+        window = fields.around(cx, cy)
+        assert window.lines is not None
+        wall_arrays = (window.lines.nearest, window.lines.mean, window.lines.normal, window.lines.is_line)
+        d, jac, active = field_residuals(window.distance, *(wall_arrays if walls else NO_WALLS), window.row0,
+                                         window.col0, cx, cy, float(pose[0]), float(pose[1]), rx, ry, 0.05, 0.5)
+        loss, weight = robust_loss(d * d, "huber", 0.05)
+        return float(loss.sum()), d, jac, weight, active
+
+    _, _, cx, cy = placed(start)
+    window = fields.around(cx[:1], cy[:1])   # a window about one point: the first evaluation asks to grow it
+    grown = 0
+    while True:
+        assert window.lines is not None
+        height, width = window.distance.shape
+        wall_arrays = (window.lines.nearest, window.lines.mean, window.lines.normal, window.lines.is_line)
+        status, box, pose, count, *state = solve_pose_in_window(
+            window.distance, *(wall_arrays if walls else NO_WALLS),
+            np.array([window.row0, window.row0 + height, window.col0, window.col0 + width]), np.array(grid.shape),
+            px, py, start, grid.origin, 0.05, 0.5, 0.05, iterations, SCHEDULE, STEP_TOLERANCE)
+        if status == DONE:
+            break
+        grown += 1
+        window = fields.around(box[:2], box[2:])
+    assert grown >= 1
+    expected_pose, expected_iterations, expected = solve_pose(evaluate, start, iterations)
+    assert count == expected_iterations
+    np.testing.assert_allclose(pose, expected_pose, rtol=0.0, atol=1e-9)
+    for actual, wanted in zip(state, expected, strict=True):
+        np.testing.assert_allclose(actual, wanted, rtol=1e-9, atol=1e-9)
+
+
+@EXAMPLES
+@given(hnp.arrays(np.float64, (3, 3), elements=st.floats(-1e3, 1e3)), hnp.arrays(np.float64, 3,
+                                                                                 elements=st.floats(-1e3, 1e3)))
+def test_solve3_equals_numpy(matrix: np.ndarray, rhs: np.ndarray) -> None:
+    spd = matrix @ matrix.T + 1e-3 * np.eye(3)   # the damped normal equations are symmetric positive definite
+    np.testing.assert_allclose(solve3(spd, rhs), np.linalg.solve(spd, rhs), rtol=1e-6,
+                               atol=1e-9 * np.abs(np.linalg.solve(spd, rhs)).max())
+    singular = np.ones((3, 3))
+    assert np.all(np.isnan(solve3(singular, rhs)))
+
+
+def numpy_branch_and_bound(pyramid: np.ndarray, base: np.ndarray, thetas: np.ndarray, t0: float, limit: int,
+                           res: float, prior_std_xy_m: float | None, prior_std_theta_rad: float | None,
+                           min_score: float) -> tuple[bool, int, int, int, float]:
+    """correlative_search's branch and bound as it stood in numpy (after its pyramid and base)."""
+    def shifts(level: int) -> np.ndarray:
+        s = 1 << (level - 1)
+        return np.array([[0, 0, 0], [0, s, 0], [0, 0, s], [0, s, s]], np.int64)
+
+    def children(candidates: np.ndarray, level: int, bound: int) -> np.ndarray:
+        kids = (candidates[:, None, :] + shifts(level)[None]).reshape(-1, 3)
+        return kids[(kids[:, 1] <= bound) & (kids[:, 2] <= bound)]
+
+    def scores_of(level: int, candidates: np.ndarray) -> np.ndarray:
+        raw = block_scores(pyramid[level], base, candidates)
+        if prior_std_xy_m is None and prior_std_theta_rad is None:
+            return raw
+        cost = np.zeros(len(candidates))
+        if prior_std_xy_m is not None:
+            near = np.clip(0, candidates[:, 1:] - limit, candidates[:, 1:] - limit + (1 << level) - 1)
+            cost += (res * res) * (near ** 2).sum(axis=1) / prior_std_xy_m ** 2
+        if prior_std_theta_rad is not None:
+            cost += ((thetas[candidates[:, 0]] - t0) / prior_std_theta_rad) ** 2
+        return raw * np.exp(-0.5 * cost)
+
+    top = len(pyramid) - 1
+    offsets = np.arange(0, 2 * limit + 1, 1 << top)
+    a, ox, oy = np.meshgrid(np.arange(len(thetas)), offsets, offsets, indexing="ij")
+    candidates = np.stack([a.ravel(), ox.ravel(), oy.ravel()], axis=1)
+    scores = scores_of(top, candidates)
+    weighted = prior_std_xy_m is not None or prior_std_theta_rad is not None
+    bound = 0.0 if weighted else min_score
+    dive = candidates[np.argsort(scores)[::-1][:8]]
+    for level in range(top, 0, -1):
+        kids = dive[:, None, :] + shifts(level)[None]
+        outside = (kids[..., 1] > 2 * limit) | (kids[..., 2] > 2 * limit)
+        kids[..., 1:] = np.minimum(kids[..., 1:], 2 * limit)
+        kid_scores = scores_of(level - 1, kids.reshape(-1, 3)).reshape(len(dive), 4)
+        kid_scores[outside] = -np.inf
+        dive = kids[np.arange(len(dive)), np.argmax(kid_scores, axis=1)]
+        if level == 1:
+            bound = max(bound, float(kid_scores.max()))
+    for level in range(top, 0, -1):
+        keep = scores >= bound
+        candidates = children(candidates[keep], level, 2 * limit)
+        scores = scores_of(level - 1, candidates)
+    if len(scores) == 0:
+        return False, 0, 0, 0, 0.0
+    i = int(np.argmax(scores))
+    raw = float(block_scores(pyramid[0], base, candidates[i:i + 1])[0]) if weighted else float(scores[i])
+    if raw < min_score:
+        return False, 0, 0, 0, 0.0
+    return True, int(candidates[i, 0]), int(candidates[i, 1]), int(candidates[i, 2]), float(scores[i])
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 9), st.integers(1, 4), st.integers(0, 40),
+       st.sampled_from([None, 0.05, 0.3]), st.sampled_from([None, 0.02, 0.2]), st.floats(0.0, 0.6))
+def test_branch_and_bound_equals_numpy(seed: int, limit: int, angles: int, points: int, prior_xy: float | None,
+                                       prior_theta: float | None, min_score: float) -> None:
+    """The same pose as the numpy loop, ties included (a field of few distinct values has many), and the
+    same score (to the last bits of the prior's exp, which numpy computes with its own vector code)."""
+    rng = np.random.default_rng(seed)
+    height, width = rng.integers(2 * limit + 1, 2 * limit + 30, 2)
+    field = rng.choice(np.array([0.0, 0.5, 1.0], np.float32), (height, width))
+    levels = max(1, min(8, int(math.ceil(math.log2(2 * limit + 1))) + 1))
+    pyramid = score_pyramid(field, levels)
+    rows = rng.integers(0, pyramid.shape[1] - 2 * limit, (angles, points))
+    cols = rng.integers(0, pyramid.shape[2] - 2 * limit, (angles, points))
+    thetas = rng.uniform(-0.2, 0.2, angles)
+    arguments = (pyramid, rows * pyramid.shape[2] + cols, thetas, 0.01, limit, 0.05)
+    found = branch_and_bound(*arguments, -1.0 if prior_xy is None else prior_xy,
+                             -1.0 if prior_theta is None else prior_theta, min_score)
+    expected = numpy_branch_and_bound(*arguments, prior_xy, prior_theta, min_score)
+    assert found[:4] == expected[:4]
+    assert found[4] == pytest.approx(expected[4], rel=1e-14, abs=0.0)

@@ -14,9 +14,11 @@ import pytest
 from trundle.drivers.camera import OPTICAL_ROTATION
 from trundle.drivers.lifecycle import Driver
 from trundle.fusion.geometry import compose, inverse
+from trundle.fusion.slam.config import SlamConfig
 from trundle.logs import messages as m
 from trundle.logs.reader import LogReader
-from trundle.tools.config.robot import parse_config
+from trundle.tools.config.robot import FramesConfig, ProcessingConfig, parse_config
+from trundle.tools.daemon.processing import Processing
 from trundle.tools.daemon.service import Daemon
 from trundle.tools.sim.camera_render import optical_rotation
 from trundle.tools.sim.robot import RobotSim
@@ -155,3 +157,34 @@ def test_online_slam_and_markers_follow_the_ground_truth(tmp_path, sim):
             error = float(np.hypot(where[0] - world_marker.x, where[1] - world_marker.y))
             sigma = math.sqrt(np.linalg.eigvalsh(o.position_covariance()).max())
             assert o.oriented and error < 3 * sigma + 0.1, (o.id, o.range, error, sigma)
+
+
+class RecordingSlam:
+    """Stands in for the SLAM estimator: records the stamps of the scans it is given."""
+
+    def __init__(self) -> None:
+        self.config = SlamConfig()
+        self.landmark_constraints = None
+        self.wheels = None
+        self.stamps: list[int] = []
+
+    def process(self, topic: str, msg: m.Message) -> None:
+        if isinstance(msg, m.LaserScan):
+            self.stamps.append(msg.stamp_ns)
+
+
+def test_scans_handed_over_together_are_all_processed_and_only_stale_ones_skipped() -> None:
+    """Behind real time, the scans waiting more than max_scan_lag_s older than the newest are skipped; two
+    scans a driver hands over at once (one scan period apart) are both processed."""
+    slam = RecordingSlam()
+    processing = Processing(ProcessingConfig(slam=True, max_scan_lag_s=0.2), FramesConfig(), lambda topic, msg: None,
+                            slam)  # type: ignore[arg-type]
+    stamps_ms = [0, 25, 1000, 1025, 1050, 1199, 1200, 1225, 1250, 1275, 1300, 1400]
+    for stamp in stamps_ms:   # one batch: all waiting when the thread wakes
+        processing.put("/scan", m.LaserScan(stamp * 1_000_000, "laser", -1.0, 1.0, 0.5, 0.0, 0.025, 0.1, 30.0,
+                                            np.ones(5, np.float32)))
+    processing.thread.start()
+    processing.stop()
+    kept = [stamp for stamp in stamps_ms if stamp >= 1200]   # the newest is 1400 ms
+    assert slam.stamps == [stamp * 1_000_000 for stamp in kept]
+    assert processing.skipped_scans == len(stamps_ms) - len(kept) and processing.errors == 0

@@ -10,8 +10,10 @@ import pytest
 from pydantic import ValidationError
 
 from tests.planar_world import ROOM, scan
-from trundle.fusion.geometry import compose, relative, wrap_angle
+from trundle.fusion.geometry import compose, relative, scan_to_points, wrap_angle
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.odometry.drift import drifting_odometry
+from trundle.fusion.slam.backend import MapBuilder, MapInputs
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.grid_slam import Slam
 from trundle.logs import messages as m
@@ -159,3 +161,40 @@ def test_config_is_frozen_and_replace_checks() -> None:
     assert config.replace("loop_closure", enabled=False).loop_closure.enabled is False and config.loop_closure.enabled
     with pytest.raises(ConfigError, match="scans_per_submap = 0"):
         config.replace("submaps", scans_per_submap=0)
+
+
+def cast_from_the_start(inputs: MapInputs) -> LogOddsGrid:
+    """The map as build_map cast it before it kept its grid: every keyframe's rays, then seen-through cleared."""
+    grid = LogOddsGrid(inputs.resolution, mark_returns=True)
+    for pose, points, free in zip(inputs.poses, inputs.points, inputs.free, strict=True):
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        rot = np.array([[c, -s], [s, c]])
+        grid.insert_rays(compose(pose, inputs.mount)[:2], points @ rot.T + pose[:2],
+                         None if free is None else free @ rot.T + pose[:2])
+    grid.clear_seen_through()
+    return grid
+
+
+def test_the_map_is_built_incrementally_and_equals_the_map_cast_from_the_start() -> None:
+    """New keyframes are cast onto the kept grid; a moved pose (an optimisation) casts the map again: each
+    time the same cells as casting every keyframe from the start, and the kept grid is not the one returned."""
+    truth = loop_path(laps=1)[::6]
+    rng = np.random.default_rng(4)
+    points = [scan_to_points(scan(ROOM, pose, beams=181, noise_m=0.01, seed=k, max_range=10.0))
+              for k, pose in enumerate(truth)]
+    free = [None if k % 2 else rng.uniform(-3.0, 3.0, (5, 2)) for k in range(len(truth))]
+    mount = np.array([0.1, 0.0, 0.0])
+    builder = MapBuilder()
+
+    def inputs(count: int, poses: np.ndarray) -> MapInputs:
+        return MapInputs(poses[:count].copy(), tuple(points[:count]), tuple(free[:count]), mount, 0.05)
+
+    moved = truth.copy()
+    moved[1] += (0.02, -0.01, 0.01)
+    for step in (inputs(3, truth), inputs(3, truth), inputs(len(truth), truth), inputs(len(truth), moved)):
+        built, expected = builder.build(step), cast_from_the_start(step)
+        np.testing.assert_array_equal(built.origin, expected.origin)
+        for actual, wanted in ((built.log_odds, expected.log_odds), (built.observed, expected.observed),
+                               (built.returned, expected.returned)):
+            np.testing.assert_array_equal(actual, wanted)
+        built.log_odds[:] = 0.0   # the builder's own grid goes on unharmed

@@ -13,6 +13,7 @@ update.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,6 +23,7 @@ import cv2
 import numpy as np
 
 from trundle.fusion.mapping import ray_casting
+from trundle.fusion.mapping.nearest_cells import squared_distances, stamped_fields
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
 from trundle.logs.errors import UserError
 from trundle.logs.messages import OccupancyGrid
@@ -97,8 +99,10 @@ class MatchFields:
     distance (m) to the nearest occupied cell capped at ``max_distance_m``; the likelihood
     ``exp(-d^2 / (2 sigma^2))``, 0 beyond 4 sigma; and with ``lines`` the walls the returns describe
     (:meth:`LogOddsGrid.line_data`), each cell pointing at its nearest occupied cell's. Every value
-    in the window is exact: it is computed on the window grown by the larger cap. A request outside
-    the window grows it (by ``WINDOW_SLACK_CELLS`` more, for the next scans and the match's steps)."""
+    in the window is exact: each occupied cell of the window grown by the larger cap stamps its
+    distances into it (:func:`~trundle.fusion.mapping.nearest_cells.stamped_fields`), and the nearest wall
+    cells are OpenCV's labelled transform over that grown window. A request outside the window grows it
+    (by ``WINDOW_SLACK_CELLS`` more, for the next scans and the match's steps)."""
 
     def __init__(
         self, grid: LogOddsGrid, max_distance_m: float, sigma_m: float, lines: bool, min_flatness: float
@@ -109,9 +113,17 @@ class MatchFields:
         self.lines = lines
         self.min_flatness = min_flatness
         self.margin = int(math.ceil(max(self.max_distance_m, 4.0 * self.sigma_m) / grid.resolution)) + 2
+        cells = squared_distances(self.margin)   # the fields' values per squared distance (cells)
+        self._tables = np.stack([np.minimum(cells * np.float32(grid.resolution), np.float32(self.max_distance_m)),
+                                 _likelihood(cells, grid.resolution, self.sigma_m)])
         self._window: FieldWindow | None = None
         height, width = grid.shape
         self._bounds = (height, 0, width, 0)   # rows [r0, r1), cols [c0, c1) of the window: none yet
+
+    @property
+    def window(self) -> FieldWindow | None:
+        """The window computed so far (None before the first request)."""
+        return self._window
 
     def around(self, cols: np.ndarray, rows: np.ndarray) -> FieldWindow:
         """The fields over a window holding the cells at continuous cell coordinates ``cols``, ``rows``
@@ -134,27 +146,22 @@ class MatchFields:
         height, width = grid.shape
         pr0, pr1, pc0, pc1 = max(r0 - margin, 0), min(r1 + margin, height), max(c0 - margin, 0), min(c1 + margin, width)
         occupied = grid.log_odds[pr0:pr1, pc0:pc1] > 0.0
-        inner = (slice(r0 - pr0, r1 - pr0), slice(c0 - pc0, c1 - pc0))
+        rows, cols = np.nonzero(occupied)
         shape = (max(r1 - r0, 0), max(c1 - c0, 0))
+        # distances up to the margin are exact, and every field is capped (or zero) before it
+        distance, likelihood = stamped_fields(rows, cols, r0 - pr0, c0 - pc0, shape[0], shape[1], margin,
+                                              self._tables)
         lines = None
-        if not occupied.any():
-            distance = np.full(shape, np.float32(self.max_distance_m), np.float32)
-            likelihood = np.zeros(shape, np.float32)
-            if self.lines:
-                lines = WallLines(np.full(shape, -1, np.int32), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, bool))
-        else:
-            free = np.where(occupied, 0, 255).astype(np.uint8)
-            cells = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[inner]
-            distance = np.minimum(cells * np.float32(grid.resolution), np.float32(self.max_distance_m))
-            likelihood = _likelihood(cells, grid.resolution, self.sigma_m)
-            if self.lines:
-                _, labels = cv2.distanceTransformWithLabels(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
-                                                            labelType=cv2.DIST_LABEL_PIXEL)
-                rows, cols = np.nonzero(occupied)
-                mean, normal, is_line = grid.line_data(rows + pr0, cols + pc0, self.min_flatness)
+        if self.lines:
+            mean, normal, is_line = grid.line_data(rows + pr0, cols + pc0, self.min_flatness)
+            nearest = np.full(shape, -1, np.int32)
+            if len(rows):
+                _, labels = cv2.distanceTransformWithLabels(np.where(occupied, 0, 255).astype(np.uint8), cv2.DIST_L2,
+                                                            cv2.DIST_MASK_PRECISE, labelType=cv2.DIST_LABEL_PIXEL)
                 index = np.zeros(int(labels.max()) + 1, np.int32)
                 index[labels[rows, cols]] = np.arange(len(rows), dtype=np.int32)
-                lines = WallLines(index[labels[inner]], mean, normal, is_line)
+                nearest = index[labels[r0 - pr0:r1 - pr0, c0 - pc0:c1 - pc0]]
+            lines = WallLines(nearest, mean, normal, is_line)
         self._bounds = (r0, r1, c0, c1)
         self._window = FieldWindow(r0, c0, distance, likelihood, lines)
         return self._window
@@ -171,8 +178,8 @@ def _likelihood(cells: np.ndarray, resolution: float, sigma_m: float) -> np.ndar
 @dataclass(frozen=True)
 class WallLines:
     """Walls of a grid as its returns describe them: ``nearest`` (H, W) the index of each cell's nearest
-    occupied cell (-1: none), and per occupied cell the ``mean`` (K, 2, metres, grid frame) of its
-    returns, the ``normal`` (K, 2) of the line through its neighbourhood's returns and whether they
+    occupied cell (-1: none), and per occupied cell the ``mean`` (K, 2, metres, grid frame)
+    of its returns, the ``normal`` (K, 2) of the line through its neighbourhood's returns and whether they
     lie on one (``is_line``; otherwise the returns are matched as a point)."""
 
     nearest: np.ndarray
@@ -314,6 +321,16 @@ class LogOddsGrid:
             raise ValueError("clear_seen_through needs a grid made with mark_returns=True")
         self.log_odds[self.observed & ~self.returned] = self.l_min
         self._changed()
+
+    def copy(self) -> LogOddsGrid:
+        """An independent copy of the grid (its cells, flags and moments; no cached fields)."""
+        clone = copy.copy(self)
+        clone.origin, clone.log_odds, clone.observed = self.origin.copy(), self.log_odds.copy(), self.observed.copy()
+        if self.moments is not None:
+            clone.moments = ReturnMoments(self.moments.slots.copy(), self.moments.rows.copy(), self.moments.count)
+        clone.returned = None if self.returned is None else self.returned.copy()
+        clone._cache = {}
+        return clone
 
     def probability(self) -> np.ndarray:
         """Occupancy probability of every cell (0.5 where never observed)."""

@@ -1,9 +1,12 @@
-"""The correlative search's inner loop, compiled: the mean of a score grid under a rotated scan at
-many translations (numba, cached on disk; see docs/slam.md for the compile times).
+"""The correlative search, compiled (numba, cached on disk; see docs/slam.md for the compile times): the
+max-pooled pyramid, the mean of a score grid under a rotated scan at many translations, and the whole
+branch and bound over them in one call.
 
-It replaces gathering an (M, N) index array in numpy per batch of candidates: the loop reads each
-cell once into a float64 sum and allocates nothing. Likelihood values are float32 in [exp(-8), 1]
-or 0, so every partial sum is exact in float64 and the result equals numpy's to the bit.
+The gather-and-sum replaces gathering an (M, N) index array in numpy per batch of candidates: the loop
+reads each cell once into a float64 sum and allocates nothing. Likelihood values are float32 in
+[exp(-8), 1] or 0, so every partial sum is exact in float64 and the result equals numpy's to the bit.
+The branch and bound is the numpy loop it replaced, step for step (its candidates in the same order,
+so of equal best scores the same one wins); in Python it made a few dozen small numpy calls a search.
 """
 
 from __future__ import annotations
@@ -31,3 +34,134 @@ def block_scores(grid: np.ndarray, base: np.ndarray, candidates: np.ndarray) -> 
             total += flat[row[n] + shift]
         out[m] = total / max(count, 1)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def max_pool(level: np.ndarray, shift: int, out: np.ndarray) -> np.ndarray:
+    """The next level of a branch-and-bound pyramid into ``out``: at ``[r, c]`` the maximum of ``level``
+    (H, W) over ``[r, r + 2 shift) x [c, c + 2 shift)`` in steps of ``shift`` (the cells beyond the edge left out)."""
+    height, width = level.shape
+    for r in range(height):
+        for c in range(width - shift):
+            out[r, c] = max(level[r, c], level[r, c + shift])
+        for c in range(max(width - shift, 0), width):
+            out[r, c] = level[r, c]
+    for r in range(height - shift):
+        for c in range(width):
+            out[r, c] = max(out[r, c], out[r + shift, c])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _scores(pyramid: np.ndarray, level: int, base: np.ndarray, candidates: np.ndarray, limit: int,
+            resolution: float, thetas: np.ndarray, theta0: float, prior_std_xy_m: float,
+            prior_std_theta_rad: float) -> np.ndarray:
+    """Upper bounds of the (prior-weighted; a prior <= 0: none) scores of blocks of ``2^level`` cells."""
+    raw = block_scores(pyramid[level], base, candidates)
+    if prior_std_xy_m <= 0.0 and prior_std_theta_rad <= 0.0:
+        return raw
+    top = (1 << level) - 1
+    for m in range(candidates.shape[0]):
+        cost = 0.0
+        if prior_std_xy_m > 0.0:
+            # nearest offset to the prediction inside each block: an upper bound of the prior there
+            nx = min(max(0, candidates[m, 1] - limit), candidates[m, 1] - limit + top)
+            ny = min(max(0, candidates[m, 2] - limit), candidates[m, 2] - limit + top)
+            cost += (resolution * resolution) * (nx * nx + ny * ny) / prior_std_xy_m ** 2
+        if prior_std_theta_rad > 0.0:
+            cost += ((thetas[candidates[m, 0]] - theta0) / prior_std_theta_rad) ** 2
+        raw[m] *= np.exp(-0.5 * cost)
+    return raw
+
+
+@numba.njit(cache=True, nogil=True)
+def _children(candidates: np.ndarray, scores: np.ndarray, bound: float, level: int, limit: int) -> np.ndarray:
+    """The four sub-blocks at ``level - 1``, in order, of the blocks at ``level`` scoring at least ``bound``
+    (offsets beyond ``limit`` dropped)."""
+    s = 1 << (level - 1)
+    kids = np.empty((4 * candidates.shape[0], 3), np.int64)
+    count = 0
+    for m in range(candidates.shape[0]):
+        if not scores[m] >= bound:
+            continue
+        for j in range(4):
+            dx, dy = s * (j & 1), s * (j >> 1)   # (0, 0), (s, 0), (0, s), (s, s)
+            if candidates[m, 1] + dx <= limit and candidates[m, 2] + dy <= limit:
+                kids[count, 0] = candidates[m, 0]
+                kids[count, 1] = candidates[m, 1] + dx
+                kids[count, 2] = candidates[m, 2] + dy
+                count += 1
+    return kids[:count]
+
+
+@numba.njit(cache=True, nogil=True)
+def branch_and_bound(pyramid: np.ndarray, base: np.ndarray, thetas: np.ndarray, theta0: float, limit: int,
+                     resolution: float, prior_std_xy_m: float, prior_std_theta_rad: float, min_score: float
+                     ) -> tuple[bool, int, int, int, float]:
+    """The best lattice pose of the search: over angle indices of ``thetas`` and offsets ``[0, 2 limit]``
+    cells in x and y, the mean of ``pyramid[0]`` under the points whose flat cells at offset (0, 0) are
+    ``base`` (angles, N), weighted by a Gaussian prior around ``theta0`` and offset ``limit`` (a
+    standard deviation <= 0: no prior). Returns whether one scores at least ``min_score`` (unweighted),
+    its angle index, x and y offsets and its (weighted) score."""
+    levels = pyramid.shape[0]
+    top = levels - 1
+    step = 1 << top
+    weighted = prior_std_xy_m > 0.0 or prior_std_theta_rad > 0.0
+    span = 2 * limit
+    per_axis = span // step + 1
+    candidates = np.empty((len(thetas) * per_axis * per_axis, 3), np.int64)
+    m = 0
+    for a in range(len(thetas)):
+        for ox in range(per_axis):
+            for oy in range(per_axis):
+                candidates[m, 0], candidates[m, 1], candidates[m, 2] = a, ox * step, oy * step
+                m += 1
+    scores = _scores(pyramid, top, base, candidates, limit, resolution, thetas, theta0, prior_std_xy_m,
+                     prior_std_theta_rad)
+    bound = 0.0 if weighted else min_score
+
+    # Greedy dives from the best top blocks reach leaves at once: a lower bound to prune with.
+    dive = np.empty((min(8, len(scores)), 3), np.int64)
+    taken = np.zeros(len(scores), np.bool_)
+    for i in range(len(dive)):   # the best eight, best first (of equal scores any: only the bound depends on them)
+        best = -1
+        for m in range(len(scores)):
+            if not taken[m] and (best < 0 or scores[m] > scores[best]):
+                best = m
+        taken[best] = True
+        dive[i] = candidates[best]
+    for level in range(top, 0, -1):
+        s = 1 << (level - 1)
+        kids = np.empty((4 * len(dive), 3), np.int64)
+        outside = np.zeros(4 * len(dive), np.bool_)
+        for i in range(len(dive)):
+            for j in range(4):
+                x, y = dive[i, 1] + s * (j & 1), dive[i, 2] + s * (j >> 1)
+                outside[4 * i + j] = x > span or y > span
+                kids[4 * i + j, 0] = dive[i, 0]
+                kids[4 * i + j, 1] = min(x, span)   # scored in bounds, then discarded
+                kids[4 * i + j, 2] = min(y, span)
+        kid_scores = _scores(pyramid, level - 1, base, kids, limit, resolution, thetas, theta0, prior_std_xy_m,
+                             prior_std_theta_rad)
+        for i in range(len(dive)):
+            best = 4 * i
+            for j in range(4):
+                if outside[4 * i + j]:
+                    kid_scores[4 * i + j] = -np.inf
+                elif kid_scores[4 * i + j] > kid_scores[best]:
+                    best = 4 * i + j
+            dive[i] = kids[best]
+        if level == 1:
+            bound = max(bound, kid_scores.max())
+
+    for level in range(top, 0, -1):
+        candidates = _children(candidates, scores, bound, level, span)
+        scores = _scores(pyramid, level - 1, base, candidates, limit, resolution, thetas, theta0, prior_std_xy_m,
+                         prior_std_theta_rad)
+    if len(scores) == 0:
+        return False, 0, 0, 0, 0.0
+    i = int(np.argmax(scores))
+    raw = block_scores(pyramid[0], base, candidates[i:i + 1])[0] if weighted else scores[i]
+    if raw < min_score:
+        return False, 0, 0, 0, 0.0
+    return True, candidates[i, 0], candidates[i, 1], candidates[i, 2], scores[i]

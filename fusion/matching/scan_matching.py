@@ -6,8 +6,9 @@ and finds the best exactly, robust to poor initial guesses. The refinement then 
 robust (Huber) sum of squared distances from the points to the nearest occupied cells, read
 from a bilinearly interpolated distance field, with the one Levenberg-Marquardt core
 (:func:`solve_pose`), which gives sub-cell precision and, from the Gauss-Newton Hessian, a
-covariance for the match. Their inner loops over points and poses are compiled (numba):
-:mod:`~trundle.fusion.matching.block_scores` and :mod:`~trundle.fusion.matching.field_residuals`.
+covariance for the match. Both are compiled (numba), each a call or two per match: the pyramid and the
+branch and bound in :mod:`~trundle.fusion.matching.block_scores`, the refinement's whole solve in
+:mod:`~trundle.fusion.matching.pose_solver` over the residuals of :mod:`~trundle.fusion.matching.field_residuals`.
 """
 
 from __future__ import annotations
@@ -20,10 +21,10 @@ import numpy as np
 
 from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.mapping.occupancy_grid import FieldWindow, LogOddsGrid, MatchFields
-from trundle.fusion.matching.block_scores import block_scores
-from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear, field_residuals
+from trundle.fusion.matching.block_scores import branch_and_bound, max_pool
+from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear
+from trundle.fusion.matching.pose_solver import DONE, solve_pose_in_window
 from trundle.fusion.optimization.levenberg_marquardt import Settings, levenberg_marquardt
-from trundle.fusion.optimization.robust_kernels import robust_loss
 
 
 @dataclass(frozen=True)
@@ -56,36 +57,18 @@ def angular_step(resolution: float, max_range_m: float) -> float:
     return math.acos(max(-1.0, 1.0 - resolution ** 2 / (2.0 * d * d)))
 
 
-def score_pyramid(field: np.ndarray, levels: int) -> list[np.ndarray]:
-    """Max-pooled copies of ``field`` padded with ``2**(levels-1)`` zero cells on every side.
+def score_pyramid(field: np.ndarray, levels: int) -> np.ndarray:
+    """Max-pooled copies (levels, H, W) of ``field`` padded with ``2**(levels-1)`` zero cells on every side.
 
     Level ``h`` holds at ``[r, c]`` the maximum of the padded field over ``[r, r + 2^h) x [c, c + 2^h)``,
     an upper bound of the score of every translation in that block (branch and bound).
     """
     pad = 1 << (levels - 1)
-    padded = np.zeros((field.shape[0] + 2 * pad, field.shape[1] + 2 * pad), np.float32)
-    padded[pad:pad + field.shape[0], pad:pad + field.shape[1]] = field
-    pyramid = [padded]
+    pyramid = np.zeros((levels, field.shape[0] + 2 * pad, field.shape[1] + 2 * pad), np.float32)
+    pyramid[0, pad:pad + field.shape[0], pad:pad + field.shape[1]] = field
     for h in range(1, levels):
-        s = 1 << (h - 1)
-        prev = pyramid[-1]
-        level = prev.copy()
-        np.maximum(level[:, :-s], prev[:, s:], out=level[:, :-s])
-        np.maximum(level[:-s, :], level[s:, :], out=level[:-s, :])
-        pyramid.append(level)
+        max_pool(pyramid[h - 1], 1 << (h - 1), pyramid[h])
     return pyramid
-
-
-def _shifts(level: int) -> np.ndarray:
-    """Offsets (angle, dx, dy) of the four sub-blocks at ``level - 1`` of a block at ``level``."""
-    s = 1 << (level - 1)
-    return np.array([[0, 0, 0], [0, s, 0], [0, 0, s], [0, s, s]], np.int64)
-
-
-def _children(candidates: np.ndarray, level: int, limit: int) -> np.ndarray:
-    """The four sub-blocks at ``level - 1`` of blocks at ``level`` (offsets beyond ``limit`` dropped)."""
-    kids = (candidates[:, None, :] + _shifts(level)[None]).reshape(-1, 3)
-    return kids[(kids[:, 1] <= limit) & (kids[:, 2] <= limit)]
 
 
 def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.ndarray, *,
@@ -111,6 +94,8 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     same ``max_distance_m`` and ``wall_lines`` (:func:`match_fields`), so a match computes one window.
     """
     points = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    if any(prior is not None and not prior > 0.0 for prior in (prior_std_xy_m, prior_std_theta_rad)):
+        raise ValueError("a prior's standard deviation must be positive")
     if len(points) == 0 or grid.shape[0] == 0:
         return None
     res = grid.resolution
@@ -132,64 +117,22 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     window = match_fields(grid, max_distance_m, sigma, wall_lines).around(
         np.array([cols.min() - limit, cols.max() + limit], np.float64),
         np.array([rows.min() - limit, rows.max() + limit], np.float64))
-    pyramids: dict[int, tuple[FieldWindow, list[np.ndarray]]] = grid.cached(("pyramids", float(sigma)), dict)
+    pyramids: dict[int, tuple[FieldWindow, np.ndarray]] = grid.cached(("pyramids", float(sigma)), dict)
     if levels not in pyramids or pyramids[levels][0] is not window:
         pyramids[levels] = (window, score_pyramid(window.likelihood, levels))
     pyramid = pyramids[levels][1]
     # Cell of each rotated point for offset (0, 0), clipped once so that every offset in
     # [0, 2 limit] stays in the array: a point off the grid then lands in the zero border,
     # which keeps level 0 exact and coarser levels upper bounds.
-    height, width = pyramid[0].shape
+    height, width = pyramid.shape[1:]
     ix = np.clip(cols - window.col0 + pad - limit, 0, width - 1 - 2 * limit)
     iy = np.clip(rows - window.row0 + pad - limit, 0, height - 1 - 2 * limit)
-    base = iy * width + ix
-
-    def scores_of(level: int, candidates: np.ndarray) -> np.ndarray:
-        raw = block_scores(pyramid[level], base, candidates)
-        if prior_std_xy_m is None and prior_std_theta_rad is None:
-            return raw
-        cost = np.zeros(len(candidates))
-        if prior_std_xy_m is not None:
-            # nearest offset to the prediction inside each block: an upper bound of the prior there
-            near = np.clip(0, candidates[:, 1:] - limit, candidates[:, 1:] - limit + (1 << level) - 1)
-            cost += (res * res) * (near ** 2).sum(axis=1) / prior_std_xy_m ** 2
-        if prior_std_theta_rad is not None:
-            cost += ((thetas[candidates[:, 0]] - t0) / prior_std_theta_rad) ** 2
-        return raw * np.exp(-0.5 * cost)
-
-    top = levels - 1
-    step = 1 << top
-    offsets = np.arange(0, 2 * limit + 1, step)
-    a, ox, oy = np.meshgrid(np.arange(len(thetas)), offsets, offsets, indexing="ij")
-    candidates = np.stack([a.ravel(), ox.ravel(), oy.ravel()], axis=1)
-    scores = scores_of(top, candidates)
-    weighted = prior_std_xy_m is not None or prior_std_theta_rad is not None
-    bound = 0.0 if weighted else min_score
-
-    # Greedy dives from the best top blocks reach leaves at once: a lower bound to prune with.
-    dive = candidates[np.argsort(scores)[::-1][:8]]
-    for level in range(top, 0, -1):
-        kids = dive[:, None, :] + _shifts(level)[None]
-        outside = (kids[..., 1] > 2 * limit) | (kids[..., 2] > 2 * limit)
-        kids[..., 1:] = np.minimum(kids[..., 1:], 2 * limit)  # scored in bounds, then discarded
-        kid_scores = scores_of(level - 1, kids.reshape(-1, 3)).reshape(len(dive), 4)
-        kid_scores[outside] = -np.inf
-        dive = kids[np.arange(len(dive)), np.argmax(kid_scores, axis=1)]
-        if level == 1:
-            bound = max(bound, float(kid_scores.max()))
-
-    for level in range(top, 0, -1):
-        keep = scores >= bound
-        candidates = _children(candidates[keep], level, 2 * limit)
-        scores = scores_of(level - 1, candidates)
-    if len(scores) == 0:
+    found, a_i, dx, dy, score = branch_and_bound(
+        pyramid, iy * width + ix, thetas, t0, limit, res, -1.0 if prior_std_xy_m is None else prior_std_xy_m,
+        -1.0 if prior_std_theta_rad is None else prior_std_theta_rad, min_score)
+    if not found:
         return None
-    i = int(np.argmax(scores))
-    raw = float(block_scores(pyramid[0], base, candidates[i:i + 1])[0]) if weighted else float(scores[i])
-    if raw < min_score:
-        return None
-    a_i, dx, dy = candidates[i]
-    return np.array([x0 + (dx - limit) * res, y0 + (dy - limit) * res, wrap_angle(thetas[a_i])]), float(scores[i])
+    return np.array([x0 + (dx - limit) * res, y0 + (dy - limit) * res, wrap_angle(thetas[a_i])]), float(score)
 
 
 # The matchers' schedule: Marquardt's scale-invariant damping from lambda 1e-3, any decrease accepted;
@@ -199,6 +142,11 @@ MATCH_SETTINGS = Settings(initial_lambda=1e-3, min_lambda=1e-9, max_lambda=1e6, 
                           diagonal_damping=True, min_diagonal=1e-9, relative_tolerance=1e-3, absolute_tolerance=0.0,
                           step_tolerance=(1e-3, 1e-3, 5e-4))
 Evaluation = tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+# the same schedule as the compiled refinement's arguments (:func:`solve_pose_in_window`)
+SCHEDULE = np.array([MATCH_SETTINGS.initial_lambda, MATCH_SETTINGS.lambda_factor, MATCH_SETTINGS.min_lambda,
+                     MATCH_SETTINGS.max_lambda, MATCH_SETTINGS.min_model_fidelity, MATCH_SETTINGS.min_diagonal,
+                     MATCH_SETTINGS.relative_tolerance, MATCH_SETTINGS.absolute_tolerance])
+STEP_TOLERANCE = np.array(MATCH_SETTINGS.step_tolerance, np.float64)
 
 
 def solve_pose(evaluate: Callable[[np.ndarray], Evaluation], initial_pose_xyt: np.ndarray,
@@ -213,6 +161,8 @@ def solve_pose(evaluate: Callable[[np.ndarray], Evaluation], initial_pose_xyt: n
     steps are millimetres, and the retraction (measured on the landmark-grid SLAM test, drift seeds
     1-4) moved the matches by less than a millimetre and the runs by as much as their spread over seeds.
     Returns the pose, the iterations run and the last ``(residuals, jacobian, weights, mask)`` at that pose.
+    The scan-to-grid refinement runs this loop compiled (:func:`solve_pose_in_window`, the same schedule);
+    point-to-line ICP runs it here.
     """
     seen: dict[bytes, Evaluation] = {}   # every pose evaluated, so a step's evaluation also linearises
 
@@ -304,40 +254,43 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
 
     px, py = points[:, 0], points[:, 1]
 
-    def placed(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, FieldWindow]:
-        """The points rotated by the pose (about the robot), their continuous cell coordinates and the fields there."""
+    def placed(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, FieldWindow]:
+        """The points' continuous cell coordinates at the pose and the fields there."""
         c, s = math.cos(pose[2]), math.sin(pose[2])
-        rx, ry = c * px - s * py, s * px + c * py  # rotated points; d(q)/d(theta) = (-ry, rx)
-        cx, cy = (rx + (pose[0] - origin[0])) / res, (ry + (pose[1] - origin[1])) / res
-        return rx, ry, cx, cy, fields.around(cx, cy)
+        cx, cy = (c * px - s * py + (pose[0] - origin[0])) / res, (s * px + c * py + (pose[1] - origin[1])) / res
+        return cx, cy, fields.around(cx, cy)
 
-    def evaluate_field(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        rx, ry, cx, cy, window = placed(pose)
-        d, jac, active = field_residuals(window.distance, *NO_WALLS, window.row0, window.col0, cx, cy,
-                                         float(pose[0]), float(pose[1]), rx, ry, res, max_distance_m)
-        loss, weight = robust_loss(d * d, "huber", huber)
-        return float(loss.sum()), d, jac, weight, active
+    def solve(start: np.ndarray, walls: bool, window: FieldWindow
+              ) -> tuple[np.ndarray, int, tuple[np.ndarray, ...], FieldWindow]:
+        while True:   # the solve stops where a step leaves the window: grown, solved again
+            height, width = window.distance.shape
+            bounds = np.array([window.row0, window.row0 + height, window.col0, window.col0 + width], np.int64)
+            lines = window.lines if walls else None
+            nearest, mean, normal, is_line = NO_WALLS if lines is None else (lines.nearest, lines.mean, lines.normal,
+                                                                             lines.is_line)
+            status, box, pose, iterations, *state = solve_pose_in_window(
+                window.distance, nearest, mean, normal, is_line, bounds, np.array(grid.shape, np.int64), px, py,
+                np.asarray(start, np.float64), origin, res, max_distance_m, huber, max_iterations, SCHEDULE,
+                STEP_TOLERANCE)
+            if status == DONE:
+                return pose, iterations, tuple(state), window
+            grown = fields.around(box[:2], box[2:])
+            if grown is window:   # cannot happen for finite points (the kernel asks what around() gives)
+                raise RuntimeError(f"the match field window does not grow to {box}")
+            window = grown
 
-    def evaluate_lines(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        rx, ry, cx, cy, window = placed(pose)
-        lines = window.lines
-        assert lines is not None   # only called when the fields have their walls (``fields.lines``)
-        d, jac, active = field_residuals(window.distance, lines.nearest, lines.mean, lines.normal, lines.is_line,
-                                         window.row0, window.col0, cx, cy, float(pose[0]), float(pose[1]), rx, ry,
-                                         res, max_distance_m)
-        loss, weight = robust_loss(d * d, "huber", huber)
-        return float(loss.sum()), d, jac, weight, active
-
-    pose, iterations, (d, jac, weight, active) = solve_pose(evaluate_field, initial_pose_xyt, max_iterations)
-    walls = placed(pose)[4].lines if fields.lines and max_iterations > 0 else None
+    # the window the search left (the solve grows it where its points go), else one where they start
+    window = fields.window if fields.window is not None else placed(np.asarray(initial_pose_xyt, np.float64))[2]
+    pose, iterations, (d, jac, weight, active), window = solve(initial_pose_xyt, False, window)
+    walls = window.lines if fields.lines and max_iterations > 0 else None
     if walls is not None and len(walls.mean):  # from the field's wide basin to the walls
-        pose, more, (d, jac, weight, active) = solve_pose(evaluate_lines, pose, max_iterations)
+        pose, more, (d, jac, weight, active), window = solve(pose, True, window)
         iterations += more
     inliers = active & (np.abs(d) <= inlier)
     n_in = int(inliers.sum())
     covariance = match_covariance(jac[inliers], d[inliers], weight[inliers], min_std_xy_m, min_std_theta_rad,
                                   shaped=shaped_covariance)
-    _, _, cx, cy, window = placed(pose)
+    cx, cy, window = placed(pose)
     lik, _, _, inside = bilinear(window.likelihood, cx - 0.5 - window.col0, cy - 0.5 - window.row0)
     lik = np.where(inside, lik, 0.0)
     score = float(np.mean(lik)) if len(points) else 0.0

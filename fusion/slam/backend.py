@@ -10,6 +10,8 @@ through a :class:`ConstraintSource` (landmarks: :mod:`trundle.fusion.slam.landma
 from __future__ import annotations
 
 import math
+import threading
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -39,23 +41,67 @@ class ConstraintSource(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class MapInputs:
+    """The keyframes a map is made of: their map poses (K, 3), points (N, 2, base_link) and the ends of
+    their no-return rays (or None), the laser's mount on base_link (3,) or one per keyframe (K, 3: sessions
+    mapped with other mounts), and the map's resolution (m)."""
+
+    poses: np.ndarray
+    points: tuple[np.ndarray, ...]
+    free: tuple[np.ndarray | None, ...]
+    mount: np.ndarray
+    resolution: float
+
+
+class MapBuilder:
+    """The occupancy map of the keyframes kept up to date: each keyframe's rays are cast once, when it is
+    new, and the whole map is cast again only when a pose it was cast at has moved (the graph was
+    optimised: a loop closed), the mount or the resolution changed. The grid so made equals the one
+    cast from the start, cell for cell (the same rays in the same order). Thread-safe: a map thread
+    builds while the caller's ``finish`` may build too."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._grid: LogOddsGrid | None = None
+        self._cast = MapInputs(np.zeros((0, 3)), (), (), np.zeros(3), 0.0)   # what the grid holds
+
+    def build(self, inputs: MapInputs) -> LogOddsGrid:
+        """The map of ``inputs``, seen-through cells cleared (a copy: the builder's grid goes on)."""
+        with self._lock:
+            done, cast = len(self._cast.poses), self._cast
+            mounts = _per_keyframe(inputs.mount, len(inputs.poses))
+            moved = (not np.array_equal(inputs.poses[:done], cast.poses)
+                     or not np.array_equal(mounts[:done], _per_keyframe(cast.mount, done)))
+            if self._grid is None or moved or inputs.resolution != cast.resolution:
+                self._grid, done = LogOddsGrid(inputs.resolution, mark_returns=True), 0
+            grid = self._grid
+            for pose, laser, points, free in zip(inputs.poses[done:], mounts[done:], inputs.points[done:],
+                                                 inputs.free[done:], strict=True):
+                origin = compose(pose, laser)[:2]
+                c, s = math.cos(pose[2]), math.sin(pose[2])
+                rot = np.array([[c, -s], [s, c]])
+                hits = points @ rot.T + pose[:2]
+                free_ends = None if free is None else free @ rot.T + pose[:2]
+                grid.insert_rays(origin, hits, free_ends)
+            self._cast = inputs
+            out = grid.copy()
+        out.clear_seen_through()
+        return out
+
+
+def _per_keyframe(mount: np.ndarray, count: int) -> np.ndarray:
+    """The laser's mount (3,) or mounts (K, 3) as one row per keyframe (``count``, 3)."""
+    return np.broadcast_to(np.asarray(mount, np.float64), (count, 3))
+
+
 def keyframe_grid(poses: np.ndarray, points: list[np.ndarray], free: list[np.ndarray | None], mount: np.ndarray,
                   resolution: float) -> LogOddsGrid:
     """A fresh occupancy grid (``resolution`` m/cell) from keyframe scans: ``points`` and no-return ends
     ``free`` (robot frame) at ``poses`` (map frame), a laser at ``mount`` (base_link; one for all or one per
-    keyframe), free wherever the laser only ever saw through (:meth:`LogOddsGrid.clear_seen_through`): a
-    short or stationary log's few keyframes carve free space too."""
-    grid = LogOddsGrid(resolution, mark_returns=True)
-    mounts = np.broadcast_to(np.asarray(mount, np.float64), (len(poses), 3))
-    for pose, laser, hits_local, free_local in zip(poses, mounts, points, free, strict=True):
-        origin = compose(pose, laser)[:2]
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        rot = np.array([[c, -s], [s, c]])
-        hits = hits_local @ rot.T + pose[:2]
-        free_ends = None if free_local is None else free_local @ rot.T + pose[:2]
-        grid.insert_rays(origin, hits, free_ends)
-    grid.clear_seen_through()
-    return grid
+    keyframe), free wherever the laser only ever saw through: :class:`MapBuilder` once."""
+    return MapBuilder().build(MapInputs(np.asarray(poses, np.float64), tuple(points), tuple(free),
+                                        np.asarray(mount, np.float64), resolution))
 
 
 def check_keyframes(config: SlamConfig, submaps: list[Submap], poses: np.ndarray, points: list[np.ndarray],
@@ -94,6 +140,7 @@ class PoseGraphBackend:
         self._scan_rel: list[np.ndarray] = []
         self._scan_stamp: list[int] = []
         self._loop_edges: list[int] = []
+        self._map = MapBuilder()
         self._nodes_at_last_optimization = 0
         self._loops_at_last_optimization = 0
 
@@ -197,10 +244,17 @@ class PoseGraphBackend:
         ij = self.graph.edges[0]
         return ij[np.abs(ij[:, 1] - ij[:, 0]) > 1]
 
-    def build_map(self, resolution: float | None = None) -> LogOddsGrid:
-        """A fresh occupancy grid from every keyframe scan at its optimised pose (:func:`keyframe_grid`)."""
-        return keyframe_grid(self.graph.poses, self._points, self._free, self.mount,
-                             resolution or self.config.submaps.resolution)
+    def map_inputs(self, resolution: float | None = None) -> MapInputs:
+        """What the map is made of now (the keyframes' optimised poses, points and free ends, the mount): a
+        snapshot another thread may build the map from while this one goes on."""
+        return MapInputs(self.graph.poses.copy(), tuple(self._points), tuple(self._free), self.mount.copy(),
+                         resolution or self.config.submaps.resolution)
+
+    def build_map(self, resolution: float | None = None, inputs: MapInputs | None = None) -> LogOddsGrid:
+        """An occupancy grid of every keyframe scan at its optimised pose (of ``inputs``, else now), free
+        wherever the laser only ever saw through (:meth:`LogOddsGrid.clear_seen_through`): a short or
+        stationary log's few keyframes carve free space too. Built incrementally (:class:`MapBuilder`)."""
+        return self._map.build(inputs or self.map_inputs(resolution))
 
     def check_map(self) -> MapCheck:
         """The map self-check at the optimised poses (:func:`check_keyframes`)."""

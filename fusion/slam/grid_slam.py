@@ -27,7 +27,7 @@ from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.matching.scan_matching import MatchResult
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.fusion.optimization.pose_graph import PoseGraph
-from trundle.fusion.slam.backend import PoseGraphBackend
+from trundle.fusion.slam.backend import MapInputs, PoseGraphBackend
 from trundle.fusion.slam.config import SlamConfig
 from trundle.fusion.slam.local import LocalTrajectoryBuilder
 from trundle.fusion.slam.stats import SlamStats, summary
@@ -146,9 +146,13 @@ class Slam:
         """Stamps (ns) and optimised map poses (N, 3) of every scan, in arrival order."""
         return self.backend.trajectory()
 
-    def build_map(self, resolution: float | None = None) -> LogOddsGrid:
-        """A fresh occupancy grid from every keyframe scan at its optimised pose."""
-        return self.backend.build_map(resolution)
+    def build_map(self, resolution: float | None = None, inputs: MapInputs | None = None) -> LogOddsGrid:
+        """The occupancy grid of every keyframe scan at its optimised pose (now, or as ``inputs`` took them)."""
+        return self.backend.build_map(resolution, inputs)
+
+    def map_inputs(self) -> MapInputs:
+        """A snapshot of what the map is made of, for :meth:`build_map` on another thread."""
+        return self.backend.map_inputs()
 
     def landmarks(self) -> LandmarkMap | None:
         """The landmarks as last optimised (None without landmark constraints)."""

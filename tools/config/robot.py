@@ -110,6 +110,8 @@ class ProcessingConfig(Schema):
     slam: bool = False
     markers: bool = False
     map_period_s: Positive = 5.0
+    # SLAM behind real time skips the waiting scans older than the newest by more than this (the lag it allows)
+    max_scan_lag_s: Positive = 0.2
     markers_hz: Positive = 2.0
     marker_size_m: Positive = 0.25
     aruco_dictionary: Name = "DICT_6X6_250"

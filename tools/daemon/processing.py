@@ -2,15 +2,19 @@
 the camera images.
 
 The daemon offers every message to ``wants``; the chosen ones go through a bounded queue to one
-processing thread (a full queue drops and counts; behind real time, SLAM takes the newest scan
-and counts the others as skipped), and the results (``/slam/pose``, map -> odom
+processing thread (a full queue drops and counts; behind real time, SLAM skips and counts the scans
+more than ``max_scan_lag_s`` older than the newest waiting), and the results (``/slam/pose``, map -> odom
 on ``/tf``, ``/map``, ``.../markers``, ``.../marker_poses``, and the markers as landmark
 observations in the robot frame on ``/landmarks`` once ``/tf_static`` places the camera) go back
 through ``publish``. With both SLAM and markers on, the markers are landmarks of the SLAM's pose
-graph. SLAM and the marker detector (both bring SciPy) are imported only when configured.
+graph. SLAM and the marker detector (both bring SciPy) are imported only when configured. The ``/map``
+is built off the scans' path: every ``map_period_s`` the processing thread takes a snapshot of the
+keyframes and a map thread builds and publishes it (incrementally: only new keyframes' rays are cast
+unless a loop closure moved the graph), so no scan waits for a map.
 
 ``trundle replay`` runs the same class on a log's messages: on the thread at a real-time rate, or
-through ``handle`` message by message at rate 0 (nothing skipped), with the log's time as ``clock``.
+through ``handle`` message by message at rate 0 (nothing skipped, the map built in line), with the
+log's time as ``clock``.
 The SLAM estimator is built by the caller through :mod:`trundle.fusion.slam.estimators` (the daemon's
 by :func:`online_estimator`).
 """
@@ -31,6 +35,7 @@ from trundle.logs.frames import FrameTree
 from trundle.logs.topics import LANDMARK_TOPIC, MAP_TOPIC, PATH_TOPIC, SLAM_POSE_TOPIC, TF_STATIC_TOPIC, TF_TOPIC
 
 if TYPE_CHECKING:
+    from trundle.fusion.slam.backend import MapInputs
     from trundle.fusion.slam.grid_slam import Slam
     from trundle.perception.markers import MarkerDetector
     from trundle.tools.config.robot import FramesConfig, ProcessingConfig
@@ -75,6 +80,7 @@ class Processing:
         self.skipped_scans = 0
         self.errors = 0
         self.last_error = ""
+        self._errors_lock = threading.Lock()
         self.markers_seen: collections.Counter[int] = collections.Counter()
         self.landmarks_published = 0
         self._next_marker_ns: int | None = None
@@ -91,6 +97,11 @@ class Processing:
             self.detector = MarkerDetector(config.aruco_dictionary)
             self.static_frames = FrameTree()
         self.thread = threading.Thread(target=self._run, name="processing", daemon=True)
+        # the map thread (started with the processing thread): the latest snapshot to build, None to end
+        self._map_request: tuple[int, MapInputs] | None = None
+        self._map_wake = threading.Event()
+        self._map_stop = False
+        self._map_thread = threading.Thread(target=self._map_run, name="map", daemon=True)
 
     @property
     def active(self) -> bool:
@@ -139,20 +150,29 @@ class Processing:
         self.wake.set()
 
     def stop(self) -> None:
-        """Finish what is queued and end the thread (waits up to 10 s)."""
+        """Finish what is queued and end the threads (waits up to 10 s each; a map asked for is published)."""
         self.queue.append(None)
         self.wake.set()
         self.thread.join(10.0)
+        if self._map_thread.is_alive():
+            self._map_stop = True
+            self._map_wake.set()
+            self._map_thread.join(10.0)
 
     def _run(self) -> None:
+        if self.slam is not None:
+            self._map_thread.start()
         while True:
             self.wake.wait(0.5)
             self.wake.clear()
             batch = [self.queue.popleft() for _ in range(len(self.queue))]
-            # behind real time: of the scans waiting, SLAM takes the newest (odometry is all used)
-            scans = [i for i, item in enumerate(batch) if item is not None and isinstance(item[1], m.LaserScan)]
-            self.skipped_scans += max(len(scans) - 1, 0)
-            stale = set(scans[:-1])
+            # behind real time: SLAM skips the scans waiting more than max_scan_lag_s older than the newest
+            # (odometry is all used); a driver that hands over two scans at once is not behind
+            stamps = {i: item[1].stamp_ns for i, item in enumerate(batch)
+                      if item is not None and isinstance(item[1], m.LaserScan)}
+            newest = max(stamps.values(), default=0)
+            stale = {i for i, stamp in stamps.items() if newest - stamp > self.config.max_scan_lag_s * 1e9}
+            self.skipped_scans += len(stale)
             for i, item in enumerate(batch):
                 if item is None:
                     return
@@ -165,6 +185,11 @@ class Processing:
         try:
             self._handle(topic, msg)
         except Exception as error:  # noqa: BLE001 -- keep processing the next message
+            self._failed(error)
+
+    def _failed(self, error: Exception) -> None:
+        """Count a failure (of a message, or of a map on the map thread) and keep it as the last error."""
+        with self._errors_lock:
             self.errors += 1
             self.last_error = f"{type(error).__name__}: {error}"
 
@@ -181,8 +206,7 @@ class Processing:
             self.publish(MAP_TOPIC, slam.build_map().to_message(end_ns, self.frames.map))
             self.publish(PATH_TOPIC, m.Path(end_ns, self.frames.map, stamps, poses))
         except Exception as error:  # noqa: BLE001 -- counted and said like any message that failed
-            self.errors += 1
-            self.last_error = f"{type(error).__name__}: {error}"
+            self._failed(error)
 
     def _handle(self, topic: str, msg: m.Message) -> None:
         frames = self.frames
@@ -201,7 +225,27 @@ class Processing:
         now = self.clock()
         if self._next_map_ns is None or now >= self._next_map_ns:
             self._next_map_ns = now + int(self.config.map_period_s * 1e9)
-            self.publish(MAP_TOPIC, self.slam.build_map().to_message(result.stamp_ns, frames.map))
+            if self._map_thread.is_alive():   # the snapshot to the map thread (a newer one replaces it)
+                self._map_request = (result.stamp_ns, self.slam.map_inputs())
+                self._map_wake.set()
+            else:
+                self.publish(MAP_TOPIC, self.slam.build_map().to_message(result.stamp_ns, frames.map))
+
+    def _map_run(self) -> None:
+        """The map thread: build and publish each snapshot asked for, until ``stop``."""
+        assert self.slam is not None
+        while True:
+            self._map_wake.wait()
+            self._map_wake.clear()
+            request, self._map_request = self._map_request, None
+            if request is not None:
+                stamp_ns, inputs = request
+                try:
+                    self.publish(MAP_TOPIC, self.slam.build_map(inputs=inputs).to_message(stamp_ns, self.frames.map))
+                except Exception as error:  # noqa: BLE001 -- counted and said like any message that failed
+                    self._failed(error)
+            if self._map_stop and self._map_request is None:
+                return
 
     def _detect_markers(self, topic: str, msg: m.CompressedImage | m.Image) -> None:
         from trundle.perception.landmarks import marker_observation  # loaded with the detector

@@ -15,7 +15,7 @@ errors at a fixed separation.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
@@ -23,7 +23,7 @@ import numpy as np
 
 from trundle.fusion.geometry import compose, relative, wrap_angle
 from trundle.fusion.mapping.map_io import read_trajectory_csv
-from trundle.logs.errors import DataError
+from trundle.logs.errors import DataError, UserError
 from trundle.logs.paths import input_file
 
 DEFAULT_TOLERANCE_NS = 1_000_000  # 1 ms: scans are tens of milliseconds apart
@@ -319,3 +319,34 @@ def landmark_error(ids: list[str], positions: np.ndarray, reference_ids: list[st
                          float(np.median(errors)), float(errors.max()),
                          {n: float(e) for n, e in zip(common, errors, strict=True)},
                          sorted(set(reference) - set(mapped)), sorted(set(mapped) - set(reference)))
+
+
+def evaluate(result: Trajectory, reference: Trajectory | Relations, step: int = 1, tolerance_ns: int = 1_000_000,
+             revisit_m: float = 3.0, revisit_s: float = 30.0) -> dict:
+    """All metrics as a JSON-ready dict (``ate``, ``rpe`` and ``revisits`` only for a reference trajectory)."""
+    if step < 1:
+        raise UserError(f"--step must be at least 1, got {step}")
+    if isinstance(reference, Trajectory):
+        if len(reference) <= step:
+            raise UserError(f"the reference has {len(reference)} poses: too few for relations {step} apart")
+        report = {"relations": f"reference poses {step} apart",
+                  "relation_error": asdict(relation_error(result, trajectory_relations(reference, step), tolerance_ns)),
+                  "ate": asdict(absolute_trajectory_error(result, reference, tolerance_ns)),
+                  "rpe": asdict(relative_pose_error(result, reference, step, tolerance_ns)),
+                  "revisits": {"max_distance_m": revisit_m, "min_gap_s": revisit_s,
+                               **_revisit_error(result, revisit_relations(reference, revisit_m, revisit_s),
+                                                tolerance_ns)}}
+    else:
+        report = {
+            "relations": "relations file",
+            "relation_error": asdict(relation_error(result, reference, tolerance_ns)),
+        }
+    return report
+
+
+def _revisit_error(result: Trajectory, relations: Relations, tolerance_ns: int) -> dict:
+    """The relation error over revisits, or ``{"count": 0}`` when the reference (or the part of it the
+    result covers) never comes back to a place."""
+    covered = poses_at(result, relations.t1_ns, tolerance_ns)[1] & poses_at(result, relations.t2_ns,
+                                                                                 tolerance_ns)[1]
+    return asdict(relation_error(result, relations, tolerance_ns)) if covered.any() else {"count": 0}

@@ -27,12 +27,12 @@ Run: python tools/bench/bench_sessions.py [--work DIR] [--dataset fr079|intel|fo
 from __future__ import annotations
 
 import argparse
-import contextlib
 import csv
-import io
 import json
 import math
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -44,6 +44,7 @@ from trundle.fusion.evaluation.trajectory_errors import (
     Trajectory,
     absolute_trajectory_error,
     align_se2,
+    evaluate,
     landmark_error,
     poses_at,
     read_carmen_trajectory,
@@ -52,8 +53,6 @@ from trundle.fusion.geometry import compose, relative, wrap_angle
 from trundle.fusion.mapping.map_io import read_landmarks_csv, read_trajectory_csv
 from trundle.tools.bench import report
 from trundle.tools.bench.session_halves import split_index, write_halves
-from trundle.tools.cli.main import main
-from trundle.tools.cli.slam_eval import evaluate
 from trundle.tools.jobs.sessions import read_bundle
 from trundle.tools.sim.world import DEFAULT_WORLD, load_world
 
@@ -64,11 +63,9 @@ RIGHT_M, RIGHT_RAD = 0.2, math.radians(3.0)
 
 
 def trundle(*argv: str) -> tuple[int, str, str]:
-    """Run the CLI in this process: exit code, stdout, stderr."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main(list(argv))
-    return code, out.getvalue(), err.getvalue()
+    """Run the CLI as a command, as a user does: exit code, stdout, stderr."""
+    done = subprocess.run([sys.executable, "-m", "trundle.tools.cli", *argv], capture_output=True, text=True)
+    return done.returncode, done.stdout, done.stderr
 
 
 def run(*argv: str) -> tuple[dict[str, Any], float]:

@@ -18,16 +18,10 @@ from dataclasses import asdict
 from pathlib import Path
 
 from trundle.fusion.evaluation.trajectory_errors import (
-    Relations,
     Trajectory,
-    absolute_trajectory_error,
+    evaluate,
     landmark_error,
-    poses_at,
     read_reference,
-    relation_error,
-    relative_pose_error,
-    revisit_relations,
-    trajectory_relations,
 )
 from trundle.fusion.mapping.map_io import read_landmarks_csv
 from trundle.logs.errors import UserError
@@ -52,37 +46,6 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--landmarks", help="reference landmarks id,x,y,sx,sy: score the landmarks.csv beside RESULT")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.set_defaults(func=run)
-
-
-def evaluate(result: Trajectory, reference, step: int = 1, tolerance_ns: int = 1_000_000,
-             revisit_m: float = 3.0, revisit_s: float = 30.0) -> dict:
-    """All metrics as a JSON-ready dict (``ate``, ``rpe`` and ``revisits`` only for a reference trajectory)."""
-    if step < 1:
-        raise UserError(f"--step must be at least 1, got {step}")
-    if isinstance(reference, Trajectory):
-        if len(reference) <= step:
-            raise UserError(f"the reference has {len(reference)} poses: too few for relations {step} apart")
-        report = {"relations": f"reference poses {step} apart",
-                  "relation_error": asdict(relation_error(result, trajectory_relations(reference, step), tolerance_ns)),
-                  "ate": asdict(absolute_trajectory_error(result, reference, tolerance_ns)),
-                  "rpe": asdict(relative_pose_error(result, reference, step, tolerance_ns)),
-                  "revisits": {"max_distance_m": revisit_m, "min_gap_s": revisit_s,
-                               **_revisit_error(result, revisit_relations(reference, revisit_m, revisit_s),
-                                                tolerance_ns)}}
-    else:
-        report = {
-            "relations": "relations file",
-            "relation_error": asdict(relation_error(result, reference, tolerance_ns)),
-        }
-    return report
-
-
-def _revisit_error(result: Trajectory, relations: Relations, tolerance_ns: int) -> dict:
-    """The relation error over revisits, or ``{"count": 0}`` when the reference (or the part of it the
-    result covers) never comes back to a place."""
-    covered = poses_at(result, relations.t1_ns, tolerance_ns)[1] & poses_at(result, relations.t2_ns,
-                                                                                 tolerance_ns)[1]
-    return asdict(relation_error(result, relations, tolerance_ns)) if covered.any() else {"count": 0}
 
 
 def _text(report: dict) -> str:

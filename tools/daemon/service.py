@@ -357,9 +357,10 @@ class Daemon:
         return logger.current_path if logger is not None else None
 
     def _stop_recording(self, reason: str) -> None:
-        """The disk guard's stop: close the log and say why."""
-        self._close_logger()
+        """The disk guard's stop: close the log and say why (the reason first: a status asked while the log
+        closes says why it is not recording)."""
         self.recording_paused = reason
+        self._close_logger()
 
     def _resume_recording(self) -> None:
         """The disk guard's resume: a new log, unless starting or stopping."""

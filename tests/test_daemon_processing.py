@@ -167,8 +167,10 @@ class RecordingSlam:
         self.landmark_constraints = None
         self.wheels = None
         self.stamps: list[int] = []
+        self.topics: list[str] = []
 
     def process(self, topic: str, msg: m.Message) -> None:
+        self.topics.append(topic)
         if isinstance(msg, m.LaserScan):
             self.stamps.append(msg.stamp_ns)
 
@@ -188,3 +190,24 @@ def test_scans_handed_over_together_are_all_processed_and_only_stale_ones_skippe
     kept = [stamp for stamp in stamps_ms if stamp >= 1200]   # the newest is 1400 ms
     assert slam.stamps == [stamp * 1_000_000 for stamp in kept]
     assert processing.skipped_scans == len(stamps_ms) - len(kept) and processing.errors == 0
+
+
+def test_odometry_and_transforms_wait_for_the_next_scan_in_order() -> None:
+    """Odometry and /tf (hundreds a second) do not wake the processing thread; a scan does, and the
+    thread then handles everything queued in arrival order, the state before the scan that reads it."""
+    slam = RecordingSlam()
+    processing = Processing(ProcessingConfig(slam=True), FramesConfig(), lambda topic, msg: None,
+                            slam)  # type: ignore[arg-type]
+    odom = m.Odometry(1_000_000, "odom", "base_link", 0.1, 0.0, 0.0, 0.0, 0.0, 0.0, np.zeros((3, 3)), np.zeros((3, 3)))
+    tf = m.TFMessage((m.TransformStamped.planar(1_000_000, "odom", "base_link", 0.1, 0.0, 0.0),))
+    processing.put("/odom", odom)
+    processing.put("/tf", tf)
+    assert not processing.wake.is_set() and len(processing.queue) == 2
+    processing.put("/scan", m.LaserScan(2_000_000, "laser", -1.0, 1.0, 0.5, 0.0, 0.025, 0.1, 30.0,
+                                        np.ones(5, np.float32)))
+    assert processing.wake.is_set()
+    processing.put("/odom", odom)
+    processing.thread.start()
+    processing.stop()
+    assert slam.topics == ["/odom", "/tf", "/scan", "/odom"]
+    assert processing.skipped_scans == 0 and processing.dropped == 0 and processing.errors == 0

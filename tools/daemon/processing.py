@@ -44,6 +44,9 @@ Publish = Callable[[str, m.Message], None]  # (topic, message): log a result as 
 INPUT_TYPES: tuple[type[m.Message], ...] = (m.LaserScan, m.TFMessage, m.Odometry, m.JointState, m.LandmarkList,
                                             m.CompressedImage, m.Image, m.CameraInfo)
 """Every message type ``wants`` may take (a replay decodes no other)."""
+STATE_TYPES: tuple[type[m.Message], ...] = (m.TFMessage, m.Odometry, m.JointState)
+"""The messages that only update state the next scan reads: queued without waking the processing thread."""
+WAKE_PERIOD_S = 0.5  # the processing thread's longest sleep: how long queued state may wait without a scan
 
 
 def online_estimator(config: ProcessingConfig, slam: Mapping[str, Any]) -> Slam | None:
@@ -142,12 +145,16 @@ class Processing:
         return False
 
     def put(self, topic: str, msg: m.Message) -> None:
-        """Queue a message for the processing thread (dropped and counted when the queue is full)."""
+        """Queue a message for the processing thread (dropped and counted when the queue is full). Only a
+        message with work to do wakes the thread: odometry, wheel states and transforms (hundreds a second)
+        only update what the next scan reads, so they wait for it in the queue (at most ``WAKE_PERIOD_S``),
+        in order, and the thread wakes about once a scan instead of once a message."""
         if len(self.queue) >= self.config.queue_size:
             self.dropped += 1
             return
         self.queue.append((topic, msg))
-        self.wake.set()
+        if not isinstance(msg, STATE_TYPES):
+            self.wake.set()
 
     def stop(self) -> None:
         """Finish what is queued and end the threads (waits up to 10 s each; a map asked for is published)."""
@@ -163,7 +170,7 @@ class Processing:
         if self.slam is not None:
             self._map_thread.start()
         while True:
-            self.wake.wait(0.5)
+            self.wake.wait(WAKE_PERIOD_S)
             self.wake.clear()
             batch = [self.queue.popleft() for _ in range(len(self.queue))]
             # behind real time: SLAM skips the scans waiting more than max_scan_lag_s older than the newest

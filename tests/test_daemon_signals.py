@@ -19,8 +19,8 @@ from pathlib import Path
 import cv2
 import pytest
 
+from tests.cli_run import trundle
 from trundle.logs.reader import LogReader
-from trundle.tools.cli.main import main
 from trundle.tools.sim.camera_render import CameraPose, CameraRenderer
 from trundle.tools.sim.world import load_world
 
@@ -109,14 +109,6 @@ def start(tmp_path: Path, config: Path, notify: Notify) -> subprocess.Popen:
         stderr=subprocess.PIPE,
         text=True,
     )
-
-
-def trundle(capsys, *args: str) -> tuple[int, str, str]:
-    """Run a trundle command in this process: (exit code, stdout, stderr)."""
-    capsys.readouterr()
-    code = main(list(args))
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def wait_until(condition, timeout_s: float = 20.0) -> None:

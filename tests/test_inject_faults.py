@@ -9,19 +9,13 @@ import math
 import numpy as np
 import pytest
 
+from tests.cli_run import trundle
 from tests.planar_world import ROOM, scan
 from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.odometry.diff_drive import DiffDriveOdometry
 from trundle.logs import messages as m
 from trundle.logs.importers import write_log
 from trundle.logs.reader import LogReader
-from trundle.tools.cli.main import main
-
-
-def trundle(capsys, *argv: str) -> tuple[int, str, str]:
-    code = main(list(argv))
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 @pytest.fixture(scope="module")

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.cli_run import succeeds
 from trundle.logs.reader import LogReader
 from trundle.tools.cli.main import main
 from trundle.tools.emulators.camera_emulator import CameraEmulator
@@ -59,10 +60,7 @@ def log(request, recorder_log) -> Path:
 
 def trundle(capsys, *argv: object) -> str:
     """Run a command: it must end with exit code 0 and no traceback; returns its stdout."""
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    assert code == 0 and "Traceback" not in err, (argv, code, err)
-    return out
+    return succeeds(capsys, *argv)[0]
 
 
 def test_every_log_reading_command_works_on_the_recorder_and_daemon_logs(log, tmp_path, capsys):

@@ -27,6 +27,7 @@ from mcap_ros2.decoder import DecoderFactory
 from websockets.sync import client as websockets_client
 
 import trundle
+from tests.cli_run import succeeds
 from tests.conftest import shared_file
 from tests.test_daemon import Running, config, wait_for
 from tests.test_journey import recorder_log  # noqa: F401 -- the recorder's log, a module fixture
@@ -36,14 +37,6 @@ from trundle.tools.cli.main import main
 
 DEMO_LOG = Path(__file__).resolve().parent / "data" / "demo_short" / "demo.mcap"
 PACKAGE_PARENT = Path(trundle.__file__).parent.parent  # where `import trundle` found the code under test
-
-
-def trundle(capsys: pytest.CaptureFixture[str], *argv: object) -> tuple[str, str]:
-    """Run a command that must succeed with no traceback; returns (stdout, stderr)."""
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    assert code == 0 and "Traceback" not in err, (argv, code, err)
-    return out, err
 
 
 def free_port() -> int:
@@ -89,14 +82,14 @@ def any_log(request, tmp_path, capsys) -> tuple[Path, str]:
     if request.param == "demo":
         return request.getfixturevalue("short_demo"), "6"
     imported = tmp_path / "intel.mcap"
-    trundle(capsys, "import", "carmen", shared_file("intel/intel.gfs.log"), "-o", imported)
+    succeeds(capsys, "import", "carmen", shared_file("intel/intel.gfs.log"), "-o", imported)
     return imported, "60"
 
 
 def test_slam_replay_of_every_kind_of_log_writes_what_foxglove_reads(any_log, tmp_path, capsys):
     any_log, seconds = any_log
     out = tmp_path / "replayed.mcap"
-    printed, said = trundle(capsys, "replay", any_log, "--rate", "0", "--end", seconds, "--slam", "-o", out)
+    printed, said = succeeds(capsys, "replay", any_log, "--rate", "0", "--end", seconds, "--slam", "-o", out)
     scans = int(printed.split("slam: ")[1].split(" scans processed")[0])
     assert scans > 0 and "0 skipped to keep up" in printed and f"wrote {out}" in printed
     got = decoded(out, {"/slam/pose", "/map", "/path", "/scan"})
@@ -113,8 +106,8 @@ def test_slam_replay_of_every_kind_of_log_writes_what_foxglove_reads(any_log, tm
 
 
 def test_rate_0_slam_is_trundle_slam(short_demo, tmp_path, capsys):
-    trundle(capsys, "slam", short_demo, "-o", tmp_path / "slam")
-    trundle(capsys, "replay", short_demo, "--rate", "0", "--slam", "-o", tmp_path / "replay.mcap")
+    succeeds(capsys, "slam", short_demo, "-o", tmp_path / "slam")
+    succeeds(capsys, "replay", short_demo, "--rate", "0", "--slam", "-o", tmp_path / "replay.mcap")
     ours = {t: [x.msg for x in read_messages(tmp_path / "replay.mcap", [t])] for t in ("/path", "/map", "/tf")}
     slam = {t: [x.msg for x in read_messages(tmp_path / "slam" / "slam.mcap", [t])] for t in ("/path", "/map", "/tf")}
     (path,), (reference,) = ours["/path"], slam["/path"]
@@ -129,7 +122,7 @@ def test_the_daemons_config_turns_the_processing_on_with_its_frames(short_demo, 
     robot = tmp_path / "robot.toml"
     robot.write_text('[processing]\nslam = true\nmap_period_s = 1.0\n\n[frames]\nmap = "world"\n')
     out = tmp_path / "configured.mcap"
-    printed, _ = trundle(capsys, "replay", short_demo, "--rate", "0", "--config", robot, "-o", out)
+    printed, _ = succeeds(capsys, "replay", short_demo, "--rate", "0", "--config", robot, "-o", out)
     got = decoded(out, {"/slam/pose", "/map", "/tf"})
     assert {p.header.frame_id for p in got["/slam/pose"]} == {"world"} and got["/slam/pose"]
     assert {(t.header.frame_id, t.child_frame_id) for tf in got["/tf"] for t in tf.transforms} == {
@@ -140,7 +133,7 @@ def test_the_daemons_config_turns_the_processing_on_with_its_frames(short_demo, 
 
 def test_markers_are_detected_at_markers_hz_of_log_time(tmp_path, capsys):
     out = tmp_path / "markers.mcap"
-    printed, _ = trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "3", "--markers", "-o", out)
+    printed, _ = succeeds(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "3", "--markers", "-o", out)
     images = [(x.log_time_ns, x.msg.stamp_ns) for x in read_messages(out, ["/camera/image_raw/compressed"])]
     taken = [images[0]]  # [processing] markers_hz = 2: an image at least 0.5 s of log after the last one taken
     for log_time, stamp in images[1:]:
@@ -154,7 +147,7 @@ def test_markers_are_detected_at_markers_hz_of_log_time(tmp_path, capsys):
 
 def test_start_and_end_play_that_window(tmp_path, capsys):
     out = tmp_path / "window.mcap"
-    trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--start", "2", "--end", "3.5", "-o", out)
+    succeeds(capsys, "replay", DEMO_LOG, "--rate", "0", "--start", "2", "--end", "3.5", "-o", out)
     t0 = LogReader(DEMO_LOG).info().start_ns
     expected = [(x.topic, x.log_time_ns) for x in LogReader(DEMO_LOG).raw_messages(
         start_ns=t0 + 2_000_000_000, end_ns=t0 + 3_500_000_000)]
@@ -289,7 +282,7 @@ def test_ctrl_c_leaves_a_complete_output(tmp_path):
 
 
 def test_what_the_log_lacks_is_said_before_it_starts(capsys):
-    out, err = trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "1", "--slam", "--markers",
+    out, err = succeeds(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "1", "--slam", "--markers",
                        "--topics", "/tf_static", "/wheels", "/nope")
     assert err.splitlines() == [f"trundle replay: {DEMO_LOG} has no /nope: playing the other topics",
                                 f"trundle replay: {DEMO_LOG} has no scans on /scan (SLAM maps nothing), "
@@ -299,15 +292,15 @@ def test_what_the_log_lacks_is_said_before_it_starts(capsys):
 
 def test_a_log_without_odometry_is_said_before_it_starts(tmp_path, capsys):
     scans_only, with_wheels = tmp_path / "scans.mcap", tmp_path / "wheels.mcap"
-    trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "2", "--topics", "/scan", "/tf_static",
+    succeeds(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "2", "--topics", "/scan", "/tf_static",
             "-o", scans_only)
-    trundle(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "2", "--topics", "/scan", "/tf_static", "/wheels",
+    succeeds(capsys, "replay", DEMO_LOG, "--rate", "0", "--end", "2", "--topics", "/scan", "/tf_static", "/wheels",
             "-o", with_wheels)
-    out, err = trundle(capsys, "replay", scans_only, "--rate", "0", "--slam")
+    out, err = succeeds(capsys, "replay", scans_only, "--rate", "0", "--slam")
     assert err.splitlines() == [f"trundle replay: {scans_only} has no odometry (SLAM matches the scans alone)"]
     scans = LogReader(scans_only).info().topics["/scan"].count
     assert f"slam: {scans} scans processed, 0 skipped to keep up" in out and scans > 0
-    _, err = trundle(capsys, "replay", with_wheels, "--rate", "0", "--slam")
+    _, err = succeeds(capsys, "replay", with_wheels, "--rate", "0", "--slam")
     assert err == ""  # the wheels' joint states and the log's wheel model are its odometry
 
 

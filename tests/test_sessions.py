@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.cli_run import trundle
 from tests.session_logs import OTHER_ROOM, ROOM_MARKERS, START_NS, other_room_drive, room_loop, room_session
 from trundle.fusion.evaluation.trajectory_errors import align_se2, landmark_error
 from trundle.fusion.geometry import relative, wrap_angle
@@ -32,12 +33,6 @@ LOOP = room_loop()
 LAP = 113
 B_START = 56   # the second session starts half-way round the first one's lap, a day later
 DAY_NS = 86_400 * 10**9
-
-
-def trundle(capsys, *argv: str) -> tuple[int, str, str]:
-    code = main(list(argv))
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 @pytest.fixture(scope="module")

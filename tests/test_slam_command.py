@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.cli_run import trundle
 from tests.planar_world import ROOM, scan
 from tests.test_slam import loop_path
 from trundle.fusion.mapping.map_io import load_map, read_trajectory_csv
@@ -17,14 +18,6 @@ from trundle.fusion.odometry.drift import drifting_odometry
 from trundle.logs import messages as m
 from trundle.logs.importers import write_log
 from trundle.logs.reader import LogReader
-from trundle.tools.cli.main import main
-
-
-def trundle(capsys, *argv: str) -> tuple[int, str, str]:
-    """Run the CLI in this process: exit code, stdout, stderr."""
-    code = main(list(argv))
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 @pytest.fixture(scope="module")

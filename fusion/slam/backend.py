@@ -111,7 +111,7 @@ def check_keyframes(config: SlamConfig, submaps: list[Submap], poses: np.ndarray
     ``mount``, one for all or one per keyframe; ``spacing``: each keyframe's angle between beams, rad)."""
     frames = np.array([s.local_to_map(poses[s.anchor_node]) for s in submaps]).reshape(-1, 3)
     thinned = [voxel_filter(p, config.scan.voxel_m) for p in points]
-    mounts = np.broadcast_to(np.asarray(mount, np.float64), (len(poses), 3))
+    mounts = _per_keyframe(mount, len(poses))
     ranges = [np.hypot(*(p - laser[:2]).T) for p, laser in zip(thinned, mounts, strict=True)]
     opts = config.map_check
     return check_map(submaps, frames, poses, thinned, ranges, np.asarray(spacing),

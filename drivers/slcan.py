@@ -24,7 +24,7 @@ from typing import Any
 import can
 import serial
 
-from trundle.drivers.serial_link import open_port
+from trundle.drivers.serial_link import SerialLink
 from trundle.logs.errors import ProtocolError
 
 OK, ERROR = b"\r", b"\x07"
@@ -101,9 +101,10 @@ class SlcanBus(can.BusABC):
         if bitrate not in BITRATE_COMMANDS:
             raise ValueError(f"SLCAN bit rate {bitrate} not one of {', '.join(map(str, sorted(BITRATE_COMMANDS)))}")
         try:
-            self.port = open_port(channel, baudrate=tty_baudrate, timeout=_READ_TIMEOUT_S)
+            self.link = SerialLink(channel, tty_baudrate, read_timeout_s=_READ_TIMEOUT_S)
         except (serial.SerialException, OSError, ValueError) as error:
             raise can.CanInitializationError(f"cannot open {channel}: {error}") from error
+        self.port = self.link.port
         self._pending = bytearray()  # bytes read after the last complete line
         self._lines: deque[bytes] = deque()  # complete lines (without CR/BEL) not handed out yet
         self._write_lock = threading.Lock()  # a command and a frame sent from two threads stay whole
@@ -130,11 +131,13 @@ class SlcanBus(can.BusABC):
 
     def read_line(self, timeout_s: float | None) -> bytes | None:
         """The next line the adapter sent (without its CR or BEL), or None once ``timeout_s`` (s;
-        None waits for ever) passed. Reads every byte the port holds at once."""
+        None waits for ever) passed. Reads every byte the port holds in one system call
+        (:class:`SerialLink`: a select and a read, where pyserial's ``read(in_waiting)`` took two
+        reads and three system calls a frame)."""
         deadline = serial.Timeout(timeout_s)  # type: ignore[arg-type]  # pyserial's Timeout takes None: no deadline
         while not self._lines:
             try:
-                chunk = self.port.read(self.port.in_waiting or 1)
+                chunk = self.link.read()
             except (serial.SerialException, OSError) as error:
                 raise can.CanOperationError("Could not read from serial device") from error
             if chunk:

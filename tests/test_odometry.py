@@ -18,6 +18,8 @@ from trundle.fusion.odometry.diff_drive import (
     integrate_path,
     odometry_from_config,
     odometry_transform,
+    propagate_covariance,
+    step,
 )
 from trundle.logs import messages as m
 from trundle.logs.errors import UserError
@@ -102,6 +104,27 @@ def test_any_chunking_gives_the_same_pose(ticks, data):
     for other in (chunked, single):
         assert np.allclose(other.pose, one.pose, rtol=0, atol=1e-9)
         assert np.allclose(other.covariance, one.covariance, rtol=1e-9, atol=1e-15)
+
+
+finite = st.floats(-1e3, 1e3)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.tuples(finite, finite, st.floats(-50, 50)), st.lists(st.floats(-10, 10), min_size=6, max_size=6),
+       st.floats(-2, 2) | st.floats(-1e-6, 1e-6), st.floats(-2, 2) | st.floats(-1e-6, 1e-6), st.floats(0.05, 3.0),
+       st.floats(0.0, 1e-2))
+def test_one_step_in_scalars_equals_the_vectorised_step(pose, cov_factors, d_left, d_right, track, variance):
+    """The live path (one reading, scalar arithmetic) against integrate_path + propagate_covariance."""
+    lower = np.zeros((3, 3))
+    lower[np.tril_indices(3)] = cov_factors
+    covariance = lower @ lower.T
+    path = integrate_path(pose, d_left, d_right, track)
+    expected = propagate_covariance(np.array(pose), covariance, path, np.array([d_left]), np.array([d_right]),
+                                    track, variance)
+    new_pose, new_covariance = step(pose, covariance, d_left, d_right, track, variance)
+    assert np.allclose(new_pose, path[-1], rtol=1e-12, atol=1e-12)
+    scale = 1.0 + np.abs(expected).max()
+    assert np.allclose(new_covariance, expected, rtol=1e-12, atol=1e-12 * scale)
 
 
 @settings(max_examples=100, deadline=None)

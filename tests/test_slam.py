@@ -198,3 +198,23 @@ def test_the_map_is_built_incrementally_and_equals_the_map_cast_from_the_start()
                                (built.returned, expected.returned)):
             np.testing.assert_array_equal(actual, wanted)
         built.log_odds[:] = 0.0   # the builder's own grid goes on unharmed
+
+
+def test_submaps_out_of_reach_let_go_of_their_matching_fields_and_nothing_changes(monkeypatch) -> None:
+    """Loop closure releases the matching fields of finished submaps beyond its search radius (memory follows
+    the submaps near the robot, not the run's length); they are computed again, equal, on a return, so the
+    trajectory is the same to the last bit as when every submap keeps them."""
+    truth = loop_path()
+    odometry = drifting_odometry(truth, seed=5)
+    config = SlamConfig().replace("loop_closure", search_radius_m=3.0)
+    released = []
+    keep = LogOddsGrid.release_cache
+    monkeypatch.setattr(LogOddsGrid, "release_cache", lambda grid: (released.append(grid), keep(grid)))
+    slam, estimate, _ = run(truth, odometry, config)
+    assert slam.stats.loop_closures >= 3
+    finished = {id(submap.grid) for submap in slam.local.submaps.finished}
+    assert {id(grid) for grid in released} <= finished and len({id(grid) for grid in released}) >= 2
+    assert any(not grid._cache for grid in released)  # released and not matched against since
+    monkeypatch.setattr(LogOddsGrid, "release_cache", lambda grid: None)
+    _, kept_all, _ = run(truth, odometry, config)
+    assert np.array_equal(estimate, kept_all)

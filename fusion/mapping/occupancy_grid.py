@@ -351,6 +351,11 @@ class LogOddsGrid:
             self._cache[key] = factory()
         return self._cache[key]  # type: ignore[return-value]
 
+    def release_cache(self) -> None:
+        """Drop what :meth:`cached` holds (computed again, equal, when next asked for): how a map of
+        many submaps keeps the matching fields of only those it still matches against."""
+        self._cache.clear()
+
     def _distance_cells(self) -> np.ndarray:
         """Exact Euclidean distance (cells) from each cell centre to the nearest occupied one (inf if none)."""
         def compute() -> np.ndarray:

@@ -74,7 +74,7 @@ def _submap_votes(submap: Submap, frame: np.ndarray, points_map: np.ndarray, tol
     height, width = grid.shape
     inside = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < width) & (cells[:, 1] < height)
     rows, cols = cells[inside, 1], cells[inside, 0]
-    distance = grid.distance_field(0.5)  # the matcher's cached field (tolerances beyond half a metre are cut)
+    distance = grid.distance_field(0.5)  # tolerances beyond half a metre are cut
     agree = np.zeros(len(points_map), bool)
     conflict = np.zeros(len(points_map), bool)
     near = distance[rows, cols] <= tolerance_m[inside] * (1.0 + 1e-6)
@@ -119,6 +119,7 @@ def check_map(submaps: list[Submap], submap_frames: np.ndarray, keyframe_poses: 
         tolerance = np.concatenate([(tolerance_cells + HALF_DIAGONAL) * submap.grid.resolution
                                     + keyframe_ranges[k] * beam_spacing_rad[k] for k in ks])
         votes = _submap_votes(submap, frame, np.concatenate([world[k] for k in ks]), tolerance)
+        submap.grid.release_cache()  # its whole-grid distance field: 150 MB over fr079's submaps if all were kept
         owner = np.repeat(ks, sizes)
         agree += np.bincount(owner, votes[0], minlength=count)
         conflict += np.bincount(owner, votes[1], minlength=count)

@@ -153,6 +153,7 @@ class FrameTree:
         self._static: dict[str, m.TransformStamped] = {}
         self._dynamic: dict[str, _Track] = {}
         self._configured: set[str] = set()
+        self._static_paths: dict[tuple[str, str], np.ndarray] = {}  # transforms through static edges only
         self._cache_ns = int(cache_s * 1e9)
         self._extrapolate_ns = int(extrapolate_s * 1e9)
 
@@ -197,6 +198,7 @@ class FrameTree:
                 self._configured.add(child)
             self._static[child] = transform
             self._dynamic.pop(child, None)
+            self._static_paths.clear()
 
     def add_dynamic(self, msg: m.TFMessage) -> None:
         """Dynamic readings (``/tf``); a child frame that was static or configured stays static."""
@@ -223,14 +225,22 @@ class FrameTree:
 
     def transform(self, target: str, source: str, stamp_ns: int | None = None) -> np.ndarray:
         """The 4x4 pose of frame ``source`` in frame ``target`` at ``stamp_ns`` (None: the latest),
-        chained through their nearest common ancestor; DataError when it cannot be had."""
+        chained through their nearest common ancestor; DataError when it cannot be had. A chain of
+        static edges only (a sensor's mount, asked for with every scan) is computed once."""
+        known = self._static_paths.get((target, source))
+        if known is not None:
+            return known.copy()
         source_up, target_up = self._ancestors(source), self._ancestors(target)
         common = next((frame for frame in source_up if frame in target_up), None)
         if common is None:
             raise DataError(f"frames {source!r} and {target!r} are not connected in the tf tree "
                             f"({source!r} hangs from {source_up[-1]!r}, {target!r} from {target_up[-1]!r}; "
                             f"frames: {', '.join(self.frames)})")
-        return np.linalg.inv(self._up_to(target, common, stamp_ns)) @ self._up_to(source, common, stamp_ns)
+        matrix = np.linalg.inv(self._up_to(target, common, stamp_ns)) @ self._up_to(source, common, stamp_ns)
+        below = source_up[:source_up.index(common)] + target_up[:target_up.index(common)]
+        if all(frame in self._static for frame in below):
+            self._static_paths[(target, source)] = matrix.copy()
+        return matrix
 
     def try_transform(self, target: str, source: str, stamp_ns: int | None = None) -> np.ndarray | None:
         """:meth:`transform`, or None when it cannot be had (e.g. a camera not yet placed)."""
@@ -244,7 +254,7 @@ class FrameTree:
         """Where a sensor frame sits on the robot, seen from above: (x m, y m, yaw rad) of ``frame`` in
         ``base``. ``unknown_is_base``: a frame the tree does not name at all (a log without
         ``/tf_static``) is taken to be ``base`` itself (zero mount) instead of an error."""
-        if unknown_is_base and frame not in self.frames:
+        if unknown_is_base and frame not in self._static and frame not in self._dynamic and frame not in self.frames:
             return np.zeros(3)
         return planar(self.transform(base, frame, stamp_ns))
 

@@ -117,6 +117,29 @@ def test_rpy_is_ros_fixed_axis_roll_then_pitch_then_yaw() -> None:
     np.testing.assert_allclose(rotation_matrix(quaternion_from_rpy(roll, pitch, yaw)), rz @ ry @ rx, atol=1e-12)
 
 
+def test_a_static_mount_is_computed_once_and_again_when_a_static_edge_changes() -> None:
+    tree = three_hops()
+    first = tree.mount("tilted")
+    assert np.array_equal(tree.mount("tilted"), first)
+    tree.add(TF_STATIC_TOPIC, planar_tf("laser", "tilted", 0.3, 0.0, math.pi / 4))
+    moved = tree.mount("tilted")
+    assert not np.allclose(moved, first)
+    assert np.allclose(moved, FrameTree.mount(three_hops_with_tilted_at(0.3), "tilted"))
+    tree.add(TF_TOPIC, planar_tf("odom", "base_link", 1.0, 2.0, 0.5, stamp_ns=S))  # a dynamic edge elsewhere
+    assert np.array_equal(tree.mount("tilted"), moved)
+    returned = tree.transform("base_link", "tilted")
+    returned[0, 3] = 99.0  # the caller's copy: the tree keeps its own
+    assert tree.transform("base_link", "tilted")[0, 3] != 99.0
+
+
+def three_hops_with_tilted_at(x: float) -> FrameTree:
+    tree = FrameTree()
+    tree.add(TF_STATIC_TOPIC, planar_tf("base_link", "mast", 1.0, 0.0, math.pi / 2))
+    tree.add(TF_STATIC_TOPIC, planar_tf("mast", "laser", 0.5, 0.0, -math.pi / 2, z=0.2))
+    tree.add(TF_STATIC_TOPIC, planar_tf("laser", "tilted", x, 0.0, math.pi / 4))
+    return tree
+
+
 def test_a_cycle_is_a_data_error() -> None:
     tree = FrameTree()
     tree.add(TF_STATIC_TOPIC, planar_tf("a", "b", 1.0, 0.0, 0.0))

@@ -14,6 +14,7 @@ in proportion. Until ``warmup`` errors are known a prior stands in.
 
 from __future__ import annotations
 
+from bisect import bisect_left, insort
 from collections import deque
 from dataclasses import dataclass
 
@@ -53,8 +54,9 @@ class MotionModel:
         self.prior_sigma = np.asarray(prior_sigma, np.float64)
         self.floor_sigma = np.asarray(floor_sigma, np.float64)
         self.warmup = int(warmup)
-        self._errors: dict[str, deque[np.ndarray]] = {name: deque(maxlen=history) for name in self.PREDICTORS}
+        self._errors = {name: _ErrorWindow(history) for name in self.PREDICTORS}
         self._intervals: deque[float] = deque(maxlen=history)
+        self._sorted_intervals: list[float] = []  # the same, sorted: their median without sorting each scan
         self._typical_interval: float | None = None   # their median, until the next interval
         self._last: tuple[int, np.ndarray] | None = None
         self._tracked: deque[tuple[int, np.ndarray]] = deque(maxlen=history)
@@ -68,7 +70,13 @@ class MotionModel:
     def typical_interval_s(self) -> float:
         """Median interval between tracked scans (s); 0 before two scans."""
         if self._typical_interval is None:
-            self._typical_interval = float(np.median(self._intervals)) if self._intervals else 0.0
+            values, n = self._sorted_intervals, len(self._sorted_intervals)
+            if not n:
+                self._typical_interval = 0.0
+            elif n % 2:
+                self._typical_interval = values[n // 2]
+            else:  # as numpy's median: the mean of the middle two
+                self._typical_interval = (values[n // 2 - 1] + values[n // 2]) / 2.0
         return self._typical_interval
 
     def _guess(self, name: str, dt: float) -> np.ndarray:
@@ -80,20 +88,16 @@ class MotionModel:
         """The step expected over the next ``dt_s`` seconds and its uncertainty."""
         typical = self.typical_interval_s()
         intervals = max(1.0, dt_s / typical) if typical > 0 else 1.0
-        counts = {name: len(errors) for name, errors in self._errors.items()}
-        if min(counts.values()) < self.warmup:
+        if min(len(errors) for errors in self._errors.values()) < self.warmup:
             name = "constant_velocity" if self._velocity is not None else "standstill"
             sigma = self.prior_sigma * intervals
             return MotionPrediction(self._guess(name, dt_s), np.maximum(sigma, self.floor_sigma), 3.0 * sigma, name,
                                     False)
-        scores = {}
-        for name, errors in self._errors.items():
-            e = np.abs(np.array(errors))
-            scores[name] = float(np.sum(np.sqrt(np.mean(e ** 2, axis=0)) / self.floor_sigma))
+        scores = {name: float(np.sum(errors.rms() / self.floor_sigma)) for name, errors in self._errors.items()}
         name = min(scores, key=scores.__getitem__)
-        e = np.abs(np.array(self._errors[name]))
-        sigma = np.maximum(np.sqrt(np.mean(e ** 2, axis=0)) * intervals, self.floor_sigma)
-        return MotionPrediction(self._guess(name, dt_s), sigma, e.max(axis=0) * intervals, name, True)
+        errors = self._errors[name]
+        sigma = np.maximum(errors.rms() * intervals, self.floor_sigma)
+        return MotionPrediction(self._guess(name, dt_s), sigma, errors.largest() * intervals, name, True)
 
     def update(self, stamp_ns: int, pose: np.ndarray, tracked: bool = True) -> None:
         """Record the pose of a scan: when it was ``tracked`` (matched), each predictor's error (per
@@ -104,18 +108,24 @@ class MotionModel:
             dt = (stamp_ns - last_stamp) * 1e-9
             step = relative(last_pose, pose)
             if dt > 0:
-                self._intervals.append(dt)
-                self._typical_interval = None
+                self._add_interval(dt)
                 typical = self.typical_interval_s()
                 scale = max(1.0, dt / typical) if typical > 0 else 1.0
                 for name in self.PREDICTORS:
                     if name == "constant_velocity" and self._velocity is None:
                         continue
-                    self._errors[name].append(relative(self._guess(name, dt), step) / scale)
+                    self._errors[name].add(relative(self._guess(name, dt), step) / scale)
         if tracked:
             self._tracked.append((int(stamp_ns), pose.copy()))
             self._velocity = self._measured_velocity()
         self._last = (int(stamp_ns), pose.copy())
+
+    def _add_interval(self, dt: float) -> None:
+        if len(self._intervals) == self._intervals.maxlen:
+            del self._sorted_intervals[bisect_left(self._sorted_intervals, self._intervals[0])]
+        self._intervals.append(dt)
+        insort(self._sorted_intervals, dt)
+        self._typical_interval = None
 
     def _measured_velocity(self) -> np.ndarray | None:
         """Velocity from the newest tracked pose back to the latest one at least a typical interval older."""
@@ -126,3 +136,37 @@ class MotionModel:
             if dt > 0 and dt >= span * (1.0 - 1e-9):
                 return relative(pose, now) / dt
         return None
+
+
+class _ErrorWindow:
+    """The last ``size`` errors (x, y, theta) of one predictor, oldest first, in one array, with their
+    root mean square and largest absolute value per axis kept until the next error (each scan reads
+    them, a scan adds one)."""
+
+    def __init__(self, size: int) -> None:
+        self._rows = np.empty((size, 3))
+        self._count = 0
+        self._rms: np.ndarray | None = None
+        self._largest: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return self._count
+
+    def add(self, error: np.ndarray) -> None:
+        if self._count == len(self._rows):
+            self._rows[:-1] = self._rows[1:]
+            self._rows[-1] = error
+        else:
+            self._rows[self._count] = error
+            self._count += 1
+        self._rms = self._largest = None
+
+    def rms(self) -> np.ndarray:
+        if self._rms is None:
+            self._rms = np.sqrt(np.mean(np.abs(self._rows[:self._count]) ** 2, axis=0))
+        return self._rms
+
+    def largest(self) -> np.ndarray:
+        if self._largest is None:
+            self._largest = np.abs(self._rows[:self._count]).max(axis=0)
+        return self._largest

@@ -403,7 +403,7 @@ _BY_ROS = {mp.ros_type: mp for mp in MAPPINGS}
 # typestore, without its objects
 _DIRECT: dict[type, Callable[[Any], bytes]] = {
     m.LaserScan: cdr.laser_scan, m.DiagnosticArray: cdr.diagnostic_array, m.CanFrame: cdr.can_frame,
-    m.Odometry: cdr.odometry, m.JointState: cdr.joint_state, m.Pose2D: cdr.pose2d}
+    m.Odometry: cdr.odometry, m.TFMessage: cdr.tf_message, m.JointState: cdr.joint_state, m.Pose2D: cdr.pose2d}
 
 
 def ros_type(python_type: type) -> str:

@@ -90,6 +90,19 @@ def test_poses_encode_as_the_typestore_does(stamp, frame, values, cov):
     assert cdr.pose2d(replace(decoded, theta=msg.theta)) == raw
 
 
+TRANSFORMS = st.builds(m.TransformStamped, STAMPS, TEXT, TEXT, st.lists(DOUBLES, min_size=3, max_size=3),
+                       st.lists(DOUBLES, min_size=4, max_size=4))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(TRANSFORMS, max_size=5))
+def test_tf_messages_encode_as_the_typestore_does(transforms):
+    msg = m.TFMessage(tuple(transforms))
+    raw = cdr.tf_message(msg)
+    assert raw == typestore_bytes(msg)
+    assert ros2.decode("tf2_msgs/msg/TFMessage", raw) == msg
+
+
 @settings(max_examples=300, deadline=None)
 @given(STAMPS, TEXT, st.lists(TEXT, max_size=4), st.lists(DOUBLES, max_size=5), st.lists(DOUBLES, max_size=5),
        st.lists(DOUBLES, max_size=5))
@@ -111,6 +124,7 @@ def test_encode_uses_them():
     for msg, encoder in (
             (m.CanFrame(1, "can0", 0x181, b"\x01\x02"), cdr.can_frame),
             (m.Odometry(1, "odom", "base_link", 1.0, 2.0, 0.5, 0.1, 0.0, 0.2, cov, cov), cdr.odometry),
+            (m.TFMessage((m.TransformStamped.planar(1, "odom", "base_link", 1.0, 2.0, 0.5),)), cdr.tf_message),
             (m.JointState(1, "base_link", ("left", "right"), np.ones(2)), cdr.joint_state),
             (m.Pose2D(1, "map", 1.0, 2.0, 0.5, cov), cdr.pose2d)):
         assert ros2.encode(msg) == (ros2.ros_type(type(msg)), encoder(msg))

@@ -399,8 +399,11 @@ MAPPINGS: tuple[Mapping, ...] = (
 )
 _BY_PYTHON = {mp.python_type: mp for mp in MAPPINGS}
 _BY_ROS = {mp.ros_type: mp for mp in MAPPINGS}
-# the types a laser logs with every scan: the same bytes as the typestore, without its objects
-_DIRECT: dict[type, Callable[[Any], bytes]] = {m.LaserScan: cdr.laser_scan, m.DiagnosticArray: cdr.diagnostic_array}
+# the types logged with every scan or at the wheels' and CAN bus's rate: the same bytes as the
+# typestore, without its objects
+_DIRECT: dict[type, Callable[[Any], bytes]] = {
+    m.LaserScan: cdr.laser_scan, m.DiagnosticArray: cdr.diagnostic_array, m.CanFrame: cdr.can_frame,
+    m.Odometry: cdr.odometry, m.TFMessage: cdr.tf_message, m.JointState: cdr.joint_state, m.Pose2D: cdr.pose2d}
 
 
 def ros_type(python_type: type) -> str:

@@ -171,9 +171,9 @@ def test_any_lookup_composes_with_its_inverse(chain, i, j) -> None:
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE_ROOMS = ("logs", "drivers", "perception", "fusion", "tools")
-# who may look inside a TFMessage: the tree itself, the CDR codec, and the logger's latch key (a split
-# repeats each publisher's static transforms)
-MAY_READ_TRANSFORMS = {"logs/frames.py", "logs/ros2.py", "logs/writer.py"}
+# who may look inside a TFMessage: the tree itself, the CDR codecs (the typestore mapping and the direct
+# encoder), and the logger's latch key (a split repeats each publisher's static transforms)
+MAY_READ_TRANSFORMS = {"logs/frames.py", "logs/ros2.py", "logs/cdr.py", "logs/writer.py"}
 
 
 def _code_strings(tree: ast.AST) -> set[str]:

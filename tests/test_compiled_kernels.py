@@ -18,7 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from trundle.fusion.mapping.nearest_cells import squared_distances, stamped_fields
+from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distances, stamped_fields
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, _likelihood
 from trundle.fusion.mapping.ray_casting import add_moments, ray_cells, update_cells
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
@@ -473,3 +473,73 @@ def test_branch_and_bound_equals_numpy(seed: int, limit: int, angles: int, point
     expected = numpy_branch_and_bound(*arguments, prior_xy, prior_theta, min_score)
     assert found[:4] == expected[:4]
     assert found[4] == pytest.approx(expected[4], rel=1e-14, abs=0.0)
+
+
+def numpy_occupied_nearest(log_odds: np.ndarray, pr0: int, pr1: int, pc0: int, pc1: int, r0: int, r1: int, c0: int,
+                           c1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """MatchFields._compute's occupied cells of the padded window and their nearest-cell indices over the
+    window, as numpy and a label -> cell index lookup made them before the kernel."""
+    occupied = log_odds[pr0:pr1, pc0:pc1] > 0.0
+    rows, cols = np.nonzero(occupied)
+    image = np.where(occupied, 0, 255).astype(np.uint8)
+    nearest = np.full((r1 - r0, c1 - c0), -1, np.int32)
+    if len(rows):
+        _, labels = cv2.distanceTransformWithLabels(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)
+        index = np.zeros(int(labels.max()) + 1, np.int32)
+        index[labels[rows, cols]] = np.arange(len(rows), dtype=np.int32)
+        nearest = index[labels[r0 - pr0:r1 - pr0, c0 - pc0:c1 - pc0]]
+    return rows, cols, image, nearest
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(1, 50), st.integers(1, 50), st.floats(0.0, 0.5), st.integers(0, 2**32 - 1), st.integers(0, 8),
+       st.integers(0, 8), st.integers(0, 8), st.integers(0, 8))
+def test_occupied_cells_and_nearest_labels_equal_numpy(height: int, width: int, density: float, seed: int, top: int,
+                                                       bottom: int, left: int, right: int) -> None:
+    """The occupied cells of a padded window (kernel) and each cell's nearest one as its OpenCV label less one,
+    against numpy's mask, nonzero and image and the label -> cell lookup they replaced: equal to the bit."""
+    rng = np.random.default_rng(seed)
+    log_odds = np.where(rng.random((height, width)) < density, rng.uniform(0.01, 3.5, (height, width)),
+                        rng.uniform(-2.0, 0.0, (height, width))).astype(np.float32)
+    log_odds[rng.random((height, width)) < 0.05] = 0.0   # exactly zero: not occupied
+    pr0, pc0 = min(top, height), min(left, width)
+    pr1, pc1 = max(height - bottom, pr0), max(width - right, pc0)
+    r0, c0 = pr0 + min(2, pr1 - pr0), pc0 + min(2, pc1 - pc0)   # the window inside the padded one
+    r1, c1 = max(pr1 - 2, r0), max(pc1 - 2, c0)
+    rows, cols, image = occupied_cells(log_odds, pr0, pr1, pc0, pc1)
+    expected_rows, expected_cols, expected_image, expected_nearest = numpy_occupied_nearest(
+        log_odds, pr0, pr1, pc0, pc1, r0, r1, c0, c1)
+    np.testing.assert_array_equal(rows, expected_rows)
+    np.testing.assert_array_equal(cols, expected_cols)
+    assert rows.dtype == expected_rows.dtype and image.dtype == np.uint8
+    np.testing.assert_array_equal(image, expected_image)
+    if len(rows):
+        _, labels = cv2.distanceTransformWithLabels(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)
+        nearest = labels[r0 - pr0:r1 - pr0, c0 - pc0:c1 - pc0] - np.int32(1)
+        assert nearest.dtype == np.int32
+        np.testing.assert_array_equal(nearest, expected_nearest)
+
+
+def test_match_fields_nearest_cells_equal_numpy() -> None:
+    """The wall lines' nearest cells of real match-field windows (a grid of rooms' walls) equal the numpy lookup's."""
+    rng = np.random.default_rng(7)
+    grid = LogOddsGrid(0.05, subcell=True)
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    walls = rng.uniform(1.0, 4.0, (360, 1)) * np.column_stack([np.cos(angles), np.sin(angles)])
+    for _ in range(3):
+        grid.insert_rays(rng.uniform(-0.3, 0.3, 2), walls + 0.01 * rng.standard_normal(walls.shape))
+    fields = grid.match_fields(0.5, 0.05, lines=True)
+    for _ in range(10):
+        centre = rng.uniform(0, min(grid.shape), 2)
+        window = fields.around(centre[:1] + rng.uniform(-20, 20, 2), centre[1:] + rng.uniform(-20, 20, 2))
+        assert window.lines is not None
+        height, width = window.distance.shape
+        margin = fields.margin
+        r0, c0 = window.row0, window.col0
+        r1, c1 = r0 + height, c0 + width
+        pr0, pr1 = max(r0 - margin, 0), min(r1 + margin, grid.shape[0])
+        pc0, pc1 = max(c0 - margin, 0), min(c1 + margin, grid.shape[1])
+        *_, expected = numpy_occupied_nearest(grid.log_odds, pr0, pr1, pc0, pc1, r0, r1, c0, c1)
+        np.testing.assert_array_equal(window.lines.nearest, expected)

@@ -87,3 +87,55 @@ def test_voxel_filter_keeps_one_mean_point_per_cell_in_order() -> None:
     thinned = voxel_filter(points, 0.05)
     np.testing.assert_allclose(thinned, [[0.02, 0.7 / 30], [1.0, 1.0]])
     assert voxel_filter(np.zeros((0, 2)), 0.05).shape == (0, 2)
+
+
+def numpy_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """compose as numpy's array expressions computed it for one pose before its scalar path."""
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack([a[..., 0] + c * b[..., 0] - s * b[..., 1], a[..., 1] + s * b[..., 0] + c * b[..., 1],
+                     wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def numpy_inverse(a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack([-c * a[..., 0] - s * a[..., 1], s * a[..., 0] - c * a[..., 1], wrap_angle(-a[..., 2])], axis=-1)
+
+
+def numpy_relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1)
+
+
+def assert_same_bits(actual: np.ndarray, expected: np.ndarray) -> None:
+    assert actual.shape == expected.shape and actual.dtype == expected.dtype == np.float64
+    nan = np.isnan(expected)
+    assert np.array_equal(np.isnan(actual), nan)
+    assert np.array_equal(actual[~nan].view(np.uint64), expected[~nan].view(np.uint64))
+
+
+coordinates = st.one_of(st.floats(-1e4, 1e4), st.floats(-1e-6, 1e-6), st.sampled_from([0.0, -0.0, math.pi, -math.pi]),
+                        st.floats(allow_nan=True, allow_infinity=False, width=64))
+wide_poses = st.tuples(coordinates, coordinates, coordinates).map(lambda p: np.array(p, np.float64))
+
+
+@settings(max_examples=500, deadline=None)
+@given(wide_poses, wide_poses)
+def test_one_pose_algebra_equals_the_array_expressions_to_the_bit(a: np.ndarray, b: np.ndarray) -> None:
+    """compose, relative and inverse of one pose (floats and math) against the numpy expressions they
+    replaced for one pose, and against the vectorised path for a batch holding that pose."""
+    with np.errstate(all="ignore"):
+        assert_same_bits(compose(a, b), numpy_compose(a, b))
+        assert_same_bits(relative(a, b), numpy_relative(a, b))
+        assert_same_bits(inverse(a), numpy_inverse(a))
+        assert_same_bits(compose(a[None], b[None])[0], compose(a, b))
+        assert_same_bits(relative(a[None], b[None])[0], relative(a, b))
+        assert_same_bits(inverse(a[None])[0], inverse(a))
+
+
+def test_one_pose_algebra_keeps_numpys_answer_for_an_infinite_heading() -> None:
+    a, b = np.array([1.0, 2.0, np.inf]), np.array([0.5, -0.5, 0.1])
+    with np.errstate(all="ignore"):
+        assert_same_bits(compose(a, b), numpy_compose(a, b))
+        assert_same_bits(relative(a, b), numpy_relative(a, b))
+        assert_same_bits(inverse(a), numpy_inverse(a))

@@ -1,7 +1,7 @@
 """The compiled kernels (numba) against the numpy code they replaced, on random inputs.
 
 Each ``numpy_*`` function below is the numpy implementation as it stood in the tree before the kernel
-took its place (scan_matching.py, occupancy_grid.py), kept here as the oracle: the kernel must give
+took its place (scan_matching.py, occupancy_grid.py, geometry.py), kept here as the oracle: the kernel must give
 the same numbers on whatever hypothesis draws (bit for bit where the arithmetic is the same, else to
 floating-point tolerance). The numpy code kept the return moments dense (6, H, W); the grid keeps them
 per cell that holds a return (:class:`trundle.fusion.mapping.occupancy_grid.ReturnMoments`).
@@ -18,6 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from trundle.fusion.geometry import voxel_filter
 from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distances, stamped_fields
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, _likelihood
 from trundle.fusion.mapping.ray_casting import add_moments, ray_cells, update_cells
@@ -543,3 +544,32 @@ def test_match_fields_nearest_cells_equal_numpy() -> None:
         pc0, pc1 = max(c0 - margin, 0), min(c1 + margin, grid.shape[1])
         *_, expected = numpy_occupied_nearest(grid.log_odds, pr0, pr1, pc0, pc1, r0, r1, c0, c1)
         np.testing.assert_array_equal(window.lines.nearest, expected)
+
+
+def numpy_voxel_filter(points: np.ndarray, cell_m: float) -> np.ndarray:
+    """geometry.voxel_filter as numpy computed it before the kernel (np.unique, np.add.at, argsort)."""
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) == 0 or cell_m <= 0:
+        return points
+    cells = np.floor(points / cell_m).astype(np.int64)
+    keys = (cells[:, 0] << 32) + cells[:, 1]
+    _, first, inverse_index, counts = np.unique(keys, return_index=True, return_inverse=True, return_counts=True)
+    inverse_index = inverse_index.reshape(-1)
+    sums = np.zeros((len(counts), 2))
+    np.add.at(sums, inverse_index, points)
+    means = sums / counts[:, None]
+    return means[np.argsort(first, kind="stable")]
+
+
+@EXAMPLES
+@given(st.integers(0, 2**32 - 1), st.integers(0, 1500), st.floats(0.001, 20.0),
+       st.sampled_from([0.0, 0.025, 0.05, 0.3]))
+def test_voxel_filter_equals_numpy_to_the_bit(seed: int, count: int, spread: float, cell_m: float) -> None:
+    """The voxel filter's compiled grouping (voxel_means) against np.unique / np.add.at / argsort: the same
+    cells in the same order, the same means to the bit (the sums run in point order in both)."""
+    rng = np.random.default_rng(seed)
+    points = rng.normal(rng.uniform(-50, 50, 2), spread, (count, 2))
+    points[rng.random(count) < 0.1] = points[0] if count else 0.0   # repeated points: cells with many
+    actual, expected = voxel_filter(points, cell_m), numpy_voxel_filter(points, cell_m)
+    assert actual.shape == expected.shape and actual.dtype == expected.dtype
+    assert np.array_equal(actual.view(np.uint64), expected.view(np.uint64))

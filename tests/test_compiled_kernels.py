@@ -24,7 +24,7 @@ from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, _likelihood
 from trundle.fusion.mapping.ray_casting import add_moments, ray_cells, update_cells
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
 from trundle.fusion.matching.block_scores import block_scores, branch_and_bound, max_pool
-from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear, field_residuals
+from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear, field_residuals, match_statistics, pairwise_sum
 from trundle.fusion.matching.pose_solver import DONE, solve3, solve_pose_in_window
 from trundle.fusion.matching.scan_matching import SCHEDULE, STEP_TOLERANCE, score_pyramid, solve_pose
 from trundle.fusion.optimization.robust_kernels import robust_loss
@@ -573,3 +573,57 @@ def test_voxel_filter_equals_numpy_to_the_bit(seed: int, count: int, spread: flo
     actual, expected = voxel_filter(points, cell_m), numpy_voxel_filter(points, cell_m)
     assert actual.shape == expected.shape and actual.dtype == expected.dtype
     assert np.array_equal(actual.view(np.uint64), expected.view(np.uint64))
+
+
+def numpy_match_statistics(likelihood: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray,
+                           observed: np.ndarray, d: np.ndarray, active: np.ndarray, inlier: float
+                           ) -> tuple[float, float, float, float, np.ndarray]:
+    """refine_pose's final figures as numpy computed them before match_statistics."""
+    n = len(cx)
+    inliers = active & (np.abs(d) <= inlier)
+    n_in = int(inliers.sum())
+    lik, _, _, inside = bilinear(likelihood, cx - 0.5 - col0, cy - 0.5 - row0)
+    lik = np.where(inside, lik, 0.0)
+    score = float(np.mean(lik)) if n else 0.0
+    with np.errstate(invalid="ignore"):   # NaN and huge coordinates become INT64_MIN: off the grid
+        cells = np.floor(np.stack([cx, cy], axis=1)).astype(np.int64)
+    on_grid = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < observed.shape[1]) & (
+        cells[:, 1] < observed.shape[0])
+    known = np.zeros(n, bool)
+    known[on_grid] = observed[cells[on_grid, 1], cells[on_grid, 0]]
+    overlap = float(known.mean()) if n else 0.0
+    overlap_score = float(lik[known].mean()) if known.any() else 0.0
+    residual = float(np.mean(np.abs(d[inliers]))) if n_in else float("nan")
+    return score, overlap, overlap_score, residual, inliers
+
+
+@EXAMPLES
+@given(st.integers(0, 2**32 - 1), st.integers(0, 3000), st.integers(1, 40), st.integers(1, 40), st.integers(-5, 5),
+       st.integers(-5, 5), st.floats(0.01, 0.3))
+def test_match_statistics_equal_numpy_to_the_bit(seed: int, count: int, height: int, width: int, row0: int, col0: int,
+                                                 inlier: float) -> None:
+    """A match's score, overlap, overlap score, inlier residual and inliers (one kernel) against the numpy
+    lines they replaced: equal to the bit (the kernel's sums are numpy's pairwise ones)."""
+    rng = np.random.default_rng(seed)
+    likelihood = np.where(rng.random((height, width)) < 0.3, 0.0, rng.random((height, width))).astype(np.float32)
+    observed = rng.random((height + 6, width + 6)) < 0.7
+    cx = rng.uniform(-3.0, width + 9.0, count)
+    cy = rng.uniform(-3.0, height + 9.0, count)
+    cx[rng.random(count) < 0.02] = np.nan
+    cx[rng.random(count) < 0.02] = 1e30
+    d = rng.normal(0.0, 0.2, count)
+    active = rng.random(count) < 0.9
+    actual = match_statistics(likelihood, row0, col0, cx, cy, observed, d, active, inlier)
+    expected = numpy_match_statistics(likelihood, row0, col0, cx, cy, observed, d, active, inlier)
+    for a, e in zip(actual[:4], expected[:4], strict=True):
+        assert np.array_equal(np.float64(a).view(np.uint64), np.float64(e).view(np.uint64)), (a, e)
+    np.testing.assert_array_equal(actual[4], expected[4])
+
+
+@EXAMPLES
+@given(st.integers(0, 2**32 - 1), st.one_of(st.integers(0, 300), st.integers(300, 20000)), st.floats(1e-3, 1e6))
+def test_pairwise_sum_equals_numpy_sum(seed: int, count: int, scale: float) -> None:
+    values = np.random.default_rng(seed).standard_normal(count + 5) * scale
+    assert pairwise_sum(values, 5, count) == np.sum(values[5:])
+    zeros = np.full(count, -0.0)   # numpy's reduction starts from 0.0: no sum is -0.0
+    assert np.float64(pairwise_sum(zeros, 0, count)).view(np.uint64) == np.sum(zeros).view(np.uint64)

@@ -22,7 +22,7 @@ import numpy as np
 from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.mapping.occupancy_grid import FieldWindow, LogOddsGrid, MatchFields
 from trundle.fusion.matching.block_scores import branch_and_bound, max_pool
-from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear
+from trundle.fusion.matching.field_residuals import NO_WALLS, match_statistics
 from trundle.fusion.matching.pose_solver import DONE, solve_pose_in_window
 from trundle.fusion.optimization.levenberg_marquardt import Settings, levenberg_marquardt
 
@@ -286,21 +286,13 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
     if walls is not None and len(walls.mean):  # from the field's wide basin to the walls
         pose, more, (d, jac, weight, active), window = solve(pose, True, window)
         iterations += more
-    inliers = active & (np.abs(d) <= inlier)
+    cx, cy, window = placed(pose)
+    # score, overlap, overlap score, inlier residual and inliers in one compiled pass (numpy's means, to the bit)
+    score, overlap, overlap_score, residual, inliers = match_statistics(
+        window.likelihood, window.row0, window.col0, cx, cy, grid.observed, d, active, inlier)
     n_in = int(inliers.sum())
     covariance = match_covariance(jac[inliers], d[inliers], weight[inliers], min_std_xy_m, min_std_theta_rad,
                                   shaped=shaped_covariance)
-    cx, cy, window = placed(pose)
-    lik, _, _, inside = bilinear(window.likelihood, cx - 0.5 - window.col0, cy - 0.5 - window.row0)
-    lik = np.where(inside, lik, 0.0)
-    score = float(np.mean(lik)) if len(points) else 0.0
-    cells = np.floor(np.stack([cx, cy], axis=1)).astype(np.int64)
-    on_grid = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < grid.shape[1]) & (cells[:, 1] < grid.shape[0])
-    known = np.zeros(len(points), bool)
-    known[on_grid] = grid.observed[cells[on_grid, 1], cells[on_grid, 0]]
-    overlap = float(known.mean()) if len(points) else 0.0
-    overlap_score = float(lik[known].mean()) if known.any() else 0.0
-    residual = float(np.mean(np.abs(d[inliers]))) if n_in else float("nan")
     return MatchResult(pose, covariance, score, residual, n_in / max(len(points), 1), search_score, iterations,
                        overlap, overlap_score)
 

@@ -23,7 +23,7 @@ from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distanc
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, _likelihood
 from trundle.fusion.mapping.ray_casting import add_moments, ray_cells, update_cells
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
-from trundle.fusion.matching.block_scores import block_scores, branch_and_bound, max_pool
+from trundle.fusion.matching.block_scores import block_scores, branch_and_bound, flat_cells, lattice_cells, max_pool
 from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear, field_residuals, match_statistics, pairwise_sum
 from trundle.fusion.matching.pose_solver import DONE, solve3, solve_pose_in_window
 from trundle.fusion.matching.scan_matching import SCHEDULE, STEP_TOLERANCE, score_pyramid, solve_pose
@@ -627,3 +627,43 @@ def test_pairwise_sum_equals_numpy_sum(seed: int, count: int, scale: float) -> N
     assert pairwise_sum(values, 5, count) == np.sum(values[5:])
     zeros = np.full(count, -0.0)   # numpy's reduction starts from 0.0: no sum is -0.0
     assert np.float64(pairwise_sum(zeros, 0, count)).view(np.uint64) == np.sum(zeros).view(np.uint64)
+
+
+def numpy_lattice_base(points: np.ndarray, thetas: np.ndarray, x0: float, y0: float, origin: np.ndarray, res: float,
+                       limit: int, pad: int, row0: int, col0: int, height: int, width: int
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """correlative_search's cells of the rotated points, their extent and the clipped flat indices the
+    branch and bound reads, as numpy computed them before lattice_cells and flat_cells."""
+    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    cols = np.floor((c * points[:, 0] - s * points[:, 1] + x0 - origin[0]) / res).astype(np.int64)
+    rows = np.floor((s * points[:, 0] + c * points[:, 1] + y0 - origin[1]) / res).astype(np.int64)
+    extent = np.array([cols.min(), cols.max(), rows.min(), rows.max()])
+    ix = np.clip(cols - col0 + pad - limit, 0, width - 1 - 2 * limit)
+    iy = np.clip(rows - row0 + pad - limit, 0, height - 1 - 2 * limit)
+    return cols, extent, iy * width + ix
+
+
+@EXAMPLES
+@given(st.integers(0, 2**32 - 1), st.integers(1, 800), st.integers(1, 60), st.floats(-50, 50), st.floats(-50, 50),
+       st.floats(-4.0, 4.0), st.sampled_from([0.02, 0.05, 0.1]), st.integers(0, 12), st.integers(-40, 40),
+       st.integers(-40, 40), st.integers(1, 400), st.integers(1, 400))
+def test_lattice_and_flat_cells_equal_numpy_to_the_bit(seed: int, count: int, angles: int, x0: float, y0: float,
+                                                        t0: float, res: float, limit: int, row0: int, col0: int,
+                                                        height: int, width: int) -> None:
+    """The search's per-rotation cells of the scan's points (lattice_cells) and their clipped flat indices
+    (flat_cells) against the numpy expressions they replaced: the same integers."""
+    rng = np.random.default_rng(seed)
+    points = rng.normal(0.0, rng.uniform(0.1, 15.0), (count, 2))
+    thetas = t0 + 0.004 * np.arange(-(angles // 2), angles - angles // 2)
+    origin = rng.uniform(-60, 10, 2)
+    pad = 1 << max(1, min(8, int(math.ceil(math.log2(2 * limit + 1))) + 1)) - 1
+    height, width = height + 2 * pad, width + 2 * pad
+    cols, rows, c_lo, c_hi, r_lo, r_hi = lattice_cells(points, np.cos(thetas), np.sin(thetas), x0, y0,
+                                                       float(origin[0]), float(origin[1]), res)
+    expected_cols, extent, expected_base = numpy_lattice_base(points, thetas, x0, y0, origin, res, limit, pad, row0,
+                                                              col0, height, width)
+    np.testing.assert_array_equal(cols, expected_cols)
+    np.testing.assert_array_equal([c_lo, c_hi, r_lo, r_hi], extent)
+    base = flat_cells(cols, rows, pad - limit - col0, pad - limit - row0, width - 1 - 2 * limit,
+                      height - 1 - 2 * limit, width)
+    np.testing.assert_array_equal(base, expected_base)

@@ -20,7 +20,7 @@ from hypothesis.extra import numpy as hnp
 
 from trundle.fusion.geometry import voxel_filter
 from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distances, stamped_fields
-from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, _likelihood
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, _likelihood, trace_rays
 from trundle.fusion.mapping.ray_casting import add_moments, ray_cells, update_cells
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
 from trundle.fusion.matching.block_scores import block_scores, branch_and_bound, flat_cells, lattice_cells, max_pool
@@ -667,3 +667,21 @@ def test_lattice_and_flat_cells_equal_numpy_to_the_bit(seed: int, count: int, an
     base = flat_cells(cols, rows, pad - limit - col0, pad - limit - row0, width - 1 - 2 * limit,
                       height - 1 - 2 * limit, width)
     np.testing.assert_array_equal(base, expected_base)
+
+
+@EXAMPLES
+@given(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4), st.floats(-2e-5, 2e-5), st.floats(-2e-5, 2e-5))
+def test_lattice_check_equals_allclose(col: float, row: float, dx: float, dy: float) -> None:
+    """insert_traced's test that a trace is on the grid's lattice, on floats, against np.allclose it replaced."""
+    grid = LogOddsGrid(0.05)
+    grid.insert_rays(np.zeros(2), np.array([[1.0, 0.5]]))
+    origin = grid.origin + np.array([round(col) + dx, round(row) + dy]) * grid.resolution
+    rays = trace_rays(origin, grid.resolution, np.zeros(2), np.array([[1.0, 0.5]]))
+    shift = (rays.origin - grid.origin) / grid.resolution
+    expected = np.allclose(shift, np.rint(shift), atol=1e-6)
+    try:
+        grid.copy().insert_traced(rays)
+        accepted = True
+    except ValueError:
+        accepted = False
+    assert accepted == expected

@@ -18,10 +18,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from trundle.fusion.geometry import voxel_filter
+from trundle.fusion.geometry import inverse, transform_points, voxel_filter
+from trundle.fusion.mapping.map_check import _submap_votes
 from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distances, stamped_fields
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, _likelihood, trace_rays
 from trundle.fusion.mapping.ray_casting import add_moments, ray_cells, update_cells
+from trundle.fusion.mapping.submaps import Submap
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
 from trundle.fusion.matching.block_scores import block_scores, branch_and_bound, flat_cells, lattice_cells, max_pool
 from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear, field_residuals, match_statistics, pairwise_sum
@@ -667,6 +669,43 @@ def test_lattice_and_flat_cells_equal_numpy_to_the_bit(seed: int, count: int, an
     base = flat_cells(cols, rows, pad - limit - col0, pad - limit - row0, width - 1 - 2 * limit,
                       height - 1 - 2 * limit, width)
     np.testing.assert_array_equal(base, expected_base)
+
+
+def numpy_submap_votes(grid: LogOddsGrid, frame: np.ndarray, points_map: np.ndarray, tolerance_m: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """map_check._submap_votes as numpy computed it before submap_votes."""
+    local = transform_points(inverse(frame), points_map)
+    cells = np.floor(grid.world_to_cell(local)).astype(np.int64)
+    height, width = grid.shape
+    inside = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < width) & (cells[:, 1] < height)
+    rows, cols = cells[inside, 1], cells[inside, 0]
+    distance = grid.distance_field(0.5)
+    agree = np.zeros(len(points_map), bool)
+    conflict = np.zeros(len(points_map), bool)
+    near = distance[rows, cols] <= tolerance_m[inside] * (1.0 + 1e-6)
+    free = grid.observed[rows, cols] & (grid.log_odds[rows, cols] < 0.0)
+    agree[inside] = near
+    conflict[inside] = free & ~near
+    return agree, conflict
+
+
+@settings(max_examples=30, deadline=None)
+@given(matching_problems(), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(-4.0, 4.0), st.integers(0, 3000),
+       st.integers(0, 2**32 - 1))
+def test_submap_votes_equal_numpy(problem: tuple[LogOddsGrid, np.ndarray, np.ndarray], x: float, y: float,
+                                  theta: float, count: int, seed: int) -> None:
+    """The map check's agree / conflict votes of map points against a placed submap (one kernel) against the
+    numpy lines they replaced: the same masks, points off the grid and tolerances at the distances included."""
+    grid = problem[0]
+    rng = np.random.default_rng(seed)
+    submap = Submap(0, 0, np.zeros(3), grid)
+    frame = np.array([x, y, theta])
+    points = rng.uniform(-6.0, 6.0, (count, 2))
+    tolerance = rng.choice([0.05, 0.1, 0.15 + 0.5 ** 0.5 * 0.05, 0.6], count) * rng.uniform(0.9, 1.1, count)
+    actual = _submap_votes(submap, frame, points, tolerance)
+    expected = numpy_submap_votes(grid, frame, points, tolerance)
+    np.testing.assert_array_equal(actual[0], expected[0])
+    np.testing.assert_array_equal(actual[1], expected[1])
 
 
 @EXAMPLES

@@ -1,7 +1,7 @@
 """The compiled kernels (numba) against the numpy code they replaced, on random inputs.
 
 Each ``numpy_*`` function below is the numpy implementation as it stood in the tree before the kernel
-took its place (scan_matching.py, occupancy_grid.py), kept here as the oracle: the kernel must give
+took its place (scan_matching.py, occupancy_grid.py, geometry.py), kept here as the oracle: the kernel must give
 the same numbers on whatever hypothesis draws (bit for bit where the arithmetic is the same, else to
 floating-point tolerance). The numpy code kept the return moments dense (6, H, W); the grid keeps them
 per cell that holds a return (:class:`trundle.fusion.mapping.occupancy_grid.ReturnMoments`).
@@ -18,12 +18,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from trundle.fusion.mapping.nearest_cells import squared_distances, stamped_fields
-from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, _likelihood
+from trundle.fusion.geometry import inverse, transform_points, voxel_filter
+from trundle.fusion.mapping.map_check import _submap_votes
+from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distances, stamped_fields
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, _likelihood, trace_rays
 from trundle.fusion.mapping.ray_casting import add_moments, ray_cells, update_cells
+from trundle.fusion.mapping.submaps import Submap
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
-from trundle.fusion.matching.block_scores import block_scores, branch_and_bound, max_pool
-from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear, field_residuals
+from trundle.fusion.matching.block_scores import block_scores, branch_and_bound, flat_cells, lattice_cells, max_pool
+from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear, field_residuals, match_statistics, pairwise_sum
 from trundle.fusion.matching.pose_solver import DONE, solve3, solve_pose_in_window
 from trundle.fusion.matching.scan_matching import SCHEDULE, STEP_TOLERANCE, score_pyramid, solve_pose
 from trundle.fusion.optimization.robust_kernels import robust_loss
@@ -473,3 +476,251 @@ def test_branch_and_bound_equals_numpy(seed: int, limit: int, angles: int, point
     expected = numpy_branch_and_bound(*arguments, prior_xy, prior_theta, min_score)
     assert found[:4] == expected[:4]
     assert found[4] == pytest.approx(expected[4], rel=1e-14, abs=0.0)
+
+
+def numpy_occupied_nearest(log_odds: np.ndarray, pr0: int, pr1: int, pc0: int, pc1: int, r0: int, r1: int, c0: int,
+                           c1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """MatchFields._compute's occupied cells of the padded window and their nearest-cell indices over the
+    window, as numpy and a label -> cell index lookup made them before the kernel."""
+    occupied = log_odds[pr0:pr1, pc0:pc1] > 0.0
+    rows, cols = np.nonzero(occupied)
+    image = np.where(occupied, 0, 255).astype(np.uint8)
+    nearest = np.full((r1 - r0, c1 - c0), -1, np.int32)
+    if len(rows):
+        _, labels = cv2.distanceTransformWithLabels(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)
+        index = np.zeros(int(labels.max()) + 1, np.int32)
+        index[labels[rows, cols]] = np.arange(len(rows), dtype=np.int32)
+        nearest = index[labels[r0 - pr0:r1 - pr0, c0 - pc0:c1 - pc0]]
+    return rows, cols, image, nearest
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(1, 50), st.integers(1, 50), st.floats(0.0, 0.5), st.integers(0, 2**32 - 1), st.integers(0, 8),
+       st.integers(0, 8), st.integers(0, 8), st.integers(0, 8))
+def test_occupied_cells_and_nearest_labels_equal_numpy(height: int, width: int, density: float, seed: int, top: int,
+                                                       bottom: int, left: int, right: int) -> None:
+    """The occupied cells of a padded window (kernel) and each cell's nearest one as its OpenCV label less one,
+    against numpy's mask, nonzero and image and the label -> cell lookup they replaced: equal to the bit."""
+    rng = np.random.default_rng(seed)
+    log_odds = np.where(rng.random((height, width)) < density, rng.uniform(0.01, 3.5, (height, width)),
+                        rng.uniform(-2.0, 0.0, (height, width))).astype(np.float32)
+    log_odds[rng.random((height, width)) < 0.05] = 0.0   # exactly zero: not occupied
+    pr0, pc0 = min(top, height), min(left, width)
+    pr1, pc1 = max(height - bottom, pr0), max(width - right, pc0)
+    r0, c0 = pr0 + min(2, pr1 - pr0), pc0 + min(2, pc1 - pc0)   # the window inside the padded one
+    r1, c1 = max(pr1 - 2, r0), max(pc1 - 2, c0)
+    rows, cols, image = occupied_cells(log_odds, pr0, pr1, pc0, pc1)
+    expected_rows, expected_cols, expected_image, expected_nearest = numpy_occupied_nearest(
+        log_odds, pr0, pr1, pc0, pc1, r0, r1, c0, c1)
+    np.testing.assert_array_equal(rows, expected_rows)
+    np.testing.assert_array_equal(cols, expected_cols)
+    assert rows.dtype == expected_rows.dtype and image.dtype == np.uint8
+    np.testing.assert_array_equal(image, expected_image)
+    if len(rows):
+        _, labels = cv2.distanceTransformWithLabels(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)
+        nearest = labels[r0 - pr0:r1 - pr0, c0 - pc0:c1 - pc0] - np.int32(1)
+        assert nearest.dtype == np.int32
+        np.testing.assert_array_equal(nearest, expected_nearest)
+
+
+def test_match_fields_nearest_cells_equal_numpy() -> None:
+    """The wall lines' nearest cells of real match-field windows (a grid of rooms' walls) equal the numpy lookup's."""
+    rng = np.random.default_rng(7)
+    grid = LogOddsGrid(0.05, subcell=True)
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    walls = rng.uniform(1.0, 4.0, (360, 1)) * np.column_stack([np.cos(angles), np.sin(angles)])
+    for _ in range(3):
+        grid.insert_rays(rng.uniform(-0.3, 0.3, 2), walls + 0.01 * rng.standard_normal(walls.shape))
+    fields = grid.match_fields(0.5, 0.05, lines=True)
+    for _ in range(10):
+        centre = rng.uniform(0, min(grid.shape), 2)
+        window = fields.around(centre[:1] + rng.uniform(-20, 20, 2), centre[1:] + rng.uniform(-20, 20, 2))
+        assert window.lines is not None
+        height, width = window.distance.shape
+        margin = fields.margin
+        r0, c0 = window.row0, window.col0
+        r1, c1 = r0 + height, c0 + width
+        pr0, pr1 = max(r0 - margin, 0), min(r1 + margin, grid.shape[0])
+        pc0, pc1 = max(c0 - margin, 0), min(c1 + margin, grid.shape[1])
+        *_, expected = numpy_occupied_nearest(grid.log_odds, pr0, pr1, pc0, pc1, r0, r1, c0, c1)
+        np.testing.assert_array_equal(window.lines.nearest, expected)
+
+
+def numpy_voxel_filter(points: np.ndarray, cell_m: float) -> np.ndarray:
+    """geometry.voxel_filter as numpy computed it before the kernel (np.unique, np.add.at, argsort)."""
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) == 0 or cell_m <= 0:
+        return points
+    cells = np.floor(points / cell_m).astype(np.int64)
+    keys = (cells[:, 0] << 32) + cells[:, 1]
+    _, first, inverse_index, counts = np.unique(keys, return_index=True, return_inverse=True, return_counts=True)
+    inverse_index = inverse_index.reshape(-1)
+    sums = np.zeros((len(counts), 2))
+    np.add.at(sums, inverse_index, points)
+    means = sums / counts[:, None]
+    return means[np.argsort(first, kind="stable")]
+
+
+@EXAMPLES
+@given(st.integers(0, 2**32 - 1), st.integers(0, 1500), st.floats(0.001, 20.0),
+       st.sampled_from([0.0, 0.025, 0.05, 0.3]))
+def test_voxel_filter_equals_numpy_to_the_bit(seed: int, count: int, spread: float, cell_m: float) -> None:
+    """The voxel filter's compiled grouping (voxel_means) against np.unique / np.add.at / argsort: the same
+    cells in the same order, the same means to the bit (the sums run in point order in both)."""
+    rng = np.random.default_rng(seed)
+    points = rng.normal(rng.uniform(-50, 50, 2), spread, (count, 2))
+    points[rng.random(count) < 0.1] = points[0] if count else 0.0   # repeated points: cells with many
+    actual, expected = voxel_filter(points, cell_m), numpy_voxel_filter(points, cell_m)
+    assert actual.shape == expected.shape and actual.dtype == expected.dtype
+    assert np.array_equal(actual.view(np.uint64), expected.view(np.uint64))
+
+
+def numpy_match_statistics(likelihood: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray,
+                           observed: np.ndarray, d: np.ndarray, active: np.ndarray, inlier: float
+                           ) -> tuple[float, float, float, float, np.ndarray]:
+    """refine_pose's final figures as numpy computed them before match_statistics."""
+    n = len(cx)
+    inliers = active & (np.abs(d) <= inlier)
+    n_in = int(inliers.sum())
+    lik, _, _, inside = bilinear(likelihood, cx - 0.5 - col0, cy - 0.5 - row0)
+    lik = np.where(inside, lik, 0.0)
+    score = float(np.mean(lik)) if n else 0.0
+    with np.errstate(invalid="ignore"):   # NaN and huge coordinates become INT64_MIN: off the grid
+        cells = np.floor(np.stack([cx, cy], axis=1)).astype(np.int64)
+    on_grid = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < observed.shape[1]) & (
+        cells[:, 1] < observed.shape[0])
+    known = np.zeros(n, bool)
+    known[on_grid] = observed[cells[on_grid, 1], cells[on_grid, 0]]
+    overlap = float(known.mean()) if n else 0.0
+    overlap_score = float(lik[known].mean()) if known.any() else 0.0
+    residual = float(np.mean(np.abs(d[inliers]))) if n_in else float("nan")
+    return score, overlap, overlap_score, residual, inliers
+
+
+@EXAMPLES
+@given(st.integers(0, 2**32 - 1), st.integers(0, 3000), st.integers(1, 40), st.integers(1, 40), st.integers(-5, 5),
+       st.integers(-5, 5), st.floats(0.01, 0.3))
+def test_match_statistics_equal_numpy_to_the_bit(seed: int, count: int, height: int, width: int, row0: int, col0: int,
+                                                 inlier: float) -> None:
+    """A match's score, overlap, overlap score, inlier residual and inliers (one kernel) against the numpy
+    lines they replaced: equal to the bit (the kernel's sums are numpy's pairwise ones)."""
+    rng = np.random.default_rng(seed)
+    likelihood = np.where(rng.random((height, width)) < 0.3, 0.0, rng.random((height, width))).astype(np.float32)
+    observed = rng.random((height + 6, width + 6)) < 0.7
+    cx = rng.uniform(-3.0, width + 9.0, count)
+    cy = rng.uniform(-3.0, height + 9.0, count)
+    cx[rng.random(count) < 0.02] = np.nan
+    cx[rng.random(count) < 0.02] = 1e30
+    d = rng.normal(0.0, 0.2, count)
+    active = rng.random(count) < 0.9
+    actual = match_statistics(likelihood, row0, col0, cx, cy, observed, d, active, inlier)
+    expected = numpy_match_statistics(likelihood, row0, col0, cx, cy, observed, d, active, inlier)
+    for a, e in zip(actual[:4], expected[:4], strict=True):
+        assert np.array_equal(np.float64(a).view(np.uint64), np.float64(e).view(np.uint64)), (a, e)
+    np.testing.assert_array_equal(actual[4], expected[4])
+
+
+@EXAMPLES
+@given(st.integers(0, 2**32 - 1), st.one_of(st.integers(0, 300), st.integers(300, 20000)), st.floats(1e-3, 1e6))
+def test_pairwise_sum_equals_numpy_sum(seed: int, count: int, scale: float) -> None:
+    values = np.random.default_rng(seed).standard_normal(count + 5) * scale
+    assert pairwise_sum(values, 5, count) == np.sum(values[5:])
+    zeros = np.full(count, -0.0)   # numpy's reduction starts from 0.0: no sum is -0.0
+    assert np.float64(pairwise_sum(zeros, 0, count)).view(np.uint64) == np.sum(zeros).view(np.uint64)
+
+
+def numpy_lattice_base(points: np.ndarray, thetas: np.ndarray, x0: float, y0: float, origin: np.ndarray, res: float,
+                       limit: int, pad: int, row0: int, col0: int, height: int, width: int
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """correlative_search's cells of the rotated points, their extent and the clipped flat indices the
+    branch and bound reads, as numpy computed them before lattice_cells and flat_cells."""
+    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    cols = np.floor((c * points[:, 0] - s * points[:, 1] + x0 - origin[0]) / res).astype(np.int64)
+    rows = np.floor((s * points[:, 0] + c * points[:, 1] + y0 - origin[1]) / res).astype(np.int64)
+    extent = np.array([cols.min(), cols.max(), rows.min(), rows.max()])
+    ix = np.clip(cols - col0 + pad - limit, 0, width - 1 - 2 * limit)
+    iy = np.clip(rows - row0 + pad - limit, 0, height - 1 - 2 * limit)
+    return cols, extent, iy * width + ix
+
+
+@EXAMPLES
+@given(st.integers(0, 2**32 - 1), st.integers(1, 800), st.integers(1, 60), st.floats(-50, 50), st.floats(-50, 50),
+       st.floats(-4.0, 4.0), st.sampled_from([0.02, 0.05, 0.1]), st.integers(0, 12), st.integers(-40, 40),
+       st.integers(-40, 40), st.integers(1, 400), st.integers(1, 400))
+def test_lattice_and_flat_cells_equal_numpy_to_the_bit(seed: int, count: int, angles: int, x0: float, y0: float,
+                                                        t0: float, res: float, limit: int, row0: int, col0: int,
+                                                        height: int, width: int) -> None:
+    """The search's per-rotation cells of the scan's points (lattice_cells) and their clipped flat indices
+    (flat_cells) against the numpy expressions they replaced: the same integers."""
+    rng = np.random.default_rng(seed)
+    points = rng.normal(0.0, rng.uniform(0.1, 15.0), (count, 2))
+    thetas = t0 + 0.004 * np.arange(-(angles // 2), angles - angles // 2)
+    origin = rng.uniform(-60, 10, 2)
+    pad = 1 << max(1, min(8, int(math.ceil(math.log2(2 * limit + 1))) + 1)) - 1
+    height, width = height + 2 * pad, width + 2 * pad
+    cols, rows, c_lo, c_hi, r_lo, r_hi = lattice_cells(points, np.cos(thetas), np.sin(thetas), x0, y0,
+                                                       float(origin[0]), float(origin[1]), res)
+    expected_cols, extent, expected_base = numpy_lattice_base(points, thetas, x0, y0, origin, res, limit, pad, row0,
+                                                              col0, height, width)
+    np.testing.assert_array_equal(cols, expected_cols)
+    np.testing.assert_array_equal([c_lo, c_hi, r_lo, r_hi], extent)
+    base = flat_cells(cols, rows, pad - limit - col0, pad - limit - row0, width - 1 - 2 * limit,
+                      height - 1 - 2 * limit, width)
+    np.testing.assert_array_equal(base, expected_base)
+
+
+def numpy_submap_votes(grid: LogOddsGrid, frame: np.ndarray, points_map: np.ndarray, tolerance_m: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """map_check._submap_votes as numpy computed it before submap_votes."""
+    local = transform_points(inverse(frame), points_map)
+    cells = np.floor(grid.world_to_cell(local)).astype(np.int64)
+    height, width = grid.shape
+    inside = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < width) & (cells[:, 1] < height)
+    rows, cols = cells[inside, 1], cells[inside, 0]
+    distance = grid.distance_field(0.5)
+    agree = np.zeros(len(points_map), bool)
+    conflict = np.zeros(len(points_map), bool)
+    near = distance[rows, cols] <= tolerance_m[inside] * (1.0 + 1e-6)
+    free = grid.observed[rows, cols] & (grid.log_odds[rows, cols] < 0.0)
+    agree[inside] = near
+    conflict[inside] = free & ~near
+    return agree, conflict
+
+
+@settings(max_examples=30, deadline=None)
+@given(matching_problems(), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(-4.0, 4.0), st.integers(0, 3000),
+       st.integers(0, 2**32 - 1))
+def test_submap_votes_equal_numpy(problem: tuple[LogOddsGrid, np.ndarray, np.ndarray], x: float, y: float,
+                                  theta: float, count: int, seed: int) -> None:
+    """The map check's agree / conflict votes of map points against a placed submap (one kernel) against the
+    numpy lines they replaced: the same masks, points off the grid and tolerances at the distances included."""
+    grid = problem[0]
+    rng = np.random.default_rng(seed)
+    submap = Submap(0, 0, np.zeros(3), grid)
+    frame = np.array([x, y, theta])
+    points = rng.uniform(-6.0, 6.0, (count, 2))
+    tolerance = rng.choice([0.05, 0.1, 0.15 + 0.5 ** 0.5 * 0.05, 0.6], count) * rng.uniform(0.9, 1.1, count)
+    actual = _submap_votes(submap, frame, points, tolerance)
+    expected = numpy_submap_votes(grid, frame, points, tolerance)
+    np.testing.assert_array_equal(actual[0], expected[0])
+    np.testing.assert_array_equal(actual[1], expected[1])
+
+
+@EXAMPLES
+@given(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4), st.floats(-2e-5, 2e-5), st.floats(-2e-5, 2e-5))
+def test_lattice_check_equals_allclose(col: float, row: float, dx: float, dy: float) -> None:
+    """insert_traced's test that a trace is on the grid's lattice, on floats, against np.allclose it replaced."""
+    grid = LogOddsGrid(0.05)
+    grid.insert_rays(np.zeros(2), np.array([[1.0, 0.5]]))
+    origin = grid.origin + np.array([round(col) + dx, round(row) + dy]) * grid.resolution
+    rays = trace_rays(origin, grid.resolution, np.zeros(2), np.array([[1.0, 0.5]]))
+    shift = (rays.origin - grid.origin) / grid.resolution
+    expected = np.allclose(shift, np.rint(shift), atol=1e-6)
+    try:
+        grid.copy().insert_traced(rays)
+        accepted = True
+    except ValueError:
+        accepted = False
+    assert accepted == expected

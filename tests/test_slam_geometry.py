@@ -12,10 +12,12 @@ from hypothesis import strategies as st
 from tests.planar_world import ROOM, cast
 from trundle.fusion.geometry import (
     compose,
+    deskewed,
     inverse,
     no_return_directions,
     relative,
     rotate_covariance,
+    scan_returns,
     scan_to_points,
     transform_points,
     voxel_filter,
@@ -87,3 +89,100 @@ def test_voxel_filter_keeps_one_mean_point_per_cell_in_order() -> None:
     thinned = voxel_filter(points, 0.05)
     np.testing.assert_allclose(thinned, [[0.02, 0.7 / 30], [1.0, 1.0]])
     assert voxel_filter(np.zeros((0, 2)), 0.05).shape == (0, 2)
+
+
+def numpy_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """compose as numpy's array expressions computed it for one pose before its scalar path."""
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack([a[..., 0] + c * b[..., 0] - s * b[..., 1], a[..., 1] + s * b[..., 0] + c * b[..., 1],
+                     wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def numpy_inverse(a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack([-c * a[..., 0] - s * a[..., 1], s * a[..., 0] - c * a[..., 1], wrap_angle(-a[..., 2])], axis=-1)
+
+
+def numpy_relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1)
+
+
+def assert_same_bits(actual: np.ndarray, expected: np.ndarray) -> None:
+    assert actual.shape == expected.shape and actual.dtype == expected.dtype == np.float64
+    nan = np.isnan(expected)
+    assert np.array_equal(np.isnan(actual), nan)
+    assert np.array_equal(actual[~nan].view(np.uint64), expected[~nan].view(np.uint64))
+
+
+coordinates = st.one_of(st.floats(-1e4, 1e4), st.floats(-1e-6, 1e-6), st.sampled_from([0.0, -0.0, math.pi, -math.pi]),
+                        st.floats(allow_nan=True, allow_infinity=False, width=64))
+wide_poses = st.tuples(coordinates, coordinates, coordinates).map(lambda p: np.array(p, np.float64))
+
+
+@settings(max_examples=500, deadline=None)
+@given(wide_poses, wide_poses)
+def test_one_pose_algebra_equals_the_array_expressions_to_the_bit(a: np.ndarray, b: np.ndarray) -> None:
+    """compose, relative and inverse of one pose (floats and math) against the numpy expressions they
+    replaced for one pose, and against the vectorised path for a batch holding that pose."""
+    with np.errstate(all="ignore"):
+        assert_same_bits(compose(a, b), numpy_compose(a, b))
+        assert_same_bits(relative(a, b), numpy_relative(a, b))
+        assert_same_bits(inverse(a), numpy_inverse(a))
+        assert_same_bits(compose(a[None], b[None])[0], compose(a, b))
+        assert_same_bits(relative(a[None], b[None])[0], relative(a, b))
+        assert_same_bits(inverse(a[None])[0], inverse(a))
+
+
+def test_one_pose_algebra_keeps_numpys_answer_for_an_infinite_heading() -> None:
+    a, b = np.array([1.0, 2.0, np.inf]), np.array([0.5, -0.5, 0.1])
+    with np.errstate(all="ignore"):
+        assert_same_bits(compose(a, b), numpy_compose(a, b))
+        assert_same_bits(relative(a, b), numpy_relative(a, b))
+        assert_same_bits(inverse(a), numpy_inverse(a))
+
+
+def scan_to_points_before(scan: LaserScan, sensor_pose: np.ndarray | None, range_min: float | None,
+                          range_max: float | None, velocity: np.ndarray | None) -> np.ndarray:
+    """scan_to_points as it was before scan_returns and deskewed split it."""
+    ranges = scan.ranges.astype(np.float64)
+    low = scan.range_min if range_min is None else range_min
+    high = scan.range_max if range_max is None else range_max
+    keep = np.isfinite(ranges) & (ranges >= low) & (ranges <= high)
+    angles = scan.angles()[keep]
+    r = ranges[keep]
+    points = np.stack([r * np.cos(angles), r * np.sin(angles)], axis=1)
+    if sensor_pose is not None:
+        points = transform_points(sensor_pose, points)
+    if velocity is not None and scan.time_increment > 0:
+        dt = np.flatnonzero(keep) * float(scan.time_increment)
+        vx, vy, wz = (float(v) for v in velocity)
+        turn = wz * dt
+        c, s = np.cos(turn), np.sin(turn)
+        points = np.stack([c * points[:, 0] - s * points[:, 1] + vx * dt,
+                           s * points[:, 0] + c * points[:, 1] + vy * dt], axis=1)
+    return points
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 400), st.sampled_from([0.0, 1e-5, 2.5e-5]), st.booleans(),
+       st.booleans(), st.lists(st.tuples(st.floats(-2, 2), st.floats(-2, 2), st.floats(-4, 4)), max_size=3))
+def test_scan_returns_deskewed_equal_scan_to_points_to_the_bit(seed: int, beams: int, time_increment: float,
+                                                              mounted: bool, limits: bool,
+                                                              velocities: list[tuple[float, float, float]]) -> None:
+    """One conversion (scan_returns), de-skewed by each velocity (deskewed), gives the points that converting
+    the scan again for each velocity gave; so does scan_to_points."""
+    rng = np.random.default_rng(seed)
+    ranges = rng.uniform(0.0, 35.0, beams).astype(np.float32)
+    ranges[rng.random(beams) < 0.1] = np.inf
+    ranges[rng.random(beams) < 0.05] = np.nan
+    scan = LaserScan(0, "laser", -2.35, 2.35, 4.7 / max(beams, 1), time_increment, 0.025, 0.1, 30.0, ranges)
+    mount = np.array([0.2, -0.1, 0.3]) if mounted else None
+    low, high = (0.5, 20.0) if limits else (None, None)
+    returns = scan_returns(scan, mount, low, high)
+    for velocity in [None, *(np.array(v) for v in velocities)]:
+        expected = scan_to_points_before(scan, mount, low, high, velocity)
+        for actual in (deskewed(returns, velocity), scan_to_points(scan, mount, low, high, velocity)):
+            assert actual.shape == expected.shape
+            assert np.array_equal(actual.view(np.uint64), expected.view(np.uint64))

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from trundle.fusion.mapping import ray_casting
-from trundle.fusion.mapping.nearest_cells import squared_distances, stamped_fields
+from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distances, stamped_fields
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
 from trundle.logs.errors import UserError
 from trundle.logs.messages import OccupancyGrid
@@ -145,8 +145,7 @@ class MatchFields:
         grid, margin = self.grid, self.margin
         height, width = grid.shape
         pr0, pr1, pc0, pc1 = max(r0 - margin, 0), min(r1 + margin, height), max(c0 - margin, 0), min(c1 + margin, width)
-        occupied = grid.log_odds[pr0:pr1, pc0:pc1] > 0.0
-        rows, cols = np.nonzero(occupied)
+        rows, cols, image = occupied_cells(grid.log_odds, pr0, pr1, pc0, pc1)
         shape = (max(r1 - r0, 0), max(c1 - c0, 0))
         # distances up to the margin are exact, and every field is capped (or zero) before it
         distance, likelihood = stamped_fields(rows, cols, r0 - pr0, c0 - pc0, shape[0], shape[1], margin,
@@ -154,13 +153,13 @@ class MatchFields:
         lines = None
         if self.lines:
             mean, normal, is_line = grid.line_data(rows + pr0, cols + pc0, self.min_flatness)
-            nearest = np.full(shape, -1, np.int32)
+            nearest: np.ndarray = np.full(shape, -1, np.int32)
             if len(rows):
-                _, labels = cv2.distanceTransformWithLabels(np.where(occupied, 0, 255).astype(np.uint8), cv2.DIST_L2,
-                                                            cv2.DIST_MASK_PRECISE, labelType=cv2.DIST_LABEL_PIXEL)
-                index = np.zeros(int(labels.max()) + 1, np.int32)
-                index[labels[rows, cols]] = np.arange(len(rows), dtype=np.int32)
-                nearest = index[labels[r0 - pr0:r1 - pr0, c0 - pc0:c1 - pc0]]
+                # OpenCV labels the zero pixels 1, 2, ... in row-major order, as occupied_cells lists them:
+                # a cell's label less one is its nearest occupied cell's index
+                _, labels = cv2.distanceTransformWithLabels(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
+                                                            labelType=cv2.DIST_LABEL_PIXEL)
+                nearest = labels[r0 - pr0:r1 - pr0, c0 - pc0:c1 - pc0] - np.int32(1)
             lines = WallLines(nearest, mean, normal, is_line)
         self._bounds = (r0, r1, c0, c1)
         self._window = FieldWindow(r0, c0, distance, likelihood, lines)
@@ -293,8 +292,10 @@ class LogOddsGrid:
         if not self.log_odds.flags.writeable:
             raise ValueError("this grid is read-only (a map loaded to localize in)")
         shift = (rays.origin - self.origin) / self.resolution   # this grid's cell of the trace's cell (0, 0)
-        col_shift, row_shift = np.rint(shift).astype(np.int64)
-        if not np.allclose(shift, (col_shift, row_shift), atol=1e-6):
+        col_shift, row_shift = np.rint(shift).astype(np.int64).tolist()
+        # np.allclose(shift, (col_shift, row_shift), atol=1e-6) on two floats (numpy's took 35 us an insert)
+        if not all(abs(v - k) <= 1e-6 + 1e-5 * abs(k)
+                   for v, k in zip(shift.tolist(), (col_shift, row_shift), strict=True)):
             raise ValueError("rays traced on another cell lattice")
         width = self.shape[1]
         hit_flat = (rays.hits[:, 0] + row_shift) * width + rays.hits[:, 1] + col_shift

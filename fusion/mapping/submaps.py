@@ -30,6 +30,9 @@ class Submap:
     nodes: list[int] = field(default_factory=list)
     positions: list[np.ndarray] = field(default_factory=list)
     finished: bool = False
+    # what loop closure asks of every finished submap for every keyframe: kept, not computed again each time
+    _centre: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+    _anchor_inverse: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def scans(self) -> int:
@@ -40,14 +43,19 @@ class Submap:
         self.grid.insert_traced(rays)
         self.nodes.append(node)
         self.positions.append(np.asarray(pose_local[:2], dtype=np.float64).copy())
+        self._centre = None
 
     def centre(self) -> np.ndarray:
         """Mean position (local frame) of the keyframes inserted."""
-        return np.mean(self.positions, axis=0)
+        if self._centre is None:
+            self._centre = np.mean(self.positions, axis=0)
+        return self._centre.copy()
 
     def local_to_map(self, anchor_map_pose: np.ndarray) -> np.ndarray:
         """The pose of this submap's (local) frame in the map, given its anchor's optimised map pose."""
-        return compose(anchor_map_pose, inverse(self.anchor_local))
+        if self._anchor_inverse is None:
+            self._anchor_inverse = inverse(self.anchor_local)
+        return compose(anchor_map_pose, self._anchor_inverse)
 
 
 class SubmapStack:

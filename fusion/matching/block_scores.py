@@ -11,6 +11,8 @@ so of equal best scores the same one wins); in Python it made a few dozen small 
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -165,3 +167,38 @@ def branch_and_bound(pyramid: np.ndarray, base: np.ndarray, thetas: np.ndarray, 
     if raw < min_score:
         return False, 0, 0, 0, 0.0
     return True, candidates[i, 0], candidates[i, 1], candidates[i, 2], scores[i]
+
+
+@numba.njit(cache=True, nogil=True)
+def lattice_cells(points: np.ndarray, cos: np.ndarray, sin: np.ndarray, x0: float, y0: float, origin_x: float,
+                  origin_y: float, resolution: float) -> tuple[np.ndarray, np.ndarray, int, int, int, int]:
+    """The grid cell (column, row) of each point (N, 2, robot frame) with the robot at ``(x0, y0)`` turned by
+    each angle whose cosine and sine are given: ``floor((c x - s y + x0 - origin_x) / resolution)`` and
+    ``floor((s x + c y + y0 - origin_y) / resolution)``, as numpy evaluated them, (angles, N) each; and
+    the least and greatest column and row."""
+    count = points.shape[0]
+    cols = np.empty((cos.shape[0], count), np.int64)
+    rows = np.empty((cos.shape[0], count), np.int64)
+    for a in range(cos.shape[0]):
+        c, s = cos[a], sin[a]
+        for n in range(count):
+            px, py = points[n, 0], points[n, 1]
+            cols[a, n] = math.floor((c * px - s * py + x0 - origin_x) / resolution)
+            rows[a, n] = math.floor((s * px + c * py + y0 - origin_y) / resolution)
+    if cols.size == 0:
+        return cols, rows, 0, 0, 0, 0
+    return cols, rows, cols.min(), cols.max(), rows.min(), rows.max()
+
+
+@numba.njit(cache=True, nogil=True)
+def flat_cells(cols: np.ndarray, rows: np.ndarray, col_shift: int, row_shift: int, max_col: int, max_row: int,
+               width: int) -> np.ndarray:
+    """Flat indices ``row * width + col`` of cells ``(rows, cols)`` shifted by ``(row_shift, col_shift)`` and
+    clipped to ``[0, max_row] x [0, max_col]`` (as ``np.clip``: the upper bound wins)."""
+    flat = np.empty(cols.shape, np.int64)
+    for a in range(cols.shape[0]):
+        for n in range(cols.shape[1]):
+            col = min(max(cols[a, n] + col_shift, 0), max_col)
+            row = min(max(rows[a, n] + row_shift, 0), max_row)
+            flat[a, n] = row * width + col
+    return flat

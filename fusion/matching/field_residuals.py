@@ -8,6 +8,8 @@ differences in float32 as the window holds them, interpolation in float64.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -88,3 +90,102 @@ def field_residuals(distance: np.ndarray, nearest: np.ndarray, mean: np.ndarray,
             jac[i, 1] = normal[k, 1] if on_line else dv / resolution
             jac[i, 2] = ry[i] * -jac[i, 0] + rx[i] * jac[i, 1]
     return d, jac, active
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_sum(values: np.ndarray, start: int, count: int) -> float:
+    """numpy's sum of a run of at most 128 values: in order below 8, else in eight interleaved partial sums."""
+    if count < 8:
+        total = 0.0
+        for i in range(start, start + count):
+            total += values[i]
+        return total
+    r0, r1, r2, r3 = values[start], values[start + 1], values[start + 2], values[start + 3]
+    r4, r5, r6, r7 = values[start + 4], values[start + 5], values[start + 6], values[start + 7]
+    i = 8
+    while i < count - count % 8:
+        j = start + i
+        r0 += values[j]
+        r1 += values[j + 1]
+        r2 += values[j + 2]
+        r3 += values[j + 3]
+        r4 += values[j + 4]
+        r5 += values[j + 5]
+        r6 += values[j + 6]
+        r7 += values[j + 7]
+        i += 8
+    total = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < count:
+        total += values[start + i]
+        i += 1
+    return total
+
+
+@numba.njit(cache=True, nogil=True)
+def pairwise_sum(values: np.ndarray, start: int, count: int) -> float:
+    """numpy's sum of ``values[start:start + count]`` (float64), step for step: its pairwise summation (runs of
+    up to 128 by :func:`_block_sum`, a longer run split in halves at a multiple of eight and their sums
+    added, onto the reduction's identity 0.0), so a mean here equals ``np.mean`` to the bit, signed zeros
+    included. The halving runs on a stack of its own: numba cannot load a recursive function from its
+    cache (it crashes)."""
+    if count <= 128:
+        return 0.0 + _block_sum(values, start, count)
+    frames = np.empty((128, 3), np.int64)   # start, count, halves done; depth is log2(count / 128) < 60
+    sums = np.empty(64)
+    frames[0, 0], frames[0, 1], frames[0, 2] = start, count, 0
+    depth, stacked = 1, 0
+    while depth:
+        depth -= 1
+        s, c, split = frames[depth, 0], frames[depth, 1], frames[depth, 2]
+        if c <= 128:
+            sums[stacked] = _block_sum(values, s, c)
+            stacked += 1
+        elif split:   # both halves summed: the left's sum below the right's
+            stacked -= 1
+            sums[stacked - 1] = sums[stacked - 1] + sums[stacked]
+        else:
+            half = c // 2
+            half -= half % 8
+            frames[depth, 2] = 1
+            frames[depth + 1, 0], frames[depth + 1, 1], frames[depth + 1, 2] = s + half, c - half, 0
+            frames[depth + 2, 0], frames[depth + 2, 1], frames[depth + 2, 2] = s, half, 0
+            depth += 3
+    return 0.0 + sums[0]
+
+
+@numba.njit(cache=True, nogil=True)
+def match_statistics(likelihood: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray,
+                     observed: np.ndarray, d: np.ndarray, active: np.ndarray, inlier_m: float
+                     ) -> tuple[float, float, float, float, np.ndarray]:
+    """A converged match's figures in one pass: at the points' continuous cell coordinates ``cx``, ``cy``
+    (the grid's), the mean likelihood (the window ``likelihood`` from ``row0``, ``col0``; 0 outside it),
+    the share of points on cells the grid ``observed`` and their mean likelihood (0: none), the mean
+    ``|d|`` of the inliers (``active`` and ``|d| <= inlier_m``; NaN: none) and the inlier mask. Means
+    are numpy's (:func:`pairwise_sum` over the same values in the same order), so equal to the bit."""
+    n = cx.shape[0]
+    height, width = likelihood.shape
+    flat = likelihood.ravel()
+    rows, cols = observed.shape
+    lik = np.empty(n)
+    known_lik = np.empty(n)
+    known = 0
+    for i in range(n):
+        value, _, _, inside = _sample(flat, height, width, cx[i] - 0.5 - col0, cy[i] - 0.5 - row0)
+        lik[i] = value if inside else 0.0
+        x, y = cx[i], cy[i]   # floor(x) in [0, cols) exactly when x is (NaN: neither)
+        if x >= 0.0 and y >= 0.0 and x < cols and y < rows and observed[int(math.floor(y)), int(math.floor(x))]:
+            known_lik[known] = lik[i]
+            known += 1
+    inliers = np.empty(n, np.bool_)
+    residuals = np.empty(n)
+    count = 0
+    for i in range(n):
+        inliers[i] = active[i] and abs(d[i]) <= inlier_m
+        if inliers[i]:
+            residuals[count] = abs(d[i])
+            count += 1
+    score = pairwise_sum(lik, 0, n) / n if n else 0.0
+    overlap = known / n if n else 0.0
+    overlap_score = pairwise_sum(known_lik, 0, known) / known if known else 0.0
+    residual = pairwise_sum(residuals, 0, count) / count if count else math.nan
+    return score, overlap, overlap_score, residual, inliers

@@ -21,8 +21,8 @@ import numpy as np
 
 from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.mapping.occupancy_grid import FieldWindow, LogOddsGrid, MatchFields
-from trundle.fusion.matching.block_scores import branch_and_bound, max_pool
-from trundle.fusion.matching.field_residuals import NO_WALLS, bilinear
+from trundle.fusion.matching.block_scores import branch_and_bound, flat_cells, lattice_cells, max_pool
+from trundle.fusion.matching.field_residuals import NO_WALLS, match_statistics
 from trundle.fusion.matching.pose_solver import DONE, solve_pose_in_window
 from trundle.fusion.optimization.levenberg_marquardt import Settings, levenberg_marquardt
 
@@ -109,14 +109,14 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     levels = max(1, min(8, int(math.ceil(math.log2(2 * limit + 1))) + 1))
     pad = 1 << (levels - 1)
 
-    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
-    cols = np.floor((c * points[:, 0] - s * points[:, 1] + x0 - grid.origin[0]) / res).astype(np.int64)
-    rows = np.floor((s * points[:, 0] + c * points[:, 1] + y0 - grid.origin[1]) / res).astype(np.int64)
+    # each rotated point's cell for the lattice's centre offset (compiled: one pass, no (angles, N) temporaries)
+    origin = grid.origin
+    cols, rows, c_lo, c_hi, r_lo, r_hi = lattice_cells(points, np.cos(thetas), np.sin(thetas), x0, y0,
+                                                       float(origin[0]), float(origin[1]), res)
     # The likelihood over a window holding every cell a lattice pose puts a point on (the match
     # fields' window, which the refinement reads too), max-pooled once per window.
     window = match_fields(grid, max_distance_m, sigma, wall_lines).around(
-        np.array([cols.min() - limit, cols.max() + limit], np.float64),
-        np.array([rows.min() - limit, rows.max() + limit], np.float64))
+        np.array([c_lo - limit, c_hi + limit], np.float64), np.array([r_lo - limit, r_hi + limit], np.float64))
     pyramids: dict[int, tuple[FieldWindow, np.ndarray]] = grid.cached(("pyramids", float(sigma)), dict)
     if levels not in pyramids or pyramids[levels][0] is not window:
         pyramids[levels] = (window, score_pyramid(window.likelihood, levels))
@@ -125,10 +125,10 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     # [0, 2 limit] stays in the array: a point off the grid then lands in the zero border,
     # which keeps level 0 exact and coarser levels upper bounds.
     height, width = pyramid.shape[1:]
-    ix = np.clip(cols - window.col0 + pad - limit, 0, width - 1 - 2 * limit)
-    iy = np.clip(rows - window.row0 + pad - limit, 0, height - 1 - 2 * limit)
+    base = flat_cells(cols, rows, pad - limit - window.col0, pad - limit - window.row0, width - 1 - 2 * limit,
+                      height - 1 - 2 * limit, width)
     found, a_i, dx, dy, score = branch_and_bound(
-        pyramid, iy * width + ix, thetas, t0, limit, res, -1.0 if prior_std_xy_m is None else prior_std_xy_m,
+        pyramid, base, thetas, t0, limit, res, -1.0 if prior_std_xy_m is None else prior_std_xy_m,
         -1.0 if prior_std_theta_rad is None else prior_std_theta_rad, min_score)
     if not found:
         return None
@@ -286,21 +286,13 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
     if walls is not None and len(walls.mean):  # from the field's wide basin to the walls
         pose, more, (d, jac, weight, active), window = solve(pose, True, window)
         iterations += more
-    inliers = active & (np.abs(d) <= inlier)
+    cx, cy, window = placed(pose)
+    # score, overlap, overlap score, inlier residual and inliers in one compiled pass (numpy's means, to the bit)
+    score, overlap, overlap_score, residual, inliers = match_statistics(
+        window.likelihood, window.row0, window.col0, cx, cy, grid.observed, d, active, inlier)
     n_in = int(inliers.sum())
     covariance = match_covariance(jac[inliers], d[inliers], weight[inliers], min_std_xy_m, min_std_theta_rad,
                                   shaped=shaped_covariance)
-    cx, cy, window = placed(pose)
-    lik, _, _, inside = bilinear(window.likelihood, cx - 0.5 - window.col0, cy - 0.5 - window.row0)
-    lik = np.where(inside, lik, 0.0)
-    score = float(np.mean(lik)) if len(points) else 0.0
-    cells = np.floor(np.stack([cx, cy], axis=1)).astype(np.int64)
-    on_grid = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < grid.shape[1]) & (cells[:, 1] < grid.shape[0])
-    known = np.zeros(len(points), bool)
-    known[on_grid] = grid.observed[cells[on_grid, 1], cells[on_grid, 0]]
-    overlap = float(known.mean()) if len(points) else 0.0
-    overlap_score = float(lik[known].mean()) if known.any() else 0.0
-    residual = float(np.mean(np.abs(d[inliers]))) if n_in else float("nan")
     return MatchResult(pose, covariance, score, residual, n_in / max(len(points), 1), search_score, iterations,
                        overlap, overlap_score)
 

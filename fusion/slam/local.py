@@ -14,10 +14,11 @@ import numpy as np
 
 from trundle.fusion.geometry import (
     compose,
+    deskewed,
     no_return_directions,
     relative,
     rotate_covariance,
-    scan_to_points,
+    scan_returns,
     voxel_filter,
 )
 from trundle.fusion.mapping.submaps import SubmapStack
@@ -135,11 +136,13 @@ class LocalTrajectoryBuilder:
         limits = (max(opts.min_range_m, scan.range_min), min(opts.max_range_m, scan.range_max))
         # de-skewed by the odometry's velocity, or the tracked one; the latter also when the odometry is
         # rejected (a glitch's velocity would bend the scan it is tested against)
-        tracked_points = scan_to_points(scan, mount, *limits, self.motion.velocity if swept else None)
+        # (the scan turned into points once, de-skewed by either velocity from there)
+        returns = scan_returns(scan, mount, *limits)
+        tracked_points = deskewed(returns, self.motion.velocity if swept else None)
         points = tracked_points
         if with_odometry:
             assert odom is not None and last_odom is not None   # with_odometry: both are there
-            points = scan_to_points(scan, mount, *limits, relative(last_odom, odom) / dt)
+            points = deskewed(returns, relative(last_odom, odom) / dt)
         free_ends = None
         if opts.no_return_clear_m > 0:
             free_ends = mount[:2] + opts.no_return_clear_m * no_return_directions(scan, mount)

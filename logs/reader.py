@@ -217,6 +217,8 @@ class _Scan:
     read: int = 0      # message records read intact
     orphans: int = 0   # of them, those whose channel record was lost
     torn_after: int | None = None
+    chunk_offsets: set[int] = field(default_factory=set)   # every Chunk record the pass met (byte)
+    record_ends: list[int] = field(default_factory=list)   # where each top-level record ends (byte)
     finished: bool = False
     damage: LogDamage | None = None
 
@@ -255,6 +257,23 @@ def _index_count(f: BinaryIO, index: ChunkIndex) -> int | None:
     except Exception:  # mcap's own EndOfFile and struct errors on a garbled record
         return None
     return total if size == index.message_index_length else None
+
+
+_CHUNK_HEAD = 1 + 8 + 8 + 8 + 8 + 4 + 4 + 8   # a Chunk record's bytes besides its compression name and data
+
+
+def _chunk_at(f: BinaryIO, index: ChunkIndex) -> bool:
+    """Whether the file holds, where ``index`` says, a record of the length and times it says (its
+    opcode may be overwritten; not so when the index itself was)."""
+    try:
+        f.seek(index.chunk_start_offset)
+    except (OSError, OverflowError, ValueError):  # an offset beyond what a file can have
+        return False
+    head = f.read(25)
+    return (len(head) == 25
+            and int.from_bytes(head[1:9], "little") == index.chunk_length - 9
+            and int.from_bytes(head[9:17], "little") == index.message_start_time
+            and int.from_bytes(head[17:25], "little") == index.message_end_time)
 
 
 class LogReader:
@@ -298,6 +317,7 @@ class LogReader:
             try:
                 for record in stream.records:
                     start, end = end, f.tell()
+                    scan.record_ends.append(end)
                     if isinstance(record, MessageIndex):
                         if lost is not None:
                             lost.indexed.append(len(record.records))
@@ -305,7 +325,10 @@ class LogReader:
                         continue
                     lost = None
                     if isinstance(record, Chunk):
+                        # where it starts, also when the reader skipped a record of unknown opcode before it
+                        start = end - _CHUNK_HEAD - len(record.compression.encode()) - len(record.data)
                         scan.chunks += 1
+                        scan.chunk_offsets.add(start)
                         scan.compression.add(record.compression or "none")
                         if can_skip and ((start_ns is not None and record.message_end_time < start_ns) or (
                                 end_ns is not None and record.message_start_time >= end_ns)):
@@ -348,10 +371,21 @@ class LogReader:
 
     def _damage(self, f: BinaryIO, scan: _Scan, window: tuple[int | None, int | None]) -> LogDamage | None:
         """What the finished pass ``scan`` skipped (None when nothing): counted from each skipped chunk's
-        MessageIndex records and the summary's chunk index where they are readable."""
-        if scan.footer_seen and not scan.lost and not scan.orphans:
-            return None
+        MessageIndex records and the summary's chunk index where they are readable.
+
+        With a summary, a chunk it lists (in ``window``) that the pass never met is lost too: beyond a
+        tear, and also a chunk that is where the summary says but was jumped over (an overwritten record
+        length). The tear is then where the last intact record before the first such chunk ends."""
         indexes = scan.summary.chunk_indexes if scan.summary is not None else []
+        start_ns, end_ns = window
+        missed = [index for index in indexes if index.chunk_start_offset not in scan.chunk_offsets
+                  and not (start_ns is not None and index.message_end_time < start_ns)
+                  and not (end_ns is not None and index.message_start_time >= end_ns)
+                  and ((scan.torn_after is not None
+                        and index.chunk_start_offset + index.chunk_length > scan.torn_after)
+                       or _chunk_at(f, index))]
+        if scan.footer_seen and not scan.lost and not scan.orphans and not missed:
+            return None
         by_offset = {index.chunk_start_offset: index for index in indexes}
         spans: list[tuple[int, int]] = []
         messages: int | None = scan.orphans
@@ -368,25 +402,24 @@ class LogReader:
                     seconds_known = False
                 count = sum(lost.indexed) if lost.indexed else None
             messages = None if messages is None or count is None else messages + count
-        after: int | None = None
-        if scan.torn_after is not None and scan.data_end_seen:
-            after = 0
-        elif scan.torn_after is not None and scan.summary is not None:
-            start_ns, end_ns = window
-            beyond = [index for index in indexes if index.chunk_start_offset + index.chunk_length > scan.torn_after
-                      and not (start_ns is not None and index.message_end_time < start_ns)
-                      and not (end_ns is not None and index.message_start_time >= end_ns)]
-            after = len(beyond)
-            for index in beyond:
+        torn_after, after = scan.torn_after, None
+        if missed:
+            first = min(index.chunk_start_offset for index in missed)
+            lost_at = max((end for end in scan.record_ends if end <= first), default=len(MAGIC))
+            torn_after = lost_at if torn_after is None else min(torn_after, lost_at)
+            after = len(missed)
+            for index in missed:
                 spans.append((index.message_start_time, index.message_end_time))
                 count = _index_count(f, index)
                 messages = None if messages is None or count is None else messages + count
-        elif scan.torn_after is not None:
+        elif torn_after is not None and (scan.data_end_seen or scan.summary is not None):
+            after = 0
+        elif torn_after is not None:
             messages, seconds_known = None, False
         statistics = scan.summary.statistics if scan.summary is not None else None
         if messages is None and statistics is not None and window == (None, None):
             messages = statistics.message_count - (scan.read - scan.orphans)  # the whole file was read
-        return LogDamage(self.path, self.size_bytes, scan.corrupt_chunks, scan.torn_after, after, messages,
+        return LogDamage(self.path, self.size_bytes, scan.corrupt_chunks, torn_after, after, messages,
                          _span_s(spans) if seconds_known else None, scan.error)
 
     @staticmethod

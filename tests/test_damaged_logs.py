@@ -21,7 +21,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap.records import Chunk, ChunkIndex, Message
@@ -346,6 +346,9 @@ def small_log(tmp_path_factory: pytest.TempPathFactory) -> tuple[bytes, int]:
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(where=st.floats(0.0, 1.0), length=st.integers(1, OVERWRITTEN), seed=st.integers(0, 2**32 - 1))
+@example(where=0.5233134980768993, length=1, seed=0)   # a record length overwritten: the pass jumps 8 chunks
+@example(where=0.9669126075006913, length=1, seed=0)   # a chunk's offset in the summary overwritten
+@example(where=0.9933824141435648, length=1, seed=1)   # ... to one beyond what a file can have
 def test_any_overwrite_is_read_and_its_damage_adds_up(small_log: tuple[bytes, int], tmp_path: Path, where: float,
                                                       length: int, seed: int) -> None:
     data, count = bytearray(small_log[0]), small_log[1]
@@ -370,3 +373,43 @@ def test_any_overwrite_is_read_and_its_damage_adds_up(small_log: tuple[bytes, in
     assert damage.seconds is None or damage.seconds >= 0.0
     if damage.messages is not None:
         assert read + damage.messages == count
+
+
+def test_a_record_length_that_jumps_over_intact_chunks_counts_them_as_lost(damaged: Damaged, tmp_path: Path,
+                                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """An overwritten length makes a linear reader skip the chunks behind it: the summary still lists them."""
+    chunks = chunks_of(damaged.original)
+    garbled = min(chunks[1].message_index_offsets.values())   # chunk 1's first MessageIndex record
+    assert garbled == chunks[1].chunk_start_offset + chunks[1].chunk_length
+    jumped = [chunk_messages(damaged.original, c) for c in chunks[2:4]]
+    assert chunks[3].message_start_time >= chunks[2].message_end_time   # the spans add up without overlap
+    seconds = sum(c.message_end_time - c.message_start_time for c in chunks[2:4]) * 1e-9
+    data = bytearray(damaged.original.read_bytes())
+    data[garbled + 1:garbled + 9] = (chunks[4].chunk_start_offset - garbled - 9).to_bytes(8, "little")
+    bad = tmp_path / "jump.mcap"
+    bad.write_bytes(bytes(data))
+    lost = sum(len(inside) for inside in jumped)
+    assert main(["info", str(bad), "--json"]) == 0
+    line = (f"{bad} is damaged: skipped 2 unreadable chunks after byte {garbled} of {len(data)} "
+            f"({lost} messages, {seconds:.2f} s of log)")
+    out, err = capsys.readouterr()
+    assert err == f"trundle info: {line}\n"
+    assert json.loads(out)["messages"] == damaged.total - lost
+    assert sum(1 for _ in LogReader(bad).raw_messages()) == damaged.total - lost
+
+
+def test_a_chunk_whose_opcode_was_overwritten_is_counted_as_lost(damaged: Damaged, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """A reader skips a record of an unknown opcode (0x80 and up are private records): here that is a chunk."""
+    chunk = chunks_of(damaged.original)[2]
+    lost = len(chunk_messages(damaged.original, chunk))
+    data = bytearray(damaged.original.read_bytes())
+    data[chunk.chunk_start_offset] = 0x80
+    bad = tmp_path / "opcode.mcap"
+    bad.write_bytes(bytes(data))
+    assert main(["info", str(bad)]) == 0
+    seconds = (chunk.message_end_time - chunk.message_start_time) * 1e-9
+    assert capsys.readouterr().err == (
+        f"trundle info: {bad} is damaged: skipped 1 unreadable chunk after byte {chunk.chunk_start_offset} of "
+        f"{len(data)} ({lost} messages, {seconds:.2f} s of log)\n")
+    assert sum(1 for _ in LogReader(bad).raw_messages()) == damaged.total - lost

@@ -22,7 +22,7 @@ from trundle.fusion.geometry import inverse, transform_points, voxel_filter
 from trundle.fusion.mapping.map_check import _submap_votes
 from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distances, stamped_fields
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, _likelihood, trace_rays
-from trundle.fusion.mapping.ray_casting import add_moments, ray_cells, update_cells
+from trundle.fusion.mapping.ray_casting import insert_scan, ray_cells, trace
 from trundle.fusion.mapping.submaps import Submap
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
 from trundle.fusion.matching.block_scores import block_scores, branch_and_bound, flat_cells, lattice_cells, max_pool
@@ -237,6 +237,64 @@ def test_ray_cells_equal_numpy_to_the_bit(x: float, y: float, targets: np.ndarra
     np.testing.assert_array_equal(ray_cells(start, targets), numpy_ray_cells(start, targets))
 
 
+def numpy_trace_rays(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hits_xy: np.ndarray,
+                     free_ends_xy: np.ndarray) -> tuple[np.ndarray, ...]:
+    """occupancy_grid.trace_rays as numpy made it before the kernel: crossed, hit cells, offsets, box."""
+    everything = np.vstack([sensor_xy[None], hits_xy, free_ends_xy])
+    hit_coords = (hits_xy - origin) / resolution
+    hit_cells = np.floor(hit_coords).astype(np.int64)
+    crossed = numpy_ray_cells((sensor_xy - origin) / resolution,
+                              np.vstack([hit_coords, (free_ends_xy - origin) / resolution]))
+    return crossed, hit_cells[:, ::-1], hit_coords - hit_cells, everything.min(axis=0), everything.max(axis=0)
+
+
+@EXAMPLES
+@given(hnp.arrays(np.float64, 2, elements=st.floats(-50.0, 50.0)), st.sampled_from([0.05, 0.1, 0.025, 0.3]),
+       hnp.arrays(np.float64, 2, elements=st.floats(-20.0, 20.0)),
+       hnp.arrays(np.float64, st.tuples(st.integers(0, 30), st.just(2)), elements=st.floats(-20.0, 20.0)),
+       hnp.arrays(np.float64, st.tuples(st.integers(0, 5), st.just(2)), elements=st.floats(-20.0, 20.0)))
+def test_trace_equals_numpy_to_the_bit(origin: np.ndarray, resolution: float, sensor: np.ndarray, hits: np.ndarray,
+                                       free: np.ndarray) -> None:
+    """The rays' cells, the returns' cells and offsets and the bounding box (NaN-free inputs: a scan's points)."""
+    for actual, expected in zip(trace(origin, resolution, sensor, hits, free),
+                                numpy_trace_rays(origin, resolution, sensor, hits, free), strict=True):
+        assert actual.dtype == expected.dtype
+        np.testing.assert_array_equal(actual, expected)
+
+
+@EXAMPLES
+@given(st.integers(1, 12), st.integers(1, 12), st.integers(0, 2**32 - 1), st.integers(0, 25), st.integers(0, 60),
+       st.integers(-3, 3), st.integers(-3, 3), st.booleans())
+def test_insert_scan_equals_the_numpy_flat_indices_and_updates(height: int, width: int, seed: int, hits: int,
+                                                               crossed: int, row_shift: int, col_shift: int,
+                                                               with_moments: bool) -> None:
+    """One call per scan against insert_traced's numpy flat indices and the updates it replaced: log-odds
+    (clamped, once per scan however many rays cross a cell), observed flags and moments."""
+    rng = np.random.default_rng(seed)
+    log_odds = rng.uniform(-2.0, 3.5, (height, width)).astype(np.float32)
+    observed = rng.random((height, width)) < 0.5
+    holding = rng.random((height, width)) < 0.3
+    moments = np.where(holding, rng.uniform(0.0, 5.0, (6, height, width)), 0.0).astype(np.float32)
+    slots, rows, count = sparse(moments, holding)
+    def cells(n: int) -> np.ndarray:   # (row, col) on the shifted lattice, inside the grid
+        return np.column_stack([rng.integers(0, height, n) - row_shift, rng.integers(0, width, n) - col_shift])
+    hit_cells, crossed_cells, offsets = cells(hits), cells(crossed), rng.random((hits, 2))
+    hit_flat = (hit_cells[:, 0] + row_shift) * width + hit_cells[:, 1] + col_shift
+    crossed_flat = (crossed_cells[:, 0] + row_shift) * width + crossed_cells[:, 1] + col_shift
+    expected = (log_odds.copy(), observed.copy(), moments.copy())
+    numpy_update(*expected, hit_flat, crossed_flat, offsets, 0.8473, -0.4055, -2.0, 3.5)
+    used, flat = insert_scan(log_odds, observed, slots if with_moments else np.zeros((0, 0), np.int32), rows, count,
+                             hit_cells, offsets, crossed_cells, row_shift, col_shift, 0.8473, -0.4055, -2.0, 3.5)
+    np.testing.assert_array_equal(flat, hit_flat)
+    np.testing.assert_array_equal(log_odds, expected[0])
+    np.testing.assert_array_equal(observed, expected[1])
+    if with_moments:
+        assert used == 1 + int(np.count_nonzero(expected[2][0]))
+        np.testing.assert_array_equal(rows[slots].transpose(2, 0, 1), expected[2])
+    else:
+        assert used == count
+
+
 def sparse(moments: np.ndarray, holding: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """Dense moments (6, H, W) as the grid keeps them: a slot per cell (0: none) into rows; row 0 zero.
     The cells ``holding`` returns get a row in the order of their flat index."""
@@ -246,28 +304,6 @@ def sparse(moments: np.ndarray, holding: np.ndarray) -> tuple[np.ndarray, np.nda
     rows = np.zeros((1 + holding.size + 100, 6), np.float32)   # room for a row per return
     rows[1:len(cells) + 1] = moments.reshape(6, -1)[:, cells].T
     return slots, rows, len(cells) + 1
-
-
-@EXAMPLES
-@given(st.integers(1, 12), st.integers(1, 12), st.integers(0, 2**32 - 1), st.integers(0, 25), st.integers(0, 60))
-def test_cell_updates_equal_numpy_to_the_bit(height: int, width: int, seed: int, hits: int, crossed: int) -> None:
-    """Log-odds (clamped, once per scan however many rays cross a cell), observed flags and moments."""
-    rng = np.random.default_rng(seed)
-    log_odds = rng.uniform(-2.0, 3.5, (height, width)).astype(np.float32)
-    observed = rng.random((height, width)) < 0.5
-    holding = rng.random((height, width)) < 0.3
-    moments = np.where(holding, rng.uniform(0.0, 5.0, (6, height, width)), 0.0).astype(np.float32)
-    slots, rows, count = sparse(moments, holding)
-    hit_flat = rng.integers(0, height * width, hits)
-    crossed_flat = rng.integers(0, height * width, crossed)
-    offsets = rng.random((hits, 2))
-    expected = (log_odds.copy(), observed.copy(), moments.copy())
-    numpy_update(*expected, hit_flat, crossed_flat, offsets, 0.8473, -0.4055, -2.0, 3.5)
-    count = add_moments(slots, rows, count, hit_flat, offsets)
-    update_cells(log_odds, observed, hit_flat, crossed_flat, 0.8473, -0.4055, -2.0, 3.5)
-    assert count == 1 + int(np.count_nonzero(expected[2][0]))
-    for actual, wanted in zip((log_odds, observed, rows[slots].transpose(2, 0, 1)), expected, strict=True):
-        np.testing.assert_array_equal(actual, wanted)
 
 
 @EXAMPLES

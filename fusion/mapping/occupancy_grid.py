@@ -31,6 +31,7 @@ from trundle.logs.messages import OccupancyGrid
 T = TypeVar("T")
 MAX_CELLS = 1 << 27  # 134 M cells (670 MB of log-odds and flags): 580 m square at 5 cm; beyond it, a mistake
 WINDOW_SLACK_CELLS = 10   # a match-field window grows by this much more than asked (the next scans move a little)
+_NO_SLOTS, _NO_ROWS = np.zeros((0, 0), np.int32), np.zeros((0, 6), np.float32)   # insert_scan's "no moments"
 
 
 def log_odds(probability: float) -> float:
@@ -68,17 +69,11 @@ def trace_rays(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hit
     """Rays from ``sensor_xy`` to returns ``hits_xy`` (N, 2) and to ``free_ends_xy`` (M, 2) (metres) on
     the lattice of ``resolution`` m cells whose cell (0, 0) starts at ``origin``."""
     origin = np.asarray(origin, np.float64).reshape(2).copy()
-    sensor_xy = np.asarray(sensor_xy, dtype=np.float64).reshape(2)
-    hits_xy = np.asarray(hits_xy, dtype=np.float64).reshape(-1, 2)
-    free_ends_xy = np.zeros((0, 2)) if free_ends_xy is None else np.asarray(free_ends_xy, np.float64).reshape(-1, 2)
-    everything = np.vstack([sensor_xy[None], hits_xy, free_ends_xy])
-    hit_coords = (hits_xy - origin) / resolution
-    hit_cells = np.floor(hit_coords).astype(np.int64)
-    crossed = ray_cells(
-        (sensor_xy - origin) / resolution, np.vstack([hit_coords, (free_ends_xy - origin) / resolution])
-    )
-    return TracedRays(origin, crossed, hit_cells[:, ::-1], hit_coords - hit_cells, everything.min(axis=0),
-                      everything.max(axis=0))
+    crossed, hits, offsets, xy_min, xy_max = ray_casting.trace(
+        origin, float(resolution), np.asarray(sensor_xy, dtype=np.float64).reshape(2),
+        np.ascontiguousarray(hits_xy, dtype=np.float64).reshape(-1, 2),
+        np.zeros((0, 2)) if free_ends_xy is None else np.ascontiguousarray(free_ends_xy, np.float64).reshape(-1, 2))
+    return TracedRays(origin, crossed, hits, offsets, xy_min, xy_max)
 
 
 @dataclass(frozen=True)
@@ -243,11 +238,16 @@ class LogOddsGrid:
 
     def ensure_contains(self, xy_min: np.ndarray, xy_max: np.ndarray) -> None:
         """Grow the array (keeping the cell lattice) so the box ``xy_min``..``xy_max`` lies inside."""
+        height, width = self.shape
+        (x0, y0), (x1, y1) = np.asarray(xy_min, np.float64).tolist(), np.asarray(xy_max, np.float64).tolist()
+        (ox, oy), res = self.origin.tolist(), self.resolution
+        # world_to_cell's arithmetic on floats (an insert asks every scan): floor(v) >= 0 and floor(v) < n
+        # exactly when v >= 0 and v < n, NaN neither
+        if height and (x0 - ox) / res >= 0 and (y0 - oy) / res >= 0 and (x1 - ox) / res < width \
+                and (y1 - oy) / res < height:
+            return
         lo = np.floor(self.world_to_cell(xy_min)).astype(np.int64)
         hi = np.floor(self.world_to_cell(xy_max)).astype(np.int64)
-        height, width = self.shape
-        if height and lo[0] >= 0 and lo[1] >= 0 and hi[0] < width and hi[1] < height:
-            return
         if not height:
             pad_lo = -lo + self.grow_cells
             new_w, new_h = hi - lo + 1 + 2 * self.grow_cells
@@ -291,25 +291,23 @@ class LogOddsGrid:
         self.ensure_contains(rays.xy_min, rays.xy_max)
         if not self.log_odds.flags.writeable:
             raise ValueError("this grid is read-only (a map loaded to localize in)")
-        shift = (rays.origin - self.origin) / self.resolution   # this grid's cell of the trace's cell (0, 0)
-        col_shift, row_shift = np.rint(shift).astype(np.int64).tolist()
-        # np.allclose(shift, (col_shift, row_shift), atol=1e-6) on two floats (numpy's took 35 us an insert)
-        if not all(abs(v - k) <= 1e-6 + 1e-5 * abs(k)
-                   for v, k in zip(shift.tolist(), (col_shift, row_shift), strict=True)):
+        # this grid's cell of the trace's cell (0, 0), on floats (numpy's rint and allclose took 40 us an insert)
+        shift = [(a - b) / self.resolution for a, b in zip(rays.origin.tolist(), self.origin.tolist(), strict=True)]
+        col_shift, row_shift = (round(v) for v in shift)   # half to even, as np.rint
+        if not all(abs(v - k) <= 1e-6 + 1e-5 * abs(k) for v, k in zip(shift, (col_shift, row_shift), strict=True)):
             raise ValueError("rays traced on another cell lattice")
-        width = self.shape[1]
-        hit_flat = (rays.hits[:, 0] + row_shift) * width + rays.hits[:, 1] + col_shift
-        crossed_flat = (rays.crossed[:, 0] + row_shift) * width + rays.crossed[:, 1] + col_shift
-        if self.moments is not None:
-            moments = self.moments
-            if moments.count + len(hit_flat) > len(moments.rows):   # room for every return in a cell of its own
-                grown = np.zeros((2 * (moments.count + len(hit_flat)), 6), np.float32)
-                grown[:moments.count] = moments.rows[:moments.count]
-                moments.rows = grown
-            moments.count = ray_casting.add_moments(moments.slots, moments.rows, moments.count, hit_flat, rays.offsets)
-        # each cell once per scan, hits winning over misses
-        ray_casting.update_cells(self.log_odds, self.observed, hit_flat, crossed_flat, self.l_hit, self.l_miss,
-                                 self.l_min, self.l_max)
+        moments = self.moments
+        if moments is not None and moments.count + len(rays.hits) > len(moments.rows):
+            grown = np.zeros((2 * (moments.count + len(rays.hits)), 6), np.float32)   # a new row for every return
+            grown[:moments.count] = moments.rows[:moments.count]
+            moments.rows = grown
+        # each cell once per scan, hits winning over misses; the returns' moments in their cells
+        count, hit_flat = ray_casting.insert_scan(
+            self.log_odds, self.observed, _NO_SLOTS if moments is None else moments.slots,
+            _NO_ROWS if moments is None else moments.rows, 0 if moments is None else moments.count, rays.hits,
+            rays.offsets, rays.crossed, row_shift, col_shift, self.l_hit, self.l_miss, self.l_min, self.l_max)
+        if moments is not None:
+            moments.count = count
         if self.returned is not None:
             self.returned.reshape(-1)[hit_flat] = True
         self._changed()

@@ -1,5 +1,5 @@
 """Ray casting into a log-odds grid, compiled: the cells each ray crosses and the once-per-scan update
-of those cells and of the returns' cells (numba, cached on disk).
+of those cells and of the returns' cells (numba, cached on disk), each a call per scan.
 
 numpy needed an array per sample for each step of the DDA and a grid-sized hit mask per scan; these
 loops visit each sample once and touch only the cells the rays reach. The arithmetic is numpy's, step
@@ -41,29 +41,34 @@ def ray_cells(start: np.ndarray, ends: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def update_cells(log_odds: np.ndarray, observed: np.ndarray, hit_flat: np.ndarray, crossed_flat: np.ndarray,
-                 l_hit: float, l_miss: float, l_min: float, l_max: float) -> None:
-    """One scan's update of ``log_odds`` (float32) and ``observed`` (flat indices): ``l_miss`` once on every
-    crossed cell that holds no return, ``l_hit`` once on every return's cell, clamped to [l_min, l_max].
-
-    A cell crossed by many rays or hit by many returns changes once: every new value is computed from
-    the values before the scan, then written.
-    """
-    flat, seen = log_odds.ravel(), observed.ravel()
-    miss, hit = np.float32(l_miss), np.float32(l_hit)
-    low, high = np.float32(l_min), np.float32(l_max)
-    before_hits = np.empty(hit_flat.shape[0], np.float32)
-    for j in range(hit_flat.shape[0]):
-        before_hits[j] = flat[hit_flat[j]]
-    freed = np.empty(crossed_flat.shape[0], np.float32)
-    for j in range(crossed_flat.shape[0]):
-        freed[j] = max(flat[crossed_flat[j]] + miss, low)
-    for j in range(crossed_flat.shape[0]):
-        flat[crossed_flat[j]] = freed[j]
-        seen[crossed_flat[j]] = True
-    for j in range(hit_flat.shape[0]):   # a return's cell is not free, whatever crossed it
-        flat[hit_flat[j]] = min(before_hits[j] + hit, high)
-        seen[hit_flat[j]] = True
+def trace(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hits_xy: np.ndarray,
+          free_ends_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rays from ``sensor_xy`` (2,) to the returns ``hits_xy`` (N, 2) and the free ends ``free_ends_xy``
+    (M, 2) (metres) on the lattice of ``resolution`` m cells whose cell (0, 0) starts at ``origin``: the
+    cells crossed (:func:`ray_cells`), the returns' cells as (row, col), their offsets in those cells
+    (u, v in [0, 1)) and the bounding box (m) of sensor, returns and free ends (NaN if any is).
+    numpy's arithmetic, element by element: ``(xy - origin) / resolution``, its floor and the remainder."""
+    n, m = hits_xy.shape[0], free_ends_xy.shape[0]
+    ends = np.empty((n + m, 2))
+    hit_cells = np.empty((n, 2), np.int64)
+    offsets = np.empty((n, 2))
+    low, high = sensor_xy.copy(), sensor_xy.copy()
+    for i in range(n + m):
+        for a in range(2):
+            value = hits_xy[i, a] if i < n else free_ends_xy[i - n, a]
+            if value < low[a] or value != value:   # numpy's min and max: NaN wins
+                low[a] = value
+            if value > high[a] or value != value:
+                high[a] = value
+            ends[i, a] = (value - origin[a]) / resolution
+            if i < n:
+                cell = np.int64(np.floor(ends[i, a]))
+                hit_cells[i, 1 - a] = cell
+                offsets[i, a] = ends[i, a] - cell
+    start = np.empty(2)
+    for a in range(2):
+        start[a] = (sensor_xy[a] - origin[a]) / resolution
+    return ray_cells(start, ends), hit_cells, offsets, low, high
 
 
 @numba.njit(cache=True, nogil=True)
@@ -87,3 +92,41 @@ def add_moments(slots: np.ndarray, rows: np.ndarray, count: int, hit_flat: np.nd
         rows[row, 4] += np.float32(u * v)
         rows[row, 5] += np.float32(v * v)
     return count
+
+
+@numba.njit(cache=True, nogil=True)
+def insert_scan(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarray, rows: np.ndarray, count: int,
+                hits: np.ndarray, offsets: np.ndarray, crossed: np.ndarray, row_shift: int, col_shift: int,
+                l_hit: float, l_miss: float, l_min: float, l_max: float) -> tuple[int, np.ndarray]:
+    """One traced scan into a grid: the returns' cells ``hits`` and the ``crossed`` cells are (row, col) on a
+    lattice whose cell (0, 0) is the grid's (``row_shift``, ``col_shift``). ``log_odds`` (float32) takes
+    ``l_miss`` once on every crossed cell that holds no return and ``l_hit`` once on every return's cell,
+    clamped to [l_min, l_max], and ``observed`` is set on both; unless ``slots`` is empty, each return's
+    moments go to its cell's row (:func:`add_moments`). Returns the moment rows in use and the returns'
+    flat indices.
+
+    A cell crossed by many rays or hit by many returns changes once: every new value is computed from
+    the values before the scan, then written.
+    """
+    width = log_odds.shape[1]
+    flat, seen = log_odds.ravel(), observed.ravel()
+    miss, hit = np.float32(l_miss), np.float32(l_hit)
+    low, high = np.float32(l_min), np.float32(l_max)
+    hit_flat = np.empty(hits.shape[0], np.int64)
+    before_hits = np.empty(hits.shape[0], np.float32)
+    for j in range(hits.shape[0]):
+        hit_flat[j] = (hits[j, 0] + row_shift) * width + hits[j, 1] + col_shift
+        before_hits[j] = flat[hit_flat[j]]
+    freed = np.empty(crossed.shape[0], np.float32)
+    for j in range(crossed.shape[0]):
+        freed[j] = max(flat[(crossed[j, 0] + row_shift) * width + crossed[j, 1] + col_shift] + miss, low)
+    for j in range(crossed.shape[0]):
+        cell = (crossed[j, 0] + row_shift) * width + crossed[j, 1] + col_shift
+        flat[cell] = freed[j]
+        seen[cell] = True
+    for j in range(hits.shape[0]):   # a return's cell is not free, whatever crossed it
+        flat[hit_flat[j]] = min(before_hits[j] + hit, high)
+        seen[hit_flat[j]] = True
+    if slots.size:
+        count = add_moments(slots, rows, count, hit_flat, offsets)
+    return count, hit_flat

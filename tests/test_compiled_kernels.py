@@ -21,7 +21,7 @@ from hypothesis.extra import numpy as hnp
 from trundle.fusion.geometry import inverse, transform_points, voxel_filter
 from trundle.fusion.mapping.map_check import _submap_votes
 from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distances, stamped_fields
-from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, _likelihood, trace_rays
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, MatchFields, _likelihood, trace_rays
 from trundle.fusion.mapping.ray_casting import insert_scan, ray_cells, trace
 from trundle.fusion.mapping.submaps import Submap
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
@@ -360,6 +360,27 @@ def test_stamped_fields_equal_opencv(height: int, width: int, density: float, se
     np.testing.assert_allclose(distance[within], np.minimum(expected * np.float32(0.05), np.float32(0.5))[within],
                                rtol=1e-6)
     np.testing.assert_allclose(likelihood[within], _likelihood(expected, 0.05, 0.05)[within], rtol=1e-5, atol=1e-7)
+
+
+@EXAMPLES
+@given(st.integers(1, 60), st.integers(1, 60), st.floats(0.0, 0.05), st.integers(0, 2**32 - 1),
+       st.sampled_from([0.05, 0.1, 0.025]), st.floats(0.1, 1.0), st.floats(0.01, 0.3))
+def test_the_match_fields_stamped_to_their_radius_equal_those_stamped_two_cells_further(
+        height: int, width: int, density: float, seed: int, resolution: float, max_distance: float, sigma: float
+) -> None:
+    """Beyond the cap (and 4 sigma) the capped distance and the likelihood no longer change, so stamping each
+    occupied cell to MatchFields.radius gives the fields, to the bit, that the margin's two more cells gave."""
+    occupied = np.random.default_rng(seed).random((height, width)) < density
+    rows, cols = np.nonzero(occupied)
+    grid = LogOddsGrid(resolution)
+    fields = MatchFields(grid, max_distance, sigma, False, 0.8)
+    assert fields.margin == fields.radius + 2
+    def stamped(radius: int) -> np.ndarray:
+        cells = squared_distances(radius)
+        tables = np.stack([np.minimum(cells * np.float32(resolution), np.float32(max_distance)),
+                           _likelihood(cells, resolution, sigma)])
+        return stamped_fields(rows, cols, 0, 0, height, width, radius, tables)
+    np.testing.assert_array_equal(stamped(fields.radius), stamped(fields.margin))
 
 
 @st.composite

@@ -107,8 +107,10 @@ class MatchFields:
         self.sigma_m = float(sigma_m)
         self.lines = lines
         self.min_flatness = min_flatness
-        self.margin = int(math.ceil(max(self.max_distance_m, 4.0 * self.sigma_m) / grid.resolution)) + 2
-        cells = squared_distances(self.margin)   # the fields' values per squared distance (cells)
+        # the cells within which the fields differ from their value far from any wall: distance capped, likelihood 0
+        self.radius = int(math.ceil(max(self.max_distance_m, 4.0 * self.sigma_m) / grid.resolution))
+        self.margin = self.radius + 2   # the occupied cells gathered around a window: the labels' and the walls'
+        cells = squared_distances(self.radius)   # the fields' values per squared distance (cells)
         self._tables = np.stack([np.minimum(cells * np.float32(grid.resolution), np.float32(self.max_distance_m)),
                                  _likelihood(cells, grid.resolution, self.sigma_m)])
         self._window: FieldWindow | None = None
@@ -142,8 +144,8 @@ class MatchFields:
         pr0, pr1, pc0, pc1 = max(r0 - margin, 0), min(r1 + margin, height), max(c0 - margin, 0), min(c1 + margin, width)
         rows, cols, image = occupied_cells(grid.log_odds, pr0, pr1, pc0, pc1)
         shape = (max(r1 - r0, 0), max(c1 - c0, 0))
-        # distances up to the margin are exact, and every field is capped (or zero) before it
-        distance, likelihood = stamped_fields(rows, cols, r0 - pr0, c0 - pc0, shape[0], shape[1], margin,
+        # distances up to the radius are exact, and every field is capped (or zero) from there
+        distance, likelihood = stamped_fields(rows, cols, r0 - pr0, c0 - pc0, shape[0], shape[1], self.radius,
                                               self._tables)
         lines = None
         if self.lines:

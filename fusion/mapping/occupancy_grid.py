@@ -70,7 +70,7 @@ def trace_rays(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hit
     the lattice of ``resolution`` m cells whose cell (0, 0) starts at ``origin``."""
     origin = np.asarray(origin, np.float64).reshape(2).copy()
     crossed, hits, offsets, xy_min, xy_max = ray_casting.trace(
-        origin, float(resolution), np.asarray(sensor_xy, dtype=np.float64).reshape(2),
+        origin, float(resolution), np.ascontiguousarray(sensor_xy, dtype=np.float64).reshape(2),
         np.ascontiguousarray(hits_xy, dtype=np.float64).reshape(-1, 2),
         np.zeros((0, 2)) if free_ends_xy is None else np.ascontiguousarray(free_ends_xy, np.float64).reshape(-1, 2))
     return TracedRays(origin, crossed, hits, offsets, xy_min, xy_max)

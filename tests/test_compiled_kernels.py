@@ -237,6 +237,17 @@ def test_ray_cells_equal_numpy_to_the_bit(x: float, y: float, targets: np.ndarra
     np.testing.assert_array_equal(ray_cells(start, targets), numpy_ray_cells(start, targets))
 
 
+def sparse(moments: np.ndarray, holding: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Dense moments (6, H, W) as the grid keeps them: a slot per cell (0: none) into rows; row 0 zero.
+    The cells ``holding`` returns get a row in the order of their flat index."""
+    slots = np.zeros(holding.shape, np.int32)
+    cells = np.flatnonzero(holding)
+    slots.reshape(-1)[cells] = np.arange(1, len(cells) + 1)
+    rows = np.zeros((1 + holding.size + 100, 6), np.float32)   # room for a row per return
+    rows[1:len(cells) + 1] = moments.reshape(6, -1)[:, cells].T
+    return slots, rows, len(cells) + 1
+
+
 def numpy_trace_rays(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hits_xy: np.ndarray,
                      free_ends_xy: np.ndarray) -> tuple[np.ndarray, ...]:
     """occupancy_grid.trace_rays as numpy made it before the kernel: crossed, hit cells, offsets, box."""
@@ -293,17 +304,6 @@ def test_insert_scan_equals_the_numpy_flat_indices_and_updates(height: int, widt
         np.testing.assert_array_equal(rows[slots].transpose(2, 0, 1), expected[2])
     else:
         assert used == count
-
-
-def sparse(moments: np.ndarray, holding: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-    """Dense moments (6, H, W) as the grid keeps them: a slot per cell (0: none) into rows; row 0 zero.
-    The cells ``holding`` returns get a row in the order of their flat index."""
-    slots = np.zeros(holding.shape, np.int32)
-    cells = np.flatnonzero(holding)
-    slots.reshape(-1)[cells] = np.arange(1, len(cells) + 1)
-    rows = np.zeros((1 + holding.size + 100, 6), np.float32)   # room for a row per return
-    rows[1:len(cells) + 1] = moments.reshape(6, -1)[:, cells].T
-    return slots, rows, len(cells) + 1
 
 
 @EXAMPLES

@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, log_odds, ray_cells, trace_rays
+from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, log_odds, trace_rays
+from trundle.fusion.mapping.ray_casting import ray_cells
 from trundle.logs import ros2
 
 

@@ -39,17 +39,6 @@ def log_odds(probability: float) -> float:
     return math.log(probability / (1.0 - probability))
 
 
-def ray_cells(start: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Cells ``(row, col)`` crossed by rays from ``start`` (2,) to each of ``ends`` (N, 2), end cells excluded.
-
-    Coordinates are in cells (x = column, y = row; cell k spans [k, k+1)). Each ray is sampled at
-    ``ceil(max(|dx|, |dy|))`` equal steps (a DDA line, like Bresenham's; compiled:
-    :func:`trundle.fusion.mapping.ray_casting.ray_cells`).
-    """
-    return ray_casting.ray_cells(np.asarray(start, dtype=np.float64).reshape(2),
-                                 np.ascontiguousarray(ends, dtype=np.float64).reshape(-1, 2))
-
-
 @dataclass(frozen=True)
 class TracedRays:
     """Rays traced on the cell lattice whose cell (0, 0) starts at ``origin`` (m): the cells crossed
@@ -303,11 +292,12 @@ class LogOddsGrid:
             grown = np.zeros((2 * (moments.count + len(rays.hits)), 6), np.float32)   # a new row for every return
             grown[:moments.count] = moments.rows[:moments.count]
             moments.rows = grown
+        slots, rows, count = (_NO_SLOTS, _NO_ROWS, 0) if moments is None else (moments.slots, moments.rows,
+                                                                              moments.count)
         # each cell once per scan, hits winning over misses; the returns' moments in their cells
-        count, hit_flat = ray_casting.insert_scan(
-            self.log_odds, self.observed, _NO_SLOTS if moments is None else moments.slots,
-            _NO_ROWS if moments is None else moments.rows, 0 if moments is None else moments.count, rays.hits,
-            rays.offsets, rays.crossed, row_shift, col_shift, self.l_hit, self.l_miss, self.l_min, self.l_max)
+        count, hit_flat = ray_casting.insert_scan(self.log_odds, self.observed, slots, rows, count, rays.hits,
+                                                  rays.offsets, rays.crossed, row_shift, col_shift, self.l_hit,
+                                                  self.l_miss, self.l_min, self.l_max)
         if moments is not None:
             moments.count = count
         if self.returned is not None:

@@ -20,7 +20,7 @@ from hypothesis.extra import numpy as hnp
 
 from trundle.fusion.geometry import inverse, transform_points, voxel_filter
 from trundle.fusion.mapping.map_check import _submap_votes
-from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distances, stamped_fields
+from trundle.fusion.mapping.nearest_cells import chamfer_nearest, occupied_cells, squared_distances, stamped_fields
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, MatchFields, _likelihood, trace_rays
 from trundle.fusion.mapping.ray_casting import insert_scan, ray_cells, trace
 from trundle.fusion.mapping.submaps import Submap
@@ -209,21 +209,49 @@ def test_field_residuals_equal_numpy(problem: tuple[np.ndarray, np.ndarray, np.n
                 numpy_field_residuals(field, row0, col0, cx, cy, rx, ry, res, max_distance_m))
 
 
+def opencv_nearest(occupied: np.ndarray) -> np.ndarray:
+    """Each cell's nearest occupied cell (its index in ``occupied``, -1 where not occupied; -1: none) as
+    OpenCV's labelled distance transform names it: the label less one, its zero pixels being labelled
+    1, 2, ... in row-major order."""
+    if not (occupied >= 0).any():
+        return np.full(occupied.shape, -1, np.int32)
+    image = np.where(occupied >= 0, 0, 255).astype(np.uint8)
+    _, labels = cv2.distanceTransformWithLabels(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    return labels - np.int32(1)
+
+
+def occupied_index(mask: np.ndarray) -> np.ndarray:
+    """The index occupied_cells makes of a mask: each true cell's row-major position, -1 elsewhere."""
+    index = np.full(mask.shape, -1, np.int32)
+    index[mask] = np.arange(int(mask.sum()), dtype=np.int32)
+    return index
+
+
 @EXAMPLES
-@given(field_points(), st.integers(0, 3), st.integers(0, 3), st.integers(1, 12), st.integers(0, 2**32 - 1),
+@given(field_points(), st.integers(0, 3), st.integers(0, 3), st.integers(0, 2**32 - 1), st.floats(0.0, 0.3),
        st.floats(-2.0, 2.0), st.floats(-2.0, 2.0))
 def test_line_residuals_equal_numpy(problem: tuple[np.ndarray, np.ndarray, np.ndarray], row0: int, col0: int,
-                                    walls: int, seed: int, pose_x: float, pose_y: float) -> None:
+                                    seed: int, density: float, pose_x: float, pose_y: float) -> None:
+    """Point to line where a point's cell's nearest occupied cell (OpenCV's label, over the occupied cells of
+    the window grown by a margin) lies on a line, to the field elsewhere."""
     field, cx, cy = problem
     rng = np.random.default_rng(seed)
-    nearest = rng.integers(-1, walls, size=field.shape).astype(np.int32)   # the refinement has walls when it reads them
+    margin = int(rng.integers(0, 4))
+    mask = rng.random((field.shape[0] + 2 * margin, field.shape[1] + 2 * margin)) < density
+    mask.flat[rng.integers(mask.size)] = True   # the refinement has walls when it reads them
+    occupied = occupied_index(mask)
+    walls = int(mask.sum())
     mean = rng.uniform(-1.0, 2.0, (walls, 2))
     angle = rng.uniform(-math.pi, math.pi, walls)
     normal = np.stack([-np.sin(angle), np.cos(angle)], axis=1)
     is_line = rng.random(walls) < 0.7
     rx, ry = 0.05 * cx - 0.5, 0.05 * cy + 0.2
-    arguments = (field, nearest, mean, normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx, ry, 0.05, 0.5)
-    assert_same(field_residuals(*arguments), numpy_line_residuals(*arguments))
+    nearest = opencv_nearest(occupied)[margin:margin + field.shape[0], margin:margin + field.shape[1]]
+    assert_same(field_residuals(field, occupied, row0 - margin, col0 - margin, mean, normal, is_line, row0, col0, cx,
+                                cy, pose_x, pose_y, rx, ry, 0.05, 0.5),
+                numpy_line_residuals(field, nearest, mean, normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx,
+                                     ry, 0.05, 0.5))
 
 
 ends = st.floats(-60.0, 60.0, allow_nan=False)
@@ -418,7 +446,8 @@ def test_compiled_refinement_equals_the_python_loop(problem: tuple[LogOddsGrid, 
         rx, ry, cx, cy = placed(pose)
         window = fields.around(cx, cy)
         assert window.lines is not None
-        wall_arrays = (window.lines.nearest, window.lines.mean, window.lines.normal, window.lines.is_line)
+        wall_arrays = (window.lines.occupied, window.lines.row0, window.lines.col0, window.lines.mean,
+                       window.lines.normal, window.lines.is_line)
         d, jac, active = field_residuals(window.distance, *(wall_arrays if walls else NO_WALLS), window.row0,
                                          window.col0, cx, cy, float(pose[0]), float(pose[1]), rx, ry, 0.05, 0.5)
         loss, weight = robust_loss(d * d, "huber", 0.05)
@@ -430,7 +459,8 @@ def test_compiled_refinement_equals_the_python_loop(problem: tuple[LogOddsGrid, 
     while True:
         assert window.lines is not None
         height, width = window.distance.shape
-        wall_arrays = (window.lines.nearest, window.lines.mean, window.lines.normal, window.lines.is_line)
+        wall_arrays = (window.lines.occupied, window.lines.row0, window.lines.col0, window.lines.mean,
+                       window.lines.normal, window.lines.is_line)
         status, box, pose, count, *state = solve_pose_in_window(
             window.distance, *(wall_arrays if walls else NO_WALLS),
             np.array([window.row0, window.row0 + height, window.col0, window.col0 + width]), np.array(grid.shape),
@@ -535,55 +565,56 @@ def test_branch_and_bound_equals_numpy(seed: int, limit: int, angles: int, point
     assert found[4] == pytest.approx(expected[4], rel=1e-14, abs=0.0)
 
 
-def numpy_occupied_nearest(log_odds: np.ndarray, pr0: int, pr1: int, pc0: int, pc1: int, r0: int, r1: int, c0: int,
-                           c1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """MatchFields._compute's occupied cells of the padded window and their nearest-cell indices over the
-    window, as numpy and a label -> cell index lookup made them before the kernel."""
-    occupied = log_odds[pr0:pr1, pc0:pc1] > 0.0
-    rows, cols = np.nonzero(occupied)
-    image = np.where(occupied, 0, 255).astype(np.uint8)
-    nearest = np.full((r1 - r0, c1 - c0), -1, np.int32)
-    if len(rows):
-        _, labels = cv2.distanceTransformWithLabels(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
-                                                    labelType=cv2.DIST_LABEL_PIXEL)
-        index = np.zeros(int(labels.max()) + 1, np.int32)
-        index[labels[rows, cols]] = np.arange(len(rows), dtype=np.int32)
-        nearest = index[labels[r0 - pr0:r1 - pr0, c0 - pc0:c1 - pc0]]
-    return rows, cols, image, nearest
-
-
 @settings(max_examples=100, deadline=None)
 @given(st.integers(1, 50), st.integers(1, 50), st.floats(0.0, 0.5), st.integers(0, 2**32 - 1), st.integers(0, 8),
        st.integers(0, 8), st.integers(0, 8), st.integers(0, 8))
-def test_occupied_cells_and_nearest_labels_equal_numpy(height: int, width: int, density: float, seed: int, top: int,
-                                                       bottom: int, left: int, right: int) -> None:
-    """The occupied cells of a padded window (kernel) and each cell's nearest one as its OpenCV label less one,
-    against numpy's mask, nonzero and image and the label -> cell lookup they replaced: equal to the bit."""
+def test_occupied_cells_equal_numpy(height: int, width: int, density: float, seed: int, top: int, bottom: int,
+                                    left: int, right: int) -> None:
+    """The occupied cells of a padded window (kernel) against numpy's mask and nonzero, and their index."""
     rng = np.random.default_rng(seed)
     log_odds = np.where(rng.random((height, width)) < density, rng.uniform(0.01, 3.5, (height, width)),
                         rng.uniform(-2.0, 0.0, (height, width))).astype(np.float32)
     log_odds[rng.random((height, width)) < 0.05] = 0.0   # exactly zero: not occupied
     pr0, pc0 = min(top, height), min(left, width)
     pr1, pc1 = max(height - bottom, pr0), max(width - right, pc0)
-    r0, c0 = pr0 + min(2, pr1 - pr0), pc0 + min(2, pc1 - pc0)   # the window inside the padded one
-    r1, c1 = max(pr1 - 2, r0), max(pc1 - 2, c0)
-    rows, cols, image = occupied_cells(log_odds, pr0, pr1, pc0, pc1)
-    expected_rows, expected_cols, expected_image, expected_nearest = numpy_occupied_nearest(
-        log_odds, pr0, pr1, pc0, pc1, r0, r1, c0, c1)
+    rows, cols, occupied = occupied_cells(log_odds, pr0, pr1, pc0, pc1)
+    mask = log_odds[pr0:pr1, pc0:pc1] > 0.0
+    expected_rows, expected_cols = np.nonzero(mask)
     np.testing.assert_array_equal(rows, expected_rows)
     np.testing.assert_array_equal(cols, expected_cols)
-    assert rows.dtype == expected_rows.dtype and image.dtype == np.uint8
-    np.testing.assert_array_equal(image, expected_image)
-    if len(rows):
-        _, labels = cv2.distanceTransformWithLabels(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
-                                                    labelType=cv2.DIST_LABEL_PIXEL)
-        nearest = labels[r0 - pr0:r1 - pr0, c0 - pc0:c1 - pc0] - np.int32(1)
-        assert nearest.dtype == np.int32
-        np.testing.assert_array_equal(nearest, expected_nearest)
+    assert rows.dtype == expected_rows.dtype and occupied.dtype == np.int32
+    np.testing.assert_array_equal(occupied, occupied_index(mask))
 
 
-def test_match_fields_nearest_cells_equal_numpy() -> None:
-    """The wall lines' nearest cells of real match-field windows (a grid of rooms' walls) equal the numpy lookup's."""
+@st.composite
+def occupancy_images(draw: st.DrawFn) -> np.ndarray:
+    """Occupied cells as a match meets them: scattered, or on walls (lines, which make the most equally near
+    cells), over a window of any shape."""
+    height, width = draw(st.integers(1, 60)), draw(st.integers(1, 60))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    if draw(st.booleans()):
+        return rng.random((height, width)) < draw(st.floats(0.0, 0.3))
+    image = np.full((height, width), 255, np.uint8)
+    for _ in range(draw(st.integers(0, 6))):
+        ends = rng.integers(0, [width, height], (2, 2))
+        cv2.line(image, (int(ends[0, 0]), int(ends[0, 1])), (int(ends[1, 0]), int(ends[1, 1])), 0, 1)
+    return image == 0
+
+
+@settings(max_examples=150, deadline=None)
+@given(occupancy_images())
+def test_chamfer_nearest_is_opencvs_label_ties_included(mask: np.ndarray) -> None:
+    """Every cell's nearest occupied cell found by rings (chamfer_nearest) is the one OpenCV's labelled distance
+    transform names, on scattered cells and on walls, where many cells are equally near two or more."""
+    occupied = occupied_index(mask)
+    expected = opencv_nearest(occupied)
+    found = np.array([[chamfer_nearest(occupied, r, c) for c in range(mask.shape[1])] for r in range(mask.shape[0])])
+    np.testing.assert_array_equal(found, expected)
+
+
+def test_match_fields_nearest_cells_equal_opencv() -> None:
+    """The wall lines' nearest cells of real match-field windows (a grid of rooms' walls) are those OpenCV's
+    labelled transform of the occupied cells around the window names."""
     rng = np.random.default_rng(7)
     grid = LogOddsGrid(0.05, subcell=True)
     angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
@@ -594,15 +625,17 @@ def test_match_fields_nearest_cells_equal_numpy() -> None:
     for _ in range(10):
         centre = rng.uniform(0, min(grid.shape), 2)
         window = fields.around(centre[:1] + rng.uniform(-20, 20, 2), centre[1:] + rng.uniform(-20, 20, 2))
-        assert window.lines is not None
+        lines = window.lines
+        assert lines is not None
         height, width = window.distance.shape
-        margin = fields.margin
-        r0, c0 = window.row0, window.col0
-        r1, c1 = r0 + height, c0 + width
-        pr0, pr1 = max(r0 - margin, 0), min(r1 + margin, grid.shape[0])
-        pc0, pc1 = max(c0 - margin, 0), min(c1 + margin, grid.shape[1])
-        *_, expected = numpy_occupied_nearest(grid.log_odds, pr0, pr1, pc0, pc1, r0, r1, c0, c1)
-        np.testing.assert_array_equal(window.lines.nearest, expected)
+        pr0, pr1 = max(window.row0 - fields.margin, 0), min(window.row0 + height + fields.margin, grid.shape[0])
+        pc0, pc1 = max(window.col0 - fields.margin, 0), min(window.col0 + width + fields.margin, grid.shape[1])
+        assert (lines.row0, lines.col0) == (pr0, pc0)
+        np.testing.assert_array_equal(lines.occupied, occupied_index(grid.log_odds[pr0:pr1, pc0:pc1] > 0.0))
+        expected = opencv_nearest(lines.occupied)
+        for r in range(window.row0 - pr0, window.row0 - pr0 + height, 3):
+            for c in range(window.col0 - pc0, window.col0 - pc0 + width, 3):
+                assert chamfer_nearest(lines.occupied, r, c) == expected[r, c]
 
 
 def numpy_voxel_filter(points: np.ndarray, cell_m: float) -> np.ndarray:

@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from trundle.fusion.mapping.nearest_cells import chamfer_nearest
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, log_odds, trace_rays
 from trundle.fusion.mapping.ray_casting import ray_cells
 from trundle.logs import ros2
@@ -181,16 +182,19 @@ def test_match_field_windows_equal_the_whole_grid_fields(seed: int, x: float, y:
     np.testing.assert_allclose(window.likelihood, grid.likelihood_field(0.05)[rows, cols], atol=1e-6)
     exact_cells = grid.distance_field(10.0)[rows, cols] / 0.05
     near = exact_cells < 0.5 / 0.05
-    k = window.lines.nearest[near]
+    lines = window.lines
+    assert lines is not None
+    k = np.array([chamfer_nearest(lines.occupied, r - lines.row0, c - lines.col0)
+                  for r, c in zip(rows[near], cols[near], strict=True)], np.int64)
     assert np.all(k >= 0)
-    nearest_cells = np.floor(grid.world_to_cell(window.lines.mean[k])).astype(np.int64)
+    nearest_cells = np.floor(grid.world_to_cell(lines.mean[k])).astype(np.int64)
     assert np.all(grid.log_odds[nearest_cells[:, 1], nearest_cells[:, 0]] > 0)
     reach = np.hypot(nearest_cells[:, 0] - cols[near], nearest_cells[:, 1] - rows[near])
     assert np.all(reach <= exact_cells[near] + 1.0)
     mean, normal, is_line = grid.line_data(nearest_cells[:, 1], nearest_cells[:, 0])
-    np.testing.assert_allclose(window.lines.mean[k], mean)
-    np.testing.assert_allclose(window.lines.normal[k], normal)
-    np.testing.assert_array_equal(window.lines.is_line[k], is_line)
+    np.testing.assert_allclose(lines.mean[k], mean)
+    np.testing.assert_allclose(lines.normal[k], normal)
+    np.testing.assert_array_equal(lines.is_line[k], is_line)
     if (h, w) != grid.shape:   # a cell of the grid outside the window grows it
         far = np.array([0.5, 0.5]) if window.row0 or window.col0 else np.array(grid.shape[::-1]) - 0.5
         grown = fields.around(far[:1], far[1:])

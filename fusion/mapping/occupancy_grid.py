@@ -82,11 +82,12 @@ class MatchFields:
     the whole grid (a scan covers about a fifth of a submap's cells, measured on fr079): the
     distance (m) to the nearest occupied cell capped at ``max_distance_m``; the likelihood
     ``exp(-d^2 / (2 sigma^2))``, 0 beyond 4 sigma; and with ``lines`` the walls the returns describe
-    (:meth:`LogOddsGrid.line_data`), each cell pointing at its nearest occupied cell's. Every value
-    in the window is exact: each occupied cell of the window grown by the larger cap stamps its
-    distances into it (:func:`~trundle.fusion.mapping.nearest_cells.stamped_fields`), and the nearest wall
-    cells are OpenCV's labelled transform over that grown window. A request outside the window grows it
-    (by ``WINDOW_SLACK_CELLS`` more, for the next scans and the match's steps)."""
+    (:meth:`LogOddsGrid.line_data`) of the occupied cells around it, which a cell reads at its nearest
+    occupied cell. Every value in the window is exact: each occupied cell of the window grown by the
+    larger cap stamps its distances into it (:func:`~trundle.fusion.mapping.nearest_cells.stamped_fields`),
+    and a cell's nearest wall cell is OpenCV's labelled transform's over that grown window, found where
+    a match reads it (:func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`). A request outside
+    the window grows it (by ``WINDOW_SLACK_CELLS`` more, for the next scans and the match's steps)."""
 
     def __init__(
         self, grid: LogOddsGrid, max_distance_m: float, sigma_m: float, lines: bool, min_flatness: float
@@ -131,7 +132,7 @@ class MatchFields:
         grid, margin = self.grid, self.margin
         height, width = grid.shape
         pr0, pr1, pc0, pc1 = max(r0 - margin, 0), min(r1 + margin, height), max(c0 - margin, 0), min(c1 + margin, width)
-        rows, cols, image = occupied_cells(grid.log_odds, pr0, pr1, pc0, pc1)
+        rows, cols, occupied = occupied_cells(grid.log_odds, pr0, pr1, pc0, pc1)
         shape = (max(r1 - r0, 0), max(c1 - c0, 0))
         # distances up to the radius are exact, and every field is capped (or zero) from there
         distance, likelihood = stamped_fields(rows, cols, r0 - pr0, c0 - pc0, shape[0], shape[1], self.radius,
@@ -139,14 +140,7 @@ class MatchFields:
         lines = None
         if self.lines:
             mean, normal, is_line = grid.line_data(rows + pr0, cols + pc0, self.min_flatness)
-            nearest: np.ndarray = np.full(shape, -1, np.int32)
-            if len(rows):
-                # OpenCV labels the zero pixels 1, 2, ... in row-major order, as occupied_cells lists them:
-                # a cell's label less one is its nearest occupied cell's index
-                _, labels = cv2.distanceTransformWithLabels(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
-                                                            labelType=cv2.DIST_LABEL_PIXEL)
-                nearest = labels[r0 - pr0:r1 - pr0, c0 - pc0:c1 - pc0] - np.int32(1)
-            lines = WallLines(nearest, mean, normal, is_line)
+            lines = WallLines(occupied, pr0, pc0, mean, normal, is_line)
         self._bounds = (r0, r1, c0, c1)
         self._window = FieldWindow(r0, c0, distance, likelihood, lines)
         return self._window
@@ -162,12 +156,16 @@ def _likelihood(cells: np.ndarray, resolution: float, sigma_m: float) -> np.ndar
 
 @dataclass(frozen=True)
 class WallLines:
-    """Walls of a grid as its returns describe them: ``nearest`` (H, W) the index of each cell's nearest
-    occupied cell (-1: none), and per occupied cell the ``mean`` (K, 2, metres, grid frame)
-    of its returns, the ``normal`` (K, 2) of the line through its neighbourhood's returns and whether they
-    lie on one (``is_line``; otherwise the returns are matched as a point)."""
+    """Walls of a grid as its returns describe them: ``occupied`` (H, W) the index of the occupied cells
+    (-1: not occupied) over the grid's cells from (``row0``, ``col0``), in which a cell's nearest is
+    :func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`, and per occupied cell the ``mean``
+    (K, 2, metres, grid frame) of its returns, the ``normal`` (K, 2) of the line through its
+    neighbourhood's returns and whether they lie on one (``is_line``; otherwise the returns are matched
+    as a point)."""
 
-    nearest: np.ndarray
+    occupied: np.ndarray
+    row0: int
+    col0: int
     mean: np.ndarray
     normal: np.ndarray
     is_line: np.ndarray

@@ -13,10 +13,12 @@ import math
 import numba
 import numpy as np
 
+from trundle.fusion.mapping.nearest_cells import chamfer_nearest
+
 # the largest coordinate a lookup may use inside a field of ``size`` cells: ``size - 1 - EDGE``
 EDGE = 0.000001
 # the wall arguments of :func:`field_residuals` for the point-to-field residual alone
-NO_WALLS = (np.zeros((0, 0), np.int32), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.bool_))
+NO_WALLS = (np.zeros((0, 0), np.int32), 0, 0, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.bool_))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -55,16 +57,18 @@ def bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarra
 
 
 @numba.njit(cache=True, nogil=True)
-def field_residuals(distance: np.ndarray, nearest: np.ndarray, mean: np.ndarray, normal: np.ndarray,
-                    is_line: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray, pose_x: float,
-                    pose_y: float, rx: np.ndarray, ry: np.ndarray, resolution: float, max_distance_m: float
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def field_residuals(distance: np.ndarray, occupied: np.ndarray, occupied_row0: int, occupied_col0: int,
+                    mean: np.ndarray, normal: np.ndarray, is_line: np.ndarray, row0: int, col0: int, cx: np.ndarray,
+                    cy: np.ndarray, pose_x: float, pose_y: float, rx: np.ndarray, ry: np.ndarray, resolution: float,
+                    max_distance_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residuals of points against a match field window whose cell (0, 0) is the grid's (``row0``, ``col0``).
 
     Point to field: the distance (m) to the nearest occupied cell, read bilinearly from ``distance`` at
     the points' continuous grid cell coordinates (cx, cy), ``max_distance_m`` off the window. Point to
-    line, with walls (``nearest`` the window's nearest occupied cell per cell, empty: none): where the
-    nearest occupied cell of a point's cell (clipped to the window) has its returns on a line
+    line, with walls (``occupied`` the index of the occupied cells around the window from the grid's
+    (``occupied_row0``, ``occupied_col0``), see :func:`~trundle.fusion.mapping.nearest_cells.occupied_cells`;
+    empty: none): where the nearest occupied cell of a point's cell
+    (:func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`) has its returns on a line
     (``is_line``), the signed distance (m) of the point (rotated (rx, ry) plus the pose's (``pose_x``,
     ``pose_y``), grid frame) to that line (``mean``, ``normal``). Returns the residuals, their Jacobian
     (N, 3) with respect to the world-frame pose (x, y, theta), 0 where the point is off the window or
@@ -77,11 +81,12 @@ def field_residuals(distance: np.ndarray, nearest: np.ndarray, mean: np.ndarray,
     active = np.empty(n, np.bool_)
     for i in range(n):
         value, du, dv, inside = _sample(flat, height, width, cx[i] - 0.5 - col0, cy[i] - 0.5 - row0)
-        row = min(max(int(np.floor(cy[i])) - row0, 0), height - 1)
-        col = min(max(int(np.floor(cx[i])) - col0, 0), width - 1)
-        k = nearest[row, col] if nearest.size else -1
         active[i] = inside and value < max_distance_m
-        on_line = active[i] and k >= 0 and is_line[k]
+        k = -1
+        if active[i] and occupied.size:   # an active point's cell is in the window (inside)
+            k = chamfer_nearest(occupied, int(math.floor(cy[i])) - occupied_row0,
+                                int(math.floor(cx[i])) - occupied_col0)
+        on_line = k >= 0 and is_line[k]
         if on_line:
             value = (rx[i] + pose_x - mean[k, 0]) * normal[k, 0] + (ry[i] + pose_y - mean[k, 1]) * normal[k, 1]
         d[i] = value if inside else max_distance_m

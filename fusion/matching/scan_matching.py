@@ -266,12 +266,12 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
             height, width = window.distance.shape
             bounds = np.array([window.row0, window.row0 + height, window.col0, window.col0 + width], np.int64)
             lines = window.lines if walls else None
-            nearest, mean, normal, is_line = NO_WALLS if lines is None else (lines.nearest, lines.mean, lines.normal,
-                                                                             lines.is_line)
+            occupied, occupied_row0, occupied_col0, mean, normal, is_line = NO_WALLS if lines is None else (
+                lines.occupied, lines.row0, lines.col0, lines.mean, lines.normal, lines.is_line)
             status, box, pose, iterations, *state = solve_pose_in_window(
-                window.distance, nearest, mean, normal, is_line, bounds, np.array(grid.shape, np.int64), px, py,
-                np.asarray(start, np.float64), origin, res, max_distance_m, huber, max_iterations, SCHEDULE,
-                STEP_TOLERANCE)
+                window.distance, occupied, occupied_row0, occupied_col0, mean, normal, is_line, bounds,
+                np.array(grid.shape, np.int64), px, py, np.asarray(start, np.float64), origin, res, max_distance_m,
+                huber, max_iterations, SCHEDULE, STEP_TOLERANCE)
             if status == DONE:
                 return pose, iterations, tuple(state), window
             grown = fields.around(box[:2], box[2:])

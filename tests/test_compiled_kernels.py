@@ -20,7 +20,13 @@ from hypothesis.extra import numpy as hnp
 
 from trundle.fusion.geometry import inverse, transform_points, voxel_filter
 from trundle.fusion.mapping.map_check import _submap_votes
-from trundle.fusion.mapping.nearest_cells import chamfer_nearest, occupied_cells, squared_distances, stamped_fields
+from trundle.fusion.mapping.nearest_cells import (
+    chamfer_nearest,
+    occupied_cells,
+    squared_distances,
+    squared_nearest,
+    stamped_fields,
+)
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, MatchFields, _likelihood, trace_rays
 from trundle.fusion.mapping.ray_casting import insert_scan, ray_cells, trace
 from trundle.fusion.mapping.submaps import Submap
@@ -199,16 +205,6 @@ def test_bilinear_equals_numpy(problem: tuple[np.ndarray, np.ndarray, np.ndarray
     assert_same(bilinear(field, u, v), numpy_bilinear(field, u, v))
 
 
-@EXAMPLES
-@given(field_points(), st.integers(-3, 3), st.integers(-3, 3), st.floats(0.01, 0.2), st.floats(0.05, 0.7))
-def test_field_residuals_equal_numpy(problem: tuple[np.ndarray, np.ndarray, np.ndarray], row0: int, col0: int,
-                                     res: float, max_distance_m: float) -> None:
-    field, cx, cy = problem
-    rx, ry = 0.3 * cx - 1.0, 0.2 * cy + 0.5
-    assert_same(field_residuals(field, *NO_WALLS, row0, col0, cx, cy, 0.3, -0.2, rx, ry, res, max_distance_m),
-                numpy_field_residuals(field, row0, col0, cx, cy, rx, ry, res, max_distance_m))
-
-
 def opencv_nearest(occupied: np.ndarray) -> np.ndarray:
     """Each cell's nearest occupied cell (its index in ``occupied``, -1 where not occupied; -1: none) as
     OpenCV's labelled distance transform names it: the label less one, its zero pixels being labelled
@@ -228,18 +224,66 @@ def occupied_index(mask: np.ndarray) -> np.ndarray:
     return index
 
 
+def brute_force_squared(mask: np.ndarray, margin: int, height: int, width: int, radius: int) -> np.ndarray:
+    """The squared distance (cells^2) of each cell of the window ``margin`` cells inside ``mask`` to its nearest
+    true cell, ``radius^2 + 1`` beyond ``radius``: every pair measured."""
+    seeds = np.argwhere(mask)
+    rows, cols = np.mgrid[margin:margin + height, margin:margin + width]
+    if not len(seeds):
+        return np.full((height, width), radius * radius + 1, np.int64)
+    squared = ((rows[..., None] - seeds[:, 0]) ** 2 + (cols[..., None] - seeds[:, 1]) ** 2).min(axis=-1)
+    return np.minimum(squared, radius * radius + 1)
+
+
+@st.composite
+def occupancy_windows(draw: st.DrawFn) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray]:
+    """Occupied cells over a window grown by a margin, a radius, and continuous coordinates in and around
+    the window: (mask, margin, radius, cx, cy)."""
+    height, width, margin = draw(st.integers(1, 25)), draw(st.integers(1, 25)), draw(st.integers(0, 4))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    mask = rng.random((height + 2 * margin, width + 2 * margin)) < draw(st.floats(0.0, 0.3))
+    mask.flat[rng.integers(mask.size)] = True   # a refinement reads walls where there are some
+    n = draw(st.integers(0, 30))
+    cx, cy = (draw(hnp.arrays(np.float64, n, elements=coordinates)) for _ in range(2))
+    return mask, margin, draw(st.integers(1, 12)), cx, cy
+
+
+def window_fields(mask: np.ndarray, margin: int, radius: int, res: float, max_distance_m: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The arguments field_residuals finds a window's distances with (nothing found yet, their values per
+    squared distance, the occupied cells' index) and the distance field every pair measured gives."""
+    height, width = mask.shape[0] - 2 * margin, mask.shape[1] - 2 * margin
+    distances = np.minimum(squared_distances(radius) * np.float32(res), np.float32(max_distance_m))
+    dense = distances[brute_force_squared(mask, margin, height, width, radius)]
+    return np.full((height, width), -1, np.int32), distances, dense
+
+
 @EXAMPLES
-@given(field_points(), st.integers(0, 3), st.integers(0, 3), st.integers(0, 2**32 - 1), st.floats(0.0, 0.3),
-       st.floats(-2.0, 2.0), st.floats(-2.0, 2.0))
-def test_line_residuals_equal_numpy(problem: tuple[np.ndarray, np.ndarray, np.ndarray], row0: int, col0: int,
-                                    seed: int, density: float, pose_x: float, pose_y: float) -> None:
+@given(occupancy_windows(), st.integers(-3, 3), st.integers(-3, 3), st.floats(0.01, 0.2), st.floats(0.05, 0.7))
+def test_field_residuals_equal_numpy(problem: tuple[np.ndarray, int, int, np.ndarray, np.ndarray], row0: int,
+                                     col0: int, res: float, max_distance_m: float) -> None:
+    """Point to field, each distance found where it is read, against numpy's bilinear lookups in the distance
+    field every pair measured gives; the distances kept are those of the field."""
+    mask, margin, radius, cx, cy = problem
+    squared, distances, dense = window_fields(mask, margin, radius, res, max_distance_m)
+    rx, ry = 0.3 * cx - 1.0, 0.2 * cy + 0.5
+    assert_same(field_residuals(squared, distances, occupied_index(mask), row0 - margin, col0 - margin, radius,
+                                *NO_WALLS, row0, col0, cx, cy, 0.3, -0.2, rx, ry, res, max_distance_m),
+                numpy_field_residuals(dense, row0, col0, cx, cy, rx, ry, res, max_distance_m))
+    found = squared >= 0
+    np.testing.assert_array_equal(distances[squared[found]], dense[found])
+
+
+@EXAMPLES
+@given(occupancy_windows(), st.integers(0, 3), st.integers(0, 3), st.integers(0, 2**32 - 1), st.floats(-2.0, 2.0),
+       st.floats(-2.0, 2.0))
+def test_line_residuals_equal_numpy(problem: tuple[np.ndarray, int, int, np.ndarray, np.ndarray], row0: int,
+                                    col0: int, seed: int, pose_x: float, pose_y: float) -> None:
     """Point to line where a point's cell's nearest occupied cell (OpenCV's label, over the occupied cells of
     the window grown by a margin) lies on a line, to the field elsewhere."""
-    field, cx, cy = problem
+    mask, margin, radius, cx, cy = problem
     rng = np.random.default_rng(seed)
-    margin = int(rng.integers(0, 4))
-    mask = rng.random((field.shape[0] + 2 * margin, field.shape[1] + 2 * margin)) < density
-    mask.flat[rng.integers(mask.size)] = True   # the refinement has walls when it reads them
+    squared, distances, dense = window_fields(mask, margin, radius, 0.05, 0.5)
     occupied = occupied_index(mask)
     walls = int(mask.sum())
     mean = rng.uniform(-1.0, 2.0, (walls, 2))
@@ -247,11 +291,31 @@ def test_line_residuals_equal_numpy(problem: tuple[np.ndarray, np.ndarray, np.nd
     normal = np.stack([-np.sin(angle), np.cos(angle)], axis=1)
     is_line = rng.random(walls) < 0.7
     rx, ry = 0.05 * cx - 0.5, 0.05 * cy + 0.2
-    nearest = opencv_nearest(occupied)[margin:margin + field.shape[0], margin:margin + field.shape[1]]
-    assert_same(field_residuals(field, occupied, row0 - margin, col0 - margin, mean, normal, is_line, row0, col0, cx,
-                                cy, pose_x, pose_y, rx, ry, 0.05, 0.5),
-                numpy_line_residuals(field, nearest, mean, normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx,
+    nearest = opencv_nearest(occupied)[margin:margin + dense.shape[0], margin:margin + dense.shape[1]]
+    assert_same(field_residuals(squared, distances, occupied, row0 - margin, col0 - margin, radius, mean, normal,
+                                is_line, row0, col0, cx, cy, pose_x, pose_y, rx, ry, 0.05, 0.5),
+                numpy_line_residuals(dense, nearest, mean, normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx,
                                      ry, 0.05, 0.5))
+
+
+@EXAMPLES
+@given(st.integers(1, 40), st.integers(1, 40), st.floats(0.0, 0.1), st.integers(0, 2**32 - 1), st.integers(1, 12),
+       st.integers(0, 6), st.integers(0, 6))
+def test_squared_nearest_equals_the_stamp(height: int, width: int, density: float, seed: int, radius: int, top: int,
+                                          left: int) -> None:
+    """A cell's squared distance found by rings (what a refinement reads) is what stamping every occupied cell
+    around the window gives it, and what every pair measured gives."""
+    mask = np.random.default_rng(seed).random((height, width)) < density
+    rows, cols = np.nonzero(mask)
+    top, left = min(top, height - 1), min(left, width - 1)
+    identity = np.arange(radius * radius + 2, dtype=np.float32)[None]   # the stamp's squared distance itself
+    stamped = stamped_fields(rows, cols, top, left, height - top, width - left, radius, identity)[0]
+    occupied = occupied_index(mask)
+    found = np.array([[squared_nearest(occupied, top + i, left + j, radius) for j in range(width - left)]
+                      for i in range(height - top)])
+    np.testing.assert_array_equal(found, stamped)
+    full = brute_force_squared(np.pad(mask, ((0, top), (0, left))), 0, height, width, radius)
+    np.testing.assert_array_equal(found, full[top:, left:])
 
 
 ends = st.floats(-60.0, 60.0, allow_nan=False)
@@ -393,22 +457,31 @@ def test_stamped_fields_equal_opencv(height: int, width: int, density: float, se
 @EXAMPLES
 @given(st.integers(1, 60), st.integers(1, 60), st.floats(0.0, 0.05), st.integers(0, 2**32 - 1),
        st.sampled_from([0.05, 0.1, 0.025]), st.floats(0.1, 1.0), st.floats(0.01, 0.3))
-def test_the_match_fields_stamped_to_their_radius_equal_those_stamped_two_cells_further(
+def test_the_match_fields_to_their_radii_equal_those_stamped_to_the_margin(
         height: int, width: int, density: float, seed: int, resolution: float, max_distance: float, sigma: float
 ) -> None:
-    """Beyond the cap (and 4 sigma) the capped distance and the likelihood no longer change, so stamping each
-    occupied cell to MatchFields.radius gives the fields, to the bit, that the margin's two more cells gave."""
+    """Beyond 4 sigma the likelihood, and beyond the cap the capped distance, no longer change: the likelihood
+    stamped to MatchFields.likelihood_radius and the distances looked up to its radius are, to the bit, the
+    fields stamped to the margin (every occupied cell a window gathers)."""
     occupied = np.random.default_rng(seed).random((height, width)) < density
     rows, cols = np.nonzero(occupied)
-    grid = LogOddsGrid(resolution)
-    fields = MatchFields(grid, max_distance, sigma, False, 0.8)
-    assert fields.margin == fields.radius + 2
-    def stamped(radius: int) -> np.ndarray:
-        cells = squared_distances(radius)
-        tables = np.stack([np.minimum(cells * np.float32(resolution), np.float32(max_distance)),
-                           _likelihood(cells, resolution, sigma)])
-        return stamped_fields(rows, cols, 0, 0, height, width, radius, tables)
-    np.testing.assert_array_equal(stamped(fields.radius), stamped(fields.margin))
+    fields = MatchFields(LogOddsGrid(resolution), max_distance, sigma, False, 0.8)
+    assert fields.margin == fields.radius + 2 and fields.likelihood_radius <= fields.radius
+
+    def stamped(radius: int, values: np.ndarray) -> np.ndarray:
+        return stamped_fields(rows, cols, 0, 0, height, width, radius, values[None])[0]
+
+    def likelihood(radius: int) -> np.ndarray:
+        return _likelihood(squared_distances(radius), resolution, sigma)
+
+    def distance(radius: int) -> np.ndarray:
+        return np.minimum(squared_distances(radius) * np.float32(resolution), np.float32(max_distance))
+
+    np.testing.assert_array_equal(stamped(fields.likelihood_radius, likelihood(fields.likelihood_radius)),
+                                  stamped(fields.margin, likelihood(fields.margin)))
+    np.testing.assert_array_equal(fields.distances, distance(fields.radius))
+    squared = brute_force_squared(occupied, 0, height, width, fields.radius)
+    np.testing.assert_array_equal(fields.distances[squared], stamped(fields.margin, distance(fields.margin)))
 
 
 @st.composite
@@ -446,10 +519,11 @@ def test_compiled_refinement_equals_the_python_loop(problem: tuple[LogOddsGrid, 
         rx, ry, cx, cy = placed(pose)
         window = fields.around(cx, cy)
         assert window.lines is not None
-        wall_arrays = (window.lines.occupied, window.lines.row0, window.lines.col0, window.lines.mean,
-                       window.lines.normal, window.lines.is_line)
-        d, jac, active = field_residuals(window.distance, *(wall_arrays if walls else NO_WALLS), window.row0,
-                                         window.col0, cx, cy, float(pose[0]), float(pose[1]), rx, ry, 0.05, 0.5)
+        wall_arrays = (window.lines.mean, window.lines.normal, window.lines.is_line)
+        d, jac, active = field_residuals(window.squared, window.distances, window.occupied, window.occupied_row0,
+                                         window.occupied_col0, window.radius, *(wall_arrays if walls else NO_WALLS),
+                                         window.row0, window.col0, cx, cy, float(pose[0]), float(pose[1]), rx, ry,
+                                         0.05, 0.5)
         loss, weight = robust_loss(d * d, "huber", 0.05)
         return float(loss.sum()), d, jac, weight, active
 
@@ -458,11 +532,11 @@ def test_compiled_refinement_equals_the_python_loop(problem: tuple[LogOddsGrid, 
     grown = 0
     while True:
         assert window.lines is not None
-        height, width = window.distance.shape
-        wall_arrays = (window.lines.occupied, window.lines.row0, window.lines.col0, window.lines.mean,
-                       window.lines.normal, window.lines.is_line)
+        height, width = window.squared.shape
+        wall_arrays = (window.lines.mean, window.lines.normal, window.lines.is_line)
         status, box, pose, count, *state = solve_pose_in_window(
-            window.distance, *(wall_arrays if walls else NO_WALLS),
+            window.squared, window.distances, window.occupied, window.occupied_row0, window.occupied_col0,
+            window.radius, *(wall_arrays if walls else NO_WALLS),
             np.array([window.row0, window.row0 + height, window.col0, window.col0 + width]), np.array(grid.shape),
             px, py, start, grid.origin, 0.05, 0.5, 0.05, iterations, SCHEDULE, STEP_TOLERANCE)
         if status == DONE:
@@ -627,15 +701,15 @@ def test_match_fields_nearest_cells_equal_opencv() -> None:
         window = fields.around(centre[:1] + rng.uniform(-20, 20, 2), centre[1:] + rng.uniform(-20, 20, 2))
         lines = window.lines
         assert lines is not None
-        height, width = window.distance.shape
+        height, width = window.squared.shape
         pr0, pr1 = max(window.row0 - fields.margin, 0), min(window.row0 + height + fields.margin, grid.shape[0])
         pc0, pc1 = max(window.col0 - fields.margin, 0), min(window.col0 + width + fields.margin, grid.shape[1])
-        assert (lines.row0, lines.col0) == (pr0, pc0)
-        np.testing.assert_array_equal(lines.occupied, occupied_index(grid.log_odds[pr0:pr1, pc0:pc1] > 0.0))
-        expected = opencv_nearest(lines.occupied)
+        assert (window.occupied_row0, window.occupied_col0) == (pr0, pc0)
+        np.testing.assert_array_equal(window.occupied, occupied_index(grid.log_odds[pr0:pr1, pc0:pc1] > 0.0))
+        expected = opencv_nearest(window.occupied)
         for r in range(window.row0 - pr0, window.row0 - pr0 + height, 3):
             for c in range(window.col0 - pc0, window.col0 - pc0 + width, 3):
-                assert chamfer_nearest(lines.occupied, r, c) == expected[r, c]
+                assert chamfer_nearest(window.occupied, r, c) == expected[r, c]
 
 
 def numpy_voxel_filter(points: np.ndarray, cell_m: float) -> np.ndarray:

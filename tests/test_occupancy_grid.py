@@ -174,17 +174,17 @@ def test_match_field_windows_equal_the_whole_grid_fields(seed: int, x: float, y:
     fields = grid.match_fields(0.5, 0.05, lines=True)
     corner = grid.world_to_cell(np.array([[x, y], [x + size, y + size]]))
     window = fields.around(corner[:, 0], corner[:, 1])
-    h, w = window.distance.shape
+    h, w = window.squared.shape
     rows, cols = np.mgrid[window.row0:window.row0 + h, window.col0:window.col0 + w]
     assert rows.min() <= max(math.floor(corner[:, 1].min()) - 1, 0) and cols.max() >= min(
         math.floor(corner[:, 0].max()) + 1, grid.shape[1] - 1)
-    np.testing.assert_allclose(window.distance, grid.distance_field(0.5)[rows, cols], atol=1e-6)
+    np.testing.assert_allclose(window.distance(), grid.distance_field(0.5)[rows, cols], atol=1e-6)
     np.testing.assert_allclose(window.likelihood, grid.likelihood_field(0.05)[rows, cols], atol=1e-6)
     exact_cells = grid.distance_field(10.0)[rows, cols] / 0.05
     near = exact_cells < 0.5 / 0.05
     lines = window.lines
     assert lines is not None
-    k = np.array([chamfer_nearest(lines.occupied, r - lines.row0, c - lines.col0)
+    k = np.array([chamfer_nearest(window.occupied, r - window.occupied_row0, c - window.occupied_col0)
                   for r, c in zip(rows[near], cols[near], strict=True)], np.int64)
     assert np.all(k >= 0)
     nearest_cells = np.floor(grid.world_to_cell(lines.mean[k])).astype(np.int64)
@@ -198,4 +198,4 @@ def test_match_field_windows_equal_the_whole_grid_fields(seed: int, x: float, y:
     if (h, w) != grid.shape:   # a cell of the grid outside the window grows it
         far = np.array([0.5, 0.5]) if window.row0 or window.col0 else np.array(grid.shape[::-1]) - 0.5
         grown = fields.around(far[:1], far[1:])
-        assert grown.distance.size > window.distance.size
+        assert grown.squared.size > window.squared.size

@@ -1,17 +1,19 @@
-"""The match fields' nearest occupied cells, compiled (numba, cached on disk): for each cell of a window, the
-distance to the nearest occupied cell within a radius, as the fields read it; and for one cell at a time,
-the occupied cell whose wall line the refinement reads there.
+"""The match fields' nearest occupied cells, compiled (numba, cached on disk): for each cell of a window, a
+field of the distance to the nearest occupied cell within a radius (the search's likelihood); and for one
+cell at a time, that distance and the occupied cell whose wall line the refinement reads there.
 
-A match reads the fields only up to a few cells beyond its cap (half a metre), so each occupied cell
-stamps a disc of that radius into the window: exact Euclidean distances (OpenCV's precise transform
-of the whole padded window gives the same to float32 rounding), and each field's value looked up per
-squared distance instead of computed per cell (the likelihood's exp over the window cost as much as
-the transform). It costs the occupied cells times the disc, not passes over the whole padded window.
+The search reads the likelihood wherever a lattice pose puts a point, only up to 4 sigma from a wall, so
+each occupied cell stamps a disc of that radius into the window: exact Euclidean distances (OpenCV's
+precise transform of the whole padded window gives the same to float32 rounding), each field's value
+looked up per squared distance instead of computed per cell. It costs the occupied cells times the
+disc, not passes over the whole padded window.
 
-The wall lines' nearest cell is OpenCV's labelled distance transform (``distanceTransformWithLabels``,
-which takes its 5 x 5 chamfer metric for L2; Borgefors 1986) answered for the cells a match reads, not
-for the whole padded window: a refinement reads a few hundred cells, the transform labelled tens of
-thousands, and cost a quarter of a match. :func:`chamfer_nearest` gives OpenCV's label, ties included.
+The refinement reads the capped distance (half a metre: a disc six times the likelihood's) and the
+wall lines' nearest cell at a few hundred cells where the window holds tens of thousands, so it finds
+them there, searching rings of cells around each: :func:`squared_nearest` gives the stamp's value,
+:func:`chamfer_nearest` OpenCV's labelled distance transform's label (``distanceTransformWithLabels``,
+which takes its 5 x 5 chamfer metric for L2; Borgefors 1986), ties included. Labelling the whole padded
+window cost a quarter of a match, and stamping the distance to its cap a sixth.
 """
 
 from __future__ import annotations
@@ -116,19 +118,15 @@ def _wins_tie(d_row: int, d_col: int, m: int, other_row: int, other_col: int, ot
 
 
 @numba.njit(cache=True, nogil=True)
-def chamfer_nearest(index: np.ndarray, row: int, col: int) -> int:
-    """The occupied cell (its value in ``index``, see :func:`occupied_cells`; -1: none) nearest the cell
-    (``row``, ``col``) of ``index`` in the 5 x 5 chamfer metric: the label less one that OpenCV's
-    ``distanceTransformWithLabels(image, DIST_L2, ..., DIST_LABEL_PIXEL)`` gives that cell, where the
-    image is 0 on ``index``'s occupied cells.
-
-    Rings of cells around it, out to where no ring can hold a nearer cell (a ring k cells out is at
-    least k straight steps away); of equally near cells, the one OpenCV keeps (:func:`_wins_tie`)."""
-    height, width = index.shape
+def _nearest(occupied: np.ndarray, row: int, col: int, rings: int, chamfered: bool) -> tuple[int, int]:
+    """The occupied cell (its value in ``occupied``; -1: none) nearest the cell (``row``, ``col``) within
+    ``rings`` rings of cells around it, and its distance: squared (cells^2) or, ``chamfered``, the 5 x 5
+    chamfer distance (:func:`chamfer`), equally near cells decided as OpenCV does (:func:`_wins_tie`). The
+    rings go out to where none can hold a nearer cell (a ring k cells out is at least k straight steps away)."""
+    height, width = occupied.shape
     best, found, found_row, found_col = 1 << 62, -1, 0, 0
-    rings = max(row, height - 1 - row, col, width - 1 - col)
     for k in range(rings + 1):
-        if k * STRAIGHT > best:
+        if (k * STRAIGHT if chamfered else k * k) > best:
             break
         for d_row in range(-k, k + 1):
             i = row + d_row
@@ -137,10 +135,33 @@ def chamfer_nearest(index: np.ndarray, row: int, col: int) -> int:
             step = 1 if d_row == -k or d_row == k else 2 * k   # the ring's top and bottom rows, else its ends
             for d_col in range(-k, k + 1, step):
                 j = col + d_col
-                if j < 0 or j >= width or index[i, j] < 0:
+                if j < 0 or j >= width or occupied[i, j] < 0:
                     continue
-                m = index[i, j]
-                e = chamfer(d_row, d_col)
-                if e < best or (e == best and _wins_tie(d_row, d_col, m, found_row, found_col, found)):
+                m = occupied[i, j]
+                if chamfered:
+                    e = chamfer(d_row, d_col)
+                    nearer = e < best or (e == best and _wins_tie(d_row, d_col, m, found_row, found_col, found))
+                else:
+                    e = d_row * d_row + d_col * d_col
+                    nearer = e < best
+                if nearer:
                     best, found, found_row, found_col = e, m, d_row, d_col
-    return found
+    return found, best
+
+
+@numba.njit(cache=True, nogil=True)
+def squared_nearest(occupied: np.ndarray, row: int, col: int, radius: int) -> int:
+    """The squared distance (cells^2) from cell (``row``, ``col``) of ``occupied`` (see :func:`occupied_cells`)
+    to the nearest of its occupied cells, ``radius^2 + 1`` when none is within ``radius`` cells: the value
+    :func:`stamped_fields` gives that cell."""
+    return min(_nearest(occupied, row, col, radius, False)[1], radius * radius + 1)
+
+
+@numba.njit(cache=True, nogil=True)
+def chamfer_nearest(occupied: np.ndarray, row: int, col: int) -> int:
+    """The occupied cell (its value in ``occupied``, see :func:`occupied_cells`; -1: none) nearest the cell
+    (``row``, ``col``) of ``occupied`` in the 5 x 5 chamfer metric: the label less one that OpenCV's
+    ``distanceTransformWithLabels(image, DIST_L2, ..., DIST_LABEL_PIXEL)`` gives that cell, where the
+    image is 0 on ``occupied``'s occupied cells."""
+    height, width = occupied.shape
+    return _nearest(occupied, row, col, max(row, height - 1 - row, col, width - 1 - col), True)[0]

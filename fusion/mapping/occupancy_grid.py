@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from trundle.fusion.mapping import ray_casting
-from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distances, stamped_fields
+from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distances, squared_nearest, stamped_fields
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
 from trundle.logs.errors import UserError
 from trundle.logs.messages import OccupancyGrid
@@ -67,14 +67,31 @@ def trace_rays(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hit
 
 @dataclass(frozen=True)
 class FieldWindow:
-    """Match fields over the cells ``[row0, row0 + h) x [col0, col0 + w)`` of a grid: the distance (m)
-    to the nearest occupied cell, capped; the likelihood; and the walls (None without them)."""
+    """Match fields over the cells ``[row0, row0 + h) x [col0, col0 + w)`` of a grid: the likelihood;
+    the distance (m) to the nearest occupied cell, capped, which a cell's ``squared`` distance (cells^2,
+    -1 until a match first reads it; see :meth:`distance`) looks up in ``distances`` (none within
+    ``radius`` cells: the last); the index of the occupied cells around the window from the grid's
+    (``occupied_row0``, ``occupied_col0``), in which both are found
+    (:func:`~trundle.fusion.mapping.nearest_cells.occupied_cells`); and the walls (None without them)."""
 
     row0: int
     col0: int
-    distance: np.ndarray
     likelihood: np.ndarray
+    squared: np.ndarray
+    distances: np.ndarray
+    radius: int
+    occupied: np.ndarray
+    occupied_row0: int
+    occupied_col0: int
     lines: WallLines | None
+
+    def distance(self) -> np.ndarray:
+        """The distance field over the whole window (m, float32), every cell's found."""
+        height, width = self.squared.shape
+        for i, j in zip(*np.nonzero(self.squared < 0), strict=True):
+            self.squared[i, j] = squared_nearest(self.occupied, int(i) + self.row0 - self.occupied_row0,
+                                                 int(j) + self.col0 - self.occupied_col0, self.radius)
+        return self.distances[self.squared]
 
 
 class MatchFields:
@@ -84,10 +101,13 @@ class MatchFields:
     ``exp(-d^2 / (2 sigma^2))``, 0 beyond 4 sigma; and with ``lines`` the walls the returns describe
     (:meth:`LogOddsGrid.line_data`) of the occupied cells around it, which a cell reads at its nearest
     occupied cell. Every value in the window is exact: each occupied cell of the window grown by the
-    larger cap stamps its distances into it (:func:`~trundle.fusion.mapping.nearest_cells.stamped_fields`),
-    and a cell's nearest wall cell is OpenCV's labelled transform's over that grown window, found where
-    a match reads it (:func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`). A request outside
-    the window grows it (by ``WINDOW_SLACK_CELLS`` more, for the next scans and the match's steps)."""
+    margin stamps its likelihood into it (:func:`~trundle.fusion.mapping.nearest_cells.stamped_fields`;
+    the search reads every cell a lattice pose can reach), while a cell's distance and nearest wall cell
+    are found where the refinement reads them (a few hundred cells;
+    :func:`~trundle.fusion.mapping.nearest_cells.squared_nearest`, the stamp's value, and
+    :func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`, OpenCV's labelled transform's over the
+    grown window). A request outside the window grows it (by ``WINDOW_SLACK_CELLS`` more, for the next
+    scans and the match's steps)."""
 
     def __init__(
         self, grid: LogOddsGrid, max_distance_m: float, sigma_m: float, lines: bool, min_flatness: float
@@ -99,10 +119,12 @@ class MatchFields:
         self.min_flatness = min_flatness
         # the cells within which the fields differ from their value far from any wall: distance capped, likelihood 0
         self.radius = int(math.ceil(max(self.max_distance_m, 4.0 * self.sigma_m) / grid.resolution))
+        self.likelihood_radius = int(math.ceil(4.0 * self.sigma_m / grid.resolution))
         self.margin = self.radius + 2   # the occupied cells gathered around a window: the labels' and the walls'
-        cells = squared_distances(self.radius)   # the fields' values per squared distance (cells)
-        self._tables = np.stack([np.minimum(cells * np.float32(grid.resolution), np.float32(self.max_distance_m)),
-                                 _likelihood(cells, grid.resolution, self.sigma_m)])
+        # the fields' values per squared distance (cells)
+        self.distances = np.minimum(squared_distances(self.radius) * np.float32(grid.resolution),
+                                    np.float32(self.max_distance_m))
+        self._likelihoods = _likelihood(squared_distances(self.likelihood_radius), grid.resolution, self.sigma_m)[None]
         self._window: FieldWindow | None = None
         height, width = grid.shape
         self._bounds = (height, 0, width, 0)   # rows [r0, r1), cols [c0, c1) of the window: none yet
@@ -134,15 +156,15 @@ class MatchFields:
         pr0, pr1, pc0, pc1 = max(r0 - margin, 0), min(r1 + margin, height), max(c0 - margin, 0), min(c1 + margin, width)
         rows, cols, occupied = occupied_cells(grid.log_odds, pr0, pr1, pc0, pc1)
         shape = (max(r1 - r0, 0), max(c1 - c0, 0))
-        # distances up to the radius are exact, and every field is capped (or zero) from there
-        distance, likelihood = stamped_fields(rows, cols, r0 - pr0, c0 - pc0, shape[0], shape[1], self.radius,
-                                              self._tables)
+        # the likelihood is exact to its radius and zero from there; a distance is found where it is read
+        likelihood = stamped_fields(rows, cols, r0 - pr0, c0 - pc0, shape[0], shape[1], self.likelihood_radius,
+                                    self._likelihoods)[0]
         lines = None
         if self.lines:
-            mean, normal, is_line = grid.line_data(rows + pr0, cols + pc0, self.min_flatness)
-            lines = WallLines(occupied, pr0, pc0, mean, normal, is_line)
+            lines = WallLines(*grid.line_data(rows + pr0, cols + pc0, self.min_flatness))
         self._bounds = (r0, r1, c0, c1)
-        self._window = FieldWindow(r0, c0, distance, likelihood, lines)
+        self._window = FieldWindow(r0, c0, likelihood, np.full(shape, -1, np.int32), self.distances, self.radius,
+                                   occupied, pr0, pc0, lines)
         return self._window
 
 
@@ -156,16 +178,11 @@ def _likelihood(cells: np.ndarray, resolution: float, sigma_m: float) -> np.ndar
 
 @dataclass(frozen=True)
 class WallLines:
-    """Walls of a grid as its returns describe them: ``occupied`` (H, W) the index of the occupied cells
-    (-1: not occupied) over the grid's cells from (``row0``, ``col0``), in which a cell's nearest is
-    :func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`, and per occupied cell the ``mean``
-    (K, 2, metres, grid frame) of its returns, the ``normal`` (K, 2) of the line through its
-    neighbourhood's returns and whether they lie on one (``is_line``; otherwise the returns are matched
-    as a point)."""
+    """Walls of a grid as its returns describe them, per occupied cell of a window's index (a cell reads
+    its nearest's: :func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`): the ``mean`` (K, 2,
+    metres, grid frame) of its returns, the ``normal`` (K, 2) of the line through its neighbourhood's
+    returns and whether they lie on one (``is_line``; otherwise the returns are matched as a point)."""
 
-    occupied: np.ndarray
-    row0: int
-    col0: int
     mean: np.ndarray
     normal: np.ndarray
     is_line: np.ndarray

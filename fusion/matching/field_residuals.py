@@ -13,33 +13,61 @@ import math
 import numba
 import numpy as np
 
-from trundle.fusion.mapping.nearest_cells import chamfer_nearest
+from trundle.fusion.mapping.nearest_cells import chamfer_nearest, squared_nearest
 
 # the largest coordinate a lookup may use inside a field of ``size`` cells: ``size - 1 - EDGE``
 EDGE = 0.000001
 # the wall arguments of :func:`field_residuals` for the point-to-field residual alone
-NO_WALLS = (np.zeros((0, 0), np.int32), 0, 0, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.bool_))
+NO_WALLS = (np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.bool_))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _corners(height: int, width: int, u: float, v: float) -> tuple[int, int, int, int, float, float, bool]:
+    """The flat indices of the four cells a bilinear lookup at continuous cell-centre coordinates (u, v) reads
+    in a ``height`` x ``width`` field (clamped to its edge), the fractions between them, and whether (u, v)
+    lies inside."""
+    inside = u >= 0 and v >= 0 and u < width - 1 and v < height - 1
+    u = min(max(u, 0.0), width - 1 - EDGE)
+    v = min(max(v, 0.0), height - 1 - EDGE)
+    c0, r0 = int(u), int(v)   # u, v >= 0: truncation is floor
+    last = height * width - 1
+    i00 = r0 * width + c0
+    i10 = min(i00 + width, last)
+    return i00, min(i00 + 1, last), i10, min(i10 + 1, last), u - c0, v - r0, inside
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _interpolate(f00: float, f01: float, f10: float, f11: float, fu: float, fv: float) -> tuple[float, float, float]:
+    """Value, d/du and d/dv between four cell values (field differences in the field's own precision)."""
+    top, bottom = f01 - f00, f11 - f10
+    du = top + fv * (bottom - top)
+    left = f00 + fu * top
+    dv = f10 + fu * bottom - left
+    return left + fv * dv, du, dv
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _sample(flat: np.ndarray, height: int, width: int, u: float, v: float) -> tuple[float, float, float, bool]:
     """Value, d/du, d/dv of a field (flat, ``height`` x ``width``) at continuous cell-centre coordinates
     (u, v), and whether they lie inside."""
-    inside = u >= 0 and v >= 0 and u < width - 1 and v < height - 1
-    u = min(max(u, 0.0), width - 1 - EDGE)
-    v = min(max(v, 0.0), height - 1 - EDGE)
-    c0, r0 = int(u), int(v)   # u, v >= 0: truncation is floor
-    fu, fv = u - c0, v - r0
-    last = flat.size - 1
-    i00 = r0 * width + c0
-    i10 = min(i00 + width, last)
-    f00, f01 = flat[i00], flat[min(i00 + 1, last)]
-    f10, f11 = flat[i10], flat[min(i10 + 1, last)]
-    top, bottom = f01 - f00, f11 - f10
-    du = top + fv * (bottom - top)
-    left = f00 + fu * top
-    dv = f10 + fu * bottom - left
-    return left + fv * dv, du, dv, inside
+    i00, i01, i10, i11, fu, fv, inside = _corners(height, width, u, v)
+    value, du, dv = _interpolate(flat[i00], flat[i01], flat[i10], flat[i11], fu, fv)
+    return value, du, dv, inside
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _distance(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, d_row: int, d_col: int, radius: int,
+              flat: int) -> float:
+    """The distance field's value at flat index ``flat`` of a window: its squared distance to the nearest
+    occupied cell, found (:func:`squared_nearest`) and kept in ``squared`` (-1: not yet) the first time,
+    looked up in ``distances``. The window's cell (0, 0) is ``occupied``'s (``d_row``, ``d_col``)."""
+    width = squared.shape[1]
+    i, j = flat // width, flat % width
+    s = squared[i, j]
+    if s < 0:
+        s = squared_nearest(occupied, i + d_row, j + d_col, radius)
+        squared[i, j] = s
+    return distances[s]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -57,39 +85,48 @@ def bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarra
 
 
 @numba.njit(cache=True, nogil=True)
-def field_residuals(distance: np.ndarray, occupied: np.ndarray, occupied_row0: int, occupied_col0: int,
-                    mean: np.ndarray, normal: np.ndarray, is_line: np.ndarray, row0: int, col0: int, cx: np.ndarray,
-                    cy: np.ndarray, pose_x: float, pose_y: float, rx: np.ndarray, ry: np.ndarray, resolution: float,
-                    max_distance_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, occupied_row0: int,
+                    occupied_col0: int, radius: int, mean: np.ndarray, normal: np.ndarray, is_line: np.ndarray,
+                    row0: int, col0: int, cx: np.ndarray, cy: np.ndarray, pose_x: float, pose_y: float,
+                    rx: np.ndarray, ry: np.ndarray, resolution: float, max_distance_m: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residuals of points against a match field window whose cell (0, 0) is the grid's (``row0``, ``col0``).
 
-    Point to field: the distance (m) to the nearest occupied cell, read bilinearly from ``distance`` at
-    the points' continuous grid cell coordinates (cx, cy), ``max_distance_m`` off the window. Point to
-    line, with walls (``occupied`` the index of the occupied cells around the window from the grid's
-    (``occupied_row0``, ``occupied_col0``), see :func:`~trundle.fusion.mapping.nearest_cells.occupied_cells`;
-    empty: none): where the nearest occupied cell of a point's cell
-    (:func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`) has its returns on a line
-    (``is_line``), the signed distance (m) of the point (rotated (rx, ry) plus the pose's (``pose_x``,
-    ``pose_y``), grid frame) to that line (``mean``, ``normal``). Returns the residuals, their Jacobian
-    (N, 3) with respect to the world-frame pose (x, y, theta), 0 where the point is off the window or
-    beyond ``max_distance_m``, and that active mask."""
-    height, width = distance.shape
-    flat = distance.ravel()
+    ``occupied`` indexes the occupied cells around the window from the grid's (``occupied_row0``,
+    ``occupied_col0``) (:func:`~trundle.fusion.mapping.nearest_cells.occupied_cells`). Point to field: the
+    distance (m) to the nearest occupied cell, read bilinearly at the points' continuous grid cell
+    coordinates (cx, cy), ``max_distance_m`` off the window; the distance of a cell is ``distances`` at its
+    squared distance within ``radius`` cells, found the first time it is read and kept in ``squared`` (the
+    window's, -1: not yet; see :func:`_distance`). Point to line, with walls (``is_line`` not empty): where
+    the nearest occupied cell of a point's cell (:func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`)
+    has its returns on a line (``is_line``), the signed distance (m) of the point (rotated (rx, ry) plus the
+    pose's (``pose_x``, ``pose_y``), grid frame) to that line (``mean``, ``normal``). Returns the residuals,
+    their Jacobian (N, 3) with respect to the world-frame pose (x, y, theta), 0 where the point is off the
+    window or beyond ``max_distance_m``, and that active mask."""
+    height, width = squared.shape
+    d_row, d_col = row0 - occupied_row0, col0 - occupied_col0
     n = cx.shape[0]
-    d = np.empty(n)
+    d = np.full(n, max_distance_m)
     jac = np.zeros((n, 3))
-    active = np.empty(n, np.bool_)
+    active = np.zeros(n, np.bool_)
+    if height == 0 or width == 0:
+        return d, jac, active
     for i in range(n):
-        value, du, dv, inside = _sample(flat, height, width, cx[i] - 0.5 - col0, cy[i] - 0.5 - row0)
+        i00, i01, i10, i11, fu, fv, inside = _corners(height, width, cx[i] - 0.5 - col0, cy[i] - 0.5 - row0)
+        value, du, dv = _interpolate(_distance(squared, distances, occupied, d_row, d_col, radius, i00),
+                                     _distance(squared, distances, occupied, d_row, d_col, radius, i01),
+                                     _distance(squared, distances, occupied, d_row, d_col, radius, i10),
+                                     _distance(squared, distances, occupied, d_row, d_col, radius, i11), fu, fv)
         active[i] = inside and value < max_distance_m
         k = -1
-        if active[i] and occupied.size:   # an active point's cell is in the window (inside)
+        if active[i] and is_line.size:   # an active point's cell is in the window (inside)
             k = chamfer_nearest(occupied, int(math.floor(cy[i])) - occupied_row0,
                                 int(math.floor(cx[i])) - occupied_col0)
         on_line = k >= 0 and is_line[k]
         if on_line:
             value = (rx[i] + pose_x - mean[k, 0]) * normal[k, 0] + (ry[i] + pose_y - mean[k, 1]) * normal[k, 1]
-        d[i] = value if inside else max_distance_m
+        if inside:
+            d[i] = value
         if active[i]:
             jac[i, 0] = normal[k, 0] if on_line else du / resolution
             jac[i, 1] = normal[k, 1] if on_line else dv / resolution

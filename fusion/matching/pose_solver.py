@@ -59,10 +59,11 @@ def solve3(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _evaluate(distance: np.ndarray, occupied: np.ndarray, occupied_row0: int, occupied_col0: int, mean: np.ndarray,
-              normal: np.ndarray, is_line: np.ndarray, bounds: np.ndarray, grid_shape: np.ndarray, px: np.ndarray,
-              py: np.ndarray, pose: np.ndarray, origin: np.ndarray, resolution: float, max_distance_m: float,
-              huber_m: float) -> tuple[bool, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _evaluate(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, occupied_row0: int,
+              occupied_col0: int, radius: int, mean: np.ndarray, normal: np.ndarray, is_line: np.ndarray,
+              bounds: np.ndarray, grid_shape: np.ndarray, px: np.ndarray, py: np.ndarray, pose: np.ndarray,
+              origin: np.ndarray, resolution: float, max_distance_m: float, huber_m: float
+              ) -> tuple[bool, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Huber cost, residuals, Jacobian, IRLS weights and active mask of the points at ``pose``; first,
     whether the window ``bounds`` (r0, r1, c0, c1) holds them and the box (c_min, c_max, r_min, r_max) they need."""
     c, s = math.cos(pose[2]), math.sin(pose[2])
@@ -75,33 +76,36 @@ def _evaluate(distance: np.ndarray, occupied: np.ndarray, occupied_row0: int, oc
         if r_lo < bounds[0] or r_hi > bounds[1] or c_lo < bounds[2] or c_hi > bounds[3]:
             empty = np.zeros(0)
             return False, box, 0.0, empty, np.zeros((0, 3)), empty, np.zeros(0, np.bool_)
-    d, jac, active = field_residuals(distance, occupied, occupied_row0, occupied_col0, mean, normal, is_line,
-                                     bounds[0], bounds[2], cx, cy, pose[0], pose[1], rx, ry, resolution, max_distance_m)
+    d, jac, active = field_residuals(squared, distances, occupied, occupied_row0, occupied_col0, radius, mean, normal,
+                                     is_line, bounds[0], bounds[2], cx, cy, pose[0], pose[1], rx, ry, resolution,
+                                     max_distance_m)
     k2 = huber_m * huber_m
     weight = np.empty(len(d))
     cost = 0.0
     for i in range(len(d)):
-        squared = d[i] * d[i]
-        if squared <= k2:
-            cost += squared
+        r2 = d[i] * d[i]
+        if r2 <= k2:
+            cost += r2
             weight[i] = 1.0
         else:
-            root = math.sqrt(max(squared, 1e-300))
+            root = math.sqrt(max(r2, 1e-300))
             cost += 2.0 * huber_m * root - k2
             weight[i] = huber_m / root
     return True, box, cost, d, jac, weight, active
 
 
 @numba.njit(cache=True, nogil=True)
-def solve_pose_in_window(distance: np.ndarray, occupied: np.ndarray, occupied_row0: int, occupied_col0: int,
-                         mean: np.ndarray, normal: np.ndarray, is_line: np.ndarray, bounds: np.ndarray,
-                         grid_shape: np.ndarray, px: np.ndarray, py: np.ndarray, initial_pose: np.ndarray,
-                         origin: np.ndarray, resolution: float, max_distance_m: float, huber_m: float,
-                         max_iterations: int, schedule: np.ndarray, step_tolerance: np.ndarray
+def solve_pose_in_window(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, occupied_row0: int,
+                         occupied_col0: int, radius: int, mean: np.ndarray, normal: np.ndarray,
+                         is_line: np.ndarray, bounds: np.ndarray, grid_shape: np.ndarray, px: np.ndarray,
+                         py: np.ndarray, initial_pose: np.ndarray, origin: np.ndarray, resolution: float,
+                         max_distance_m: float, huber_m: float, max_iterations: int, schedule: np.ndarray,
+                         step_tolerance: np.ndarray
                          ) -> tuple[int, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg-Marquardt over one pose (x m, y m, theta rad; Euclidean, theta wrapped at the end) minimising
     the Huber cost of the points (``px``, ``py``, robot frame) against the window (grid cell (0, 0) at
-    ``origin``; walls: ``occupied`` non-empty, see :func:`field_residuals`, else point to field).
+    ``origin``; the window's fields and walls as :func:`field_residuals` takes them, ``is_line`` empty: point
+    to field).
 
     ``schedule`` = initial lambda, lambda factor, min lambda, max lambda, min model fidelity, min diagonal,
     relative tolerance, absolute tolerance (Marquardt damping). Returns the status (``DONE`` or ``GROW``),
@@ -111,9 +115,9 @@ def solve_pose_in_window(distance: np.ndarray, occupied: np.ndarray, occupied_ro
     initial_lambda, factor, min_lambda, max_lambda = schedule[0], schedule[1], schedule[2], schedule[3]
     min_fidelity, min_diagonal, relative, absolute = schedule[4], schedule[5], schedule[6], schedule[7]
     x = initial_pose.copy()
-    ok, box, current, d, jac, weight, active = _evaluate(distance, occupied, occupied_row0, occupied_col0, mean,
-                                                         normal, is_line, bounds, grid_shape, px, py, x, origin,
-                                                         resolution, max_distance_m, huber_m)
+    ok, box, current, d, jac, weight, active = _evaluate(
+        squared, distances, occupied, occupied_row0, occupied_col0, radius, mean, normal, is_line, bounds, grid_shape,
+        px, py, x, origin, resolution, max_distance_m, huber_m)
     if not ok:
         return GROW, box, x, 0, d, jac, weight, active
     lam = initial_lambda
@@ -144,7 +148,8 @@ def solve_pose_in_window(distance: np.ndarray, occupied: np.ndarray, occupied_ro
                 continue
             candidate = x + dx
             ok, box, new_cost, nd, njac, nweight, nactive = _evaluate(
-                distance, occupied, occupied_row0, occupied_col0, mean, normal, is_line, bounds, grid_shape, px, py,
+                squared, distances, occupied, occupied_row0, occupied_col0, radius, mean, normal, is_line, bounds,
+                grid_shape, px, py,
                 candidate, origin, resolution, max_distance_m, huber_m)
             if not ok:
                 return GROW, box, x, iterations, d, jac, weight, active

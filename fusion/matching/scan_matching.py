@@ -263,13 +263,13 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
     def solve(start: np.ndarray, walls: bool, window: FieldWindow
               ) -> tuple[np.ndarray, int, tuple[np.ndarray, ...], FieldWindow]:
         while True:   # the solve stops where a step leaves the window: grown, solved again
-            height, width = window.distance.shape
+            height, width = window.squared.shape
             bounds = np.array([window.row0, window.row0 + height, window.col0, window.col0 + width], np.int64)
             lines = window.lines if walls else None
-            occupied, occupied_row0, occupied_col0, mean, normal, is_line = NO_WALLS if lines is None else (
-                lines.occupied, lines.row0, lines.col0, lines.mean, lines.normal, lines.is_line)
+            mean, normal, is_line = NO_WALLS if lines is None else (lines.mean, lines.normal, lines.is_line)
             status, box, pose, iterations, *state = solve_pose_in_window(
-                window.distance, occupied, occupied_row0, occupied_col0, mean, normal, is_line, bounds,
+                window.squared, window.distances, window.occupied, window.occupied_row0, window.occupied_col0,
+                window.radius, mean, normal, is_line, bounds,
                 np.array(grid.shape, np.int64), px, py, np.asarray(start, np.float64), origin, res, max_distance_m,
                 huber, max_iterations, SCHEDULE, STEP_TOLERANCE)
             if status == DONE:

@@ -218,9 +218,9 @@ def voxel_means(points: np.ndarray, keys: np.ndarray) -> np.ndarray:
     only when something filters points (the simulator and the emulators import this module too)."""
     global _VOXEL_MEANS
     if _VOXEL_MEANS is None:
-        import numba
+        from trundle.fusion.compiled import kernel
 
-        _VOXEL_MEANS = numba.njit(cache=True, nogil=True)(_voxel_means)
+        _VOXEL_MEANS = kernel(_voxel_means)
     return _VOXEL_MEANS(points, keys)
 
 

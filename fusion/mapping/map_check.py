@@ -22,9 +22,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
+from trundle.fusion.compiled import kernel
 from trundle.fusion.geometry import inverse, transform_points
 from trundle.fusion.mapping.submaps import Submap
 
@@ -64,7 +64,7 @@ class MapCheck:
         return int((self.keyframe_consistency < 0.5).sum())
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def submap_votes(points: np.ndarray, cos: float, sin: float, x: float, y: float, origin_x: float, origin_y: float,
                  resolution: float, distance: np.ndarray, observed: np.ndarray, log_odds: np.ndarray,
                  tolerance_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
+
+from trundle.fusion.compiled import kernel
 
 
 def squared_distances(radius: int) -> np.ndarray:
@@ -32,7 +33,7 @@ def squared_distances(radius: int) -> np.ndarray:
     return values
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def stamped_fields(rows: np.ndarray, cols: np.ndarray, row0: int, col0: int, height: int, width: int, radius: int,
                    tables: np.ndarray) -> np.ndarray:
     """Fields (T, height, width) of the distance to the nearest of the occupied cells ``(rows, cols)`` over
@@ -58,7 +59,7 @@ def stamped_fields(rows: np.ndarray, cols: np.ndarray, row0: int, col0: int, hei
     return fields
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def occupied_cells(log_odds: np.ndarray, r0: int, r1: int, c0: int, c1: int
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The occupied cells (log-odds above 0) of ``log_odds[r0:r1, c0:c1]``: their rows and columns in that
@@ -86,7 +87,7 @@ def occupied_cells(log_odds: np.ndarray, r0: int, r1: int, c0: int, c1: int
 STRAIGHT, DIAGONAL, KNIGHT = 65536, 91750, 143976
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline=True)
 def chamfer(d_row: int, d_col: int) -> int:
     """The 5 x 5 chamfer distance of a cell offset, in :data:`STRAIGHT` units: the cheapest sum of the
     three steps that makes it (knight's moves and straight steps up to a slope of 1/2, knight's moves and
@@ -99,14 +100,14 @@ def chamfer(d_row: int, d_col: int) -> int:
     return (u - v) * KNIGHT + (2 * v - u) * DIAGONAL
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline=True)
 def _first_pass_reaches(d_row: int, d_col: int) -> bool:
     """Does the first (top-down) pass of the two-pass transform carry a seed at offset (``d_row``, ``d_col``)
     to a cell: a seed above it at most two columns to the right per row up, or left of it on its row."""
     return (d_row < 0 and d_col <= -2 * d_row) or (d_row == 0 and d_col < 0)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline=True)
 def _wins_tie(d_row: int, d_col: int, m: int, other_row: int, other_col: int, other: int) -> bool:
     """Does occupied cell ``m`` at offset (``d_row``, ``d_col``) keep a cell's label from ``other``, equally near?
     OpenCV's passes keep the first of equals they meet: one the first pass carries wins over one it does
@@ -117,7 +118,7 @@ def _wins_tie(d_row: int, d_col: int, m: int, other_row: int, other_col: int, ot
     return m < other if mine else m > other
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nearest(occupied: np.ndarray, row: int, col: int, rings: int, chamfered: bool) -> tuple[int, int]:
     """The occupied cell (its value in ``occupied``; -1: none) nearest the cell (``row``, ``col``) within
     ``rings`` rings of cells around it, and its distance: squared (cells^2) or, ``chamfered``, the 5 x 5
@@ -149,7 +150,7 @@ def _nearest(occupied: np.ndarray, row: int, col: int, rings: int, chamfered: bo
     return found, best
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def squared_nearest(occupied: np.ndarray, row: int, col: int, radius: int) -> int:
     """The squared distance (cells^2) from cell (``row``, ``col``) of ``occupied`` (see :func:`occupied_cells`)
     to the nearest of its occupied cells, ``radius^2 + 1`` when none is within ``radius`` cells: the value
@@ -157,7 +158,7 @@ def squared_nearest(occupied: np.ndarray, row: int, col: int, radius: int) -> in
     return min(_nearest(occupied, row, col, radius, False)[1], radius * radius + 1)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def chamfer_nearest(occupied: np.ndarray, row: int, col: int) -> int:
     """The occupied cell (its value in ``occupied``, see :func:`occupied_cells`; -1: none) nearest the cell
     (``row``, ``col``) of ``occupied`` in the 5 x 5 chamfer metric: the label less one that OpenCV's

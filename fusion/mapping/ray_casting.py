@@ -8,11 +8,12 @@ for step (float32 log-odds updated in float32), so the grids are equal to the bi
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from trundle.fusion.compiled import kernel
 
-@numba.njit(cache=True, nogil=True)
+
+@kernel
 def ray_cells(start: np.ndarray, ends: np.ndarray) -> np.ndarray:
     """Cells (row, col) crossed by rays from ``start`` (2,) to each of ``ends`` (N, 2), end cells excluded.
 
@@ -40,7 +41,7 @@ def ray_cells(start: np.ndarray, ends: np.ndarray) -> np.ndarray:
     return cells[:k]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def trace(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hits_xy: np.ndarray,
           free_ends_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Rays from ``sensor_xy`` (2,) to the returns ``hits_xy`` (N, 2) and the free ends ``free_ends_xy``
@@ -71,7 +72,7 @@ def trace(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hits_xy:
     return ray_cells(start, ends), hit_cells, offsets, low, high
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def add_moments(slots: np.ndarray, rows: np.ndarray, count: int, hit_flat: np.ndarray, offsets: np.ndarray) -> int:
     """Add each return's moments (1, u, v, u^2, uv, v^2 of its offset (u, v) in its cell) to its cell's row of
     ``rows`` (float32), in the returns' order; ``slots`` (H, W) holds each cell's row (0: none yet: the
@@ -94,7 +95,7 @@ def add_moments(slots: np.ndarray, rows: np.ndarray, count: int, hit_flat: np.nd
     return count
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def insert_scan(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarray, rows: np.ndarray, count: int,
                 hits: np.ndarray, offsets: np.ndarray, crossed: np.ndarray, row_shift: int, col_shift: int,
                 l_hit: float, l_miss: float, l_min: float, l_max: float) -> tuple[int, np.ndarray]:

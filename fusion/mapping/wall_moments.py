@@ -7,11 +7,12 @@ The arithmetic is numpy's, term for term.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from trundle.fusion.compiled import kernel
 
-@numba.njit(cache=True, nogil=True)
+
+@kernel
 def neighbourhood_moments(slots: np.ndarray, moments: np.ndarray, log_odds: np.ndarray, rows: np.ndarray,
                           cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For cells ``(rows, cols)`` of a grid whose cells' return moments are ``moments[slots[row, col]]``

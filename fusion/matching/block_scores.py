@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from trundle.fusion.compiled import kernel
 
-@numba.njit(cache=True, nogil=True)
+
+@kernel
 def block_scores(grid: np.ndarray, base: np.ndarray, candidates: np.ndarray) -> np.ndarray:
     """Mean of ``grid`` (H, W) under each candidate's points.
 
@@ -38,7 +39,7 @@ def block_scores(grid: np.ndarray, base: np.ndarray, candidates: np.ndarray) -> 
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def max_pool(level: np.ndarray, shift: int, out: np.ndarray) -> np.ndarray:
     """The next level of a branch-and-bound pyramid into ``out``: at ``[r, c]`` the maximum of ``level``
     (H, W) over ``[r, r + 2 shift) x [c, c + 2 shift)`` in steps of ``shift`` (the cells beyond the edge left out)."""
@@ -54,7 +55,7 @@ def max_pool(level: np.ndarray, shift: int, out: np.ndarray) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _scores(pyramid: np.ndarray, level: int, base: np.ndarray, candidates: np.ndarray, limit: int,
             resolution: float, thetas: np.ndarray, theta0: float, prior_std_xy_m: float,
             prior_std_theta_rad: float) -> np.ndarray:
@@ -76,7 +77,7 @@ def _scores(pyramid: np.ndarray, level: int, base: np.ndarray, candidates: np.nd
     return raw
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _children(candidates: np.ndarray, scores: np.ndarray, bound: float, level: int, limit: int) -> np.ndarray:
     """The four sub-blocks at ``level - 1``, in order, of the blocks at ``level`` scoring at least ``bound``
     (offsets beyond ``limit`` dropped)."""
@@ -96,7 +97,7 @@ def _children(candidates: np.ndarray, scores: np.ndarray, bound: float, level: i
     return kids[:count]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def branch_and_bound(pyramid: np.ndarray, base: np.ndarray, thetas: np.ndarray, theta0: float, limit: int,
                      resolution: float, prior_std_xy_m: float, prior_std_theta_rad: float, min_score: float
                      ) -> tuple[bool, int, int, int, float]:
@@ -169,7 +170,7 @@ def branch_and_bound(pyramid: np.ndarray, base: np.ndarray, thetas: np.ndarray, 
     return True, candidates[i, 0], candidates[i, 1], candidates[i, 2], scores[i]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def lattice_cells(points: np.ndarray, cos: np.ndarray, sin: np.ndarray, x0: float, y0: float, origin_x: float,
                   origin_y: float, resolution: float) -> tuple[np.ndarray, np.ndarray, int, int, int, int]:
     """The grid cell (column, row) of each point (N, 2, robot frame) with the robot at ``(x0, y0)`` turned by
@@ -190,7 +191,7 @@ def lattice_cells(points: np.ndarray, cos: np.ndarray, sin: np.ndarray, x0: floa
     return cols, rows, cols.min(), cols.max(), rows.min(), rows.max()
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def flat_cells(cols: np.ndarray, rows: np.ndarray, col_shift: int, row_shift: int, max_col: int, max_row: int,
                width: int) -> np.ndarray:
     """Flat indices ``row * width + col`` of cells ``(rows, cols)`` shifted by ``(row_shift, col_shift)`` and

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from trundle.fusion.compiled import kernel
 from trundle.fusion.mapping.nearest_cells import chamfer_nearest, squared_nearest
 
 # the largest coordinate a lookup may use inside a field of ``size`` cells: ``size - 1 - EDGE``
@@ -21,7 +21,7 @@ EDGE = 0.000001
 NO_WALLS = (np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.bool_))
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline=True)
 def _corners(height: int, width: int, u: float, v: float) -> tuple[int, int, int, int, float, float, bool]:
     """The flat indices of the four cells a bilinear lookup at continuous cell-centre coordinates (u, v) reads
     in a ``height`` x ``width`` field (clamped to its edge), the fractions between them, and whether (u, v)
@@ -36,7 +36,7 @@ def _corners(height: int, width: int, u: float, v: float) -> tuple[int, int, int
     return i00, min(i00 + 1, last), i10, min(i10 + 1, last), u - c0, v - r0, inside
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline=True)
 def _interpolate(f00: float, f01: float, f10: float, f11: float, fu: float, fv: float) -> tuple[float, float, float]:
     """Value, d/du and d/dv between four cell values (field differences in the field's own precision)."""
     top, bottom = f01 - f00, f11 - f10
@@ -46,7 +46,7 @@ def _interpolate(f00: float, f01: float, f10: float, f11: float, fu: float, fv: 
     return left + fv * dv, du, dv
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline=True)
 def _sample(flat: np.ndarray, height: int, width: int, u: float, v: float) -> tuple[float, float, float, bool]:
     """Value, d/du, d/dv of a field (flat, ``height`` x ``width``) at continuous cell-centre coordinates
     (u, v), and whether they lie inside."""
@@ -55,7 +55,7 @@ def _sample(flat: np.ndarray, height: int, width: int, u: float, v: float) -> tu
     return value, du, dv, inside
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline=True)
 def _distance(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, d_row: int, d_col: int, radius: int,
               flat: int) -> float:
     """The distance field's value at flat index ``flat`` of a window: its squared distance to the nearest
@@ -70,7 +70,7 @@ def _distance(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, 
     return distances[s]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Value, d/du, d/dv of ``field`` (H, W) at continuous cell-centre coordinates (u, v: (N,) each, u the
     column), and an inside mask (within the outermost cell centres)."""
@@ -84,7 +84,7 @@ def bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarra
     return value, du, dv, inside
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, occupied_row0: int,
                     occupied_col0: int, radius: int, mean: np.ndarray, normal: np.ndarray, is_line: np.ndarray,
                     row0: int, col0: int, cx: np.ndarray, cy: np.ndarray, pose_x: float, pose_y: float,
@@ -134,7 +134,7 @@ def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.nda
     return d, jac, active
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _block_sum(values: np.ndarray, start: int, count: int) -> float:
     """numpy's sum of a run of at most 128 values: in order below 8, else in eight interleaved partial sums."""
     if count < 8:
@@ -163,7 +163,7 @@ def _block_sum(values: np.ndarray, start: int, count: int) -> float:
     return total
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def pairwise_sum(values: np.ndarray, start: int, count: int) -> float:
     """numpy's sum of ``values[start:start + count]`` (float64), step for step: its pairwise summation (runs of
     up to 128 by :func:`_block_sum`, a longer run split in halves at a multiple of eight and their sums
@@ -195,7 +195,7 @@ def pairwise_sum(values: np.ndarray, start: int, count: int) -> float:
     return 0.0 + sums[0]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def match_statistics(likelihood: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray,
                      observed: np.ndarray, d: np.ndarray, active: np.ndarray, inlier_m: float
                      ) -> tuple[float, float, float, float, np.ndarray]:

@@ -18,15 +18,15 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from trundle.fusion.compiled import kernel
 from trundle.fusion.matching.field_residuals import field_residuals
 
 DONE, GROW = 0, 1
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def solve3(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """``matrix^-1 rhs`` of a 3 x 3 system by LU with partial pivoting (LAPACK's ``gesv`` order of
     operations); NaN when a pivot is exactly zero (singular, where numpy raises)."""
@@ -58,7 +58,7 @@ def solve3(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     return x
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _evaluate(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, occupied_row0: int,
               occupied_col0: int, radius: int, mean: np.ndarray, normal: np.ndarray, is_line: np.ndarray,
               bounds: np.ndarray, grid_shape: np.ndarray, px: np.ndarray, py: np.ndarray, pose: np.ndarray,
@@ -94,7 +94,7 @@ def _evaluate(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, 
     return True, box, cost, d, jac, weight, active
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def solve_pose_in_window(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, occupied_row0: int,
                          occupied_col0: int, radius: int, mean: np.ndarray, normal: np.ndarray,
                          is_line: np.ndarray, bounds: np.ndarray, grid_shape: np.ndarray, px: np.ndarray,

@@ -38,13 +38,14 @@ def sources_digest(root: Path) -> str:
     return digest.hexdigest()[:16]
 
 
-def cache_folder(digest: str) -> Path:
-    """Where kernels compiled from sources of ``digest`` are kept (see the module's docstring)."""
+def cache_folder(digest: str) -> Path | None:
+    """Where kernels compiled from sources of ``digest`` are kept (see the module's docstring); None when
+    there is no user cache to name (no home folder)."""
     given = os.environ.get("NUMBA_CACHE_DIR")
     if given:
         return Path(given) / f"trundle-{digest}"
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "trundle" / "numba"
-    return base / digest
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path("~/.cache").expanduser())
+    return base / "trundle" / "numba" / digest if base.is_absolute() else None
 
 
 def _remove_stale(folder: Path) -> None:
@@ -63,6 +64,8 @@ def _remove_stale(folder: Path) -> None:
 
 def _use_cache_folder() -> None:
     folder = cache_folder(sources_digest(Path(__file__).parent))
+    if folder is None:
+        return   # numba then caches beside the sources, as it does without a folder
     try:
         folder.mkdir(parents=True, exist_ok=True)
         os.utime(folder)   # in use: not stale

@@ -4,6 +4,8 @@ kernel compiles into itself cannot leave the old code running (numba keys a kern
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -39,7 +41,7 @@ def test_kernels_are_cached_in_the_folder_of_these_sources() -> None:
     """Every kernel module's cache lives in the folder named for the digest of trundle.fusion as it is now."""
     folder = compiled.cache_folder(compiled.sources_digest(Path(compiled.__file__).parent))
     cache_path = Path(pose_solver.solve_pose_in_window._cache.cache_path)   # numba's FunctionCache
-    assert folder in cache_path.parents
+    assert folder is not None and folder in cache_path.parents
 
 
 def test_the_cache_folder_is_numba_cache_dir_or_the_users_cache(monkeypatch: pytest.MonkeyPatch,
@@ -49,6 +51,9 @@ def test_the_cache_folder_is_numba_cache_dir_or_the_users_cache(monkeypatch: pyt
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     assert compiled.cache_folder("0123") == tmp_path / "xdg" / "trundle" / "numba" / "0123"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert compiled.cache_folder("0123") == tmp_path / "home" / ".cache" / "trundle" / "numba" / "0123"
 
 
 def test_only_cache_folders_unused_for_a_week_are_removed(tmp_path: Path) -> None:
@@ -67,3 +72,19 @@ def test_only_cache_folders_unused_for_a_week_are_removed(tmp_path: Path) -> Non
     compiled._remove_stale(current)
     assert current.exists() and recent.exists() and stray.exists()
     assert not old.exists()
+
+
+def test_a_cache_that_cannot_be_made_leaves_numba_its_own(tmp_path: Path) -> None:
+    """Where the user's cache cannot be written (here a file stands where the folder would go), kernels still
+    compile and run: numba keeps its own choice of cache."""
+    blocked = tmp_path / "not-a-folder"
+    blocked.write_text("a file the user put here\n")
+    environment = {key: value for key, value in os.environ.items() if key != "NUMBA_CACHE_DIR"}
+    environment["XDG_CACHE_HOME"] = str(blocked)
+    program = ("import numpy as np, numba\n"
+               "from trundle.fusion.mapping.nearest_cells import squared_nearest\n"
+               "print(squared_nearest(np.array([[0, -1], [-1, -1]], np.int32), 1, 1, 3), repr(numba.config.CACHE_DIR))")
+    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, env=environment,
+                          check=True, timeout=300)
+    assert done.stdout.split() == ["2", "''"]
+    assert blocked.read_text() == "a file the user put here\n"

@@ -159,6 +159,18 @@ def squared_nearest(occupied: np.ndarray, row: int, col: int, radius: int) -> in
 
 
 @kernel
+def all_squared_nearest(squared: np.ndarray, occupied: np.ndarray, d_row: int, d_col: int, radius: int) -> np.ndarray:
+    """Every cell of ``squared`` (a window's squared distances, -1: not found yet) found, in place: the
+    window's cell (0, 0) is ``occupied``'s (``d_row``, ``d_col``) (:func:`squared_nearest`)."""
+    height, width = squared.shape
+    for i in range(height):
+        for j in range(width):
+            if squared[i, j] < 0:
+                squared[i, j] = squared_nearest(occupied, i + d_row, j + d_col, radius)
+    return squared
+
+
+@kernel
 def chamfer_nearest(occupied: np.ndarray, row: int, col: int) -> int:
     """The occupied cell (its value in ``occupied``, see :func:`occupied_cells`; -1: none) nearest the cell
     (``row``, ``col``) of ``occupied`` in the 5 x 5 chamfer metric: the label less one that OpenCV's

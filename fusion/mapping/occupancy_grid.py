@@ -23,7 +23,12 @@ import cv2
 import numpy as np
 
 from trundle.fusion.mapping import ray_casting
-from trundle.fusion.mapping.nearest_cells import occupied_cells, squared_distances, squared_nearest, stamped_fields
+from trundle.fusion.mapping.nearest_cells import (
+    all_squared_nearest,
+    occupied_cells,
+    squared_distances,
+    stamped_fields,
+)
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
 from trundle.logs.errors import UserError
 from trundle.logs.messages import OccupancyGrid
@@ -87,10 +92,8 @@ class FieldWindow:
 
     def distance(self) -> np.ndarray:
         """The distance field over the whole window (m, float32), every cell's found."""
-        height, width = self.squared.shape
-        for i, j in zip(*np.nonzero(self.squared < 0), strict=True):
-            self.squared[i, j] = squared_nearest(self.occupied, int(i) + self.row0 - self.occupied_row0,
-                                                 int(j) + self.col0 - self.occupied_col0, self.radius)
+        all_squared_nearest(self.squared, self.occupied, self.row0 - self.occupied_row0,
+                            self.col0 - self.occupied_col0, self.radius)
         return self.distances[self.squared]
 
 

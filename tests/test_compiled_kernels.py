@@ -292,10 +292,12 @@ def test_line_residuals_equal_numpy(problem: tuple[np.ndarray, int, int, np.ndar
     is_line = rng.random(walls) < 0.7
     rx, ry = 0.05 * cx - 0.5, 0.05 * cy + 0.2
     nearest = opencv_nearest(occupied)[margin:margin + dense.shape[0], margin:margin + dense.shape[1]]
-    assert_same(field_residuals(squared, distances, occupied, row0 - margin, col0 - margin, radius, mean, normal,
-                                is_line, row0, col0, cx, cy, pose_x, pose_y, rx, ry, 0.05, 0.5),
+    found = np.full(dense.shape, -2, np.int32)
+    assert_same(field_residuals(squared, distances, occupied, row0 - margin, col0 - margin, radius, found, mean,
+                                normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx, ry, 0.05, 0.5),
                 numpy_line_residuals(dense, nearest, mean, normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx,
                                      ry, 0.05, 0.5))
+    np.testing.assert_array_equal(found[found > -2], nearest[found > -2])   # the labels kept are OpenCV's
 
 
 @EXAMPLES
@@ -519,7 +521,7 @@ def test_compiled_refinement_equals_the_python_loop(problem: tuple[LogOddsGrid, 
         rx, ry, cx, cy = placed(pose)
         window = fields.around(cx, cy)
         assert window.lines is not None
-        wall_arrays = (window.lines.mean, window.lines.normal, window.lines.is_line)
+        wall_arrays = (window.lines.nearest, window.lines.mean, window.lines.normal, window.lines.is_line)
         d, jac, active = field_residuals(window.squared, window.distances, window.occupied, window.occupied_row0,
                                          window.occupied_col0, window.radius, *(wall_arrays if walls else NO_WALLS),
                                          window.row0, window.col0, cx, cy, float(pose[0]), float(pose[1]), rx, ry,
@@ -533,7 +535,7 @@ def test_compiled_refinement_equals_the_python_loop(problem: tuple[LogOddsGrid, 
     while True:
         assert window.lines is not None
         height, width = window.squared.shape
-        wall_arrays = (window.lines.mean, window.lines.normal, window.lines.is_line)
+        wall_arrays = (window.lines.nearest, window.lines.mean, window.lines.normal, window.lines.is_line)
         status, box, pose, count, *state = solve_pose_in_window(
             window.squared, window.distances, window.occupied, window.occupied_row0, window.occupied_col0,
             window.radius, *(wall_arrays if walls else NO_WALLS),

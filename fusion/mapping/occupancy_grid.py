@@ -14,6 +14,7 @@ update.
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -124,10 +125,8 @@ class MatchFields:
         self.radius = int(math.ceil(max(self.max_distance_m, 4.0 * self.sigma_m) / grid.resolution))
         self.likelihood_radius = int(math.ceil(4.0 * self.sigma_m / grid.resolution))
         self.margin = self.radius + 2   # the occupied cells gathered around a window: the labels' and the walls'
-        # the fields' values per squared distance (cells)
-        self.distances = np.minimum(squared_distances(self.radius) * np.float32(grid.resolution),
-                                    np.float32(self.max_distance_m))
-        self._likelihoods = _likelihood(squared_distances(self.likelihood_radius), grid.resolution, self.sigma_m)[None]
+        self.distances, self._likelihoods = _field_tables(grid.resolution, self.max_distance_m, self.sigma_m,
+                                                          self.radius, self.likelihood_radius)
         self._window: FieldWindow | None = None
         height, width = grid.shape
         self._bounds = (height, 0, width, 0)   # rows [r0, r1), cols [c0, c1) of the window: none yet
@@ -164,11 +163,23 @@ class MatchFields:
                                     self._likelihoods)[0]
         lines = None
         if self.lines:
-            lines = WallLines(*grid.line_data(rows + pr0, cols + pc0, self.min_flatness))
+            lines = WallLines(np.full(shape, -2, np.int32), *grid.line_data(rows + pr0, cols + pc0, self.min_flatness))
         self._bounds = (r0, r1, c0, c1)
         self._window = FieldWindow(r0, c0, likelihood, np.full(shape, -1, np.int32), self.distances, self.radius,
                                    occupied, pr0, pc0, lines)
         return self._window
+
+
+@functools.lru_cache(maxsize=16)
+def _field_tables(resolution: float, max_distance_m: float, sigma_m: float, radius: int, likelihood_radius: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The match fields' values per squared distance (cells), read-only and made once per setting (a grid
+    makes new fields at every update): the capped distance (m) to ``radius`` and the likelihood (1,
+    ``likelihood_radius^2 + 2``), as :func:`~trundle.fusion.mapping.nearest_cells.stamped_fields` takes it."""
+    distances = np.minimum(squared_distances(radius) * np.float32(resolution), np.float32(max_distance_m))
+    likelihoods = _likelihood(squared_distances(likelihood_radius), resolution, sigma_m)[None]
+    distances.flags.writeable = likelihoods.flags.writeable = False
+    return distances, likelihoods
 
 
 def _likelihood(cells: np.ndarray, resolution: float, sigma_m: float) -> np.ndarray:
@@ -181,11 +192,13 @@ def _likelihood(cells: np.ndarray, resolution: float, sigma_m: float) -> np.ndar
 
 @dataclass(frozen=True)
 class WallLines:
-    """Walls of a grid as its returns describe them, per occupied cell of a window's index (a cell reads
-    its nearest's: :func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`): the ``mean`` (K, 2,
-    metres, grid frame) of its returns, the ``normal`` (K, 2) of the line through its neighbourhood's
-    returns and whether they lie on one (``is_line``; otherwise the returns are matched as a point)."""
+    """Walls of a grid as its returns describe them, per occupied cell of a window's index: the ``mean``
+    (K, 2, metres, grid frame) of its returns, the ``normal`` (K, 2) of the line through its
+    neighbourhood's returns and whether they lie on one (``is_line``; otherwise the returns are matched as
+    a point). A cell of the window reads its nearest occupied cell's, kept in ``nearest`` (H, W) the first
+    time a match finds it (:func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`; -2: not yet)."""
 
+    nearest: np.ndarray
     mean: np.ndarray
     normal: np.ndarray
     is_line: np.ndarray

@@ -18,7 +18,7 @@ from trundle.fusion.mapping.nearest_cells import chamfer_nearest, squared_neares
 # the largest coordinate a lookup may use inside a field of ``size`` cells: ``size - 1 - EDGE``
 EDGE = 0.000001
 # the wall arguments of :func:`field_residuals` for the point-to-field residual alone
-NO_WALLS = (np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.bool_))
+NO_WALLS = (np.zeros((0, 0), np.int32), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.bool_))
 
 
 @kernel(inline=True)
@@ -86,9 +86,9 @@ def bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarra
 
 @kernel
 def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, occupied_row0: int,
-                    occupied_col0: int, radius: int, mean: np.ndarray, normal: np.ndarray, is_line: np.ndarray,
-                    row0: int, col0: int, cx: np.ndarray, cy: np.ndarray, pose_x: float, pose_y: float,
-                    rx: np.ndarray, ry: np.ndarray, resolution: float, max_distance_m: float
+                    occupied_col0: int, radius: int, nearest: np.ndarray, mean: np.ndarray, normal: np.ndarray,
+                    is_line: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray, pose_x: float,
+                    pose_y: float, rx: np.ndarray, ry: np.ndarray, resolution: float, max_distance_m: float
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residuals of points against a match field window whose cell (0, 0) is the grid's (``row0``, ``col0``).
 
@@ -98,11 +98,12 @@ def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.nda
     coordinates (cx, cy), ``max_distance_m`` off the window; the distance of a cell is ``distances`` at its
     squared distance within ``radius`` cells, found the first time it is read and kept in ``squared`` (the
     window's, -1: not yet; see :func:`_distance`). Point to line, with walls (``is_line`` not empty): where
-    the nearest occupied cell of a point's cell (:func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`)
-    has its returns on a line (``is_line``), the signed distance (m) of the point (rotated (rx, ry) plus the
-    pose's (``pose_x``, ``pose_y``), grid frame) to that line (``mean``, ``normal``). Returns the residuals,
-    their Jacobian (N, 3) with respect to the world-frame pose (x, y, theta), 0 where the point is off the
-    window or beyond ``max_distance_m``, and that active mask."""
+    the nearest occupied cell of a point's cell has its returns on a line (``is_line``), the signed
+    distance (m) of the point (rotated (rx, ry) plus the pose's (``pose_x``, ``pose_y``), grid frame) to
+    that line (``mean``, ``normal``); that cell is found the first time a point's cell asks
+    (:func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`) and kept in ``nearest`` (the window's,
+    -2: not yet). Returns the residuals, their Jacobian (N, 3) with respect to the world-frame pose (x, y,
+    theta), 0 where the point is off the window or beyond ``max_distance_m``, and that active mask."""
     height, width = squared.shape
     d_row, d_col = row0 - occupied_row0, col0 - occupied_col0
     n = cx.shape[0]
@@ -120,8 +121,11 @@ def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.nda
         active[i] = inside and value < max_distance_m
         k = -1
         if active[i] and is_line.size:   # an active point's cell is in the window (inside)
-            k = chamfer_nearest(occupied, int(math.floor(cy[i])) - occupied_row0,
-                                int(math.floor(cx[i])) - occupied_col0)
+            row, col = int(math.floor(cy[i])), int(math.floor(cx[i]))
+            k = nearest[row - row0, col - col0]
+            if k < -1:
+                k = chamfer_nearest(occupied, row - occupied_row0, col - occupied_col0)
+                nearest[row - row0, col - col0] = k
         on_line = k >= 0 and is_line[k]
         if on_line:
             value = (rx[i] + pose_x - mean[k, 0]) * normal[k, 0] + (ry[i] + pose_y - mean[k, 1]) * normal[k, 1]

@@ -641,6 +641,31 @@ def test_branch_and_bound_equals_numpy(seed: int, limit: int, angles: int, point
     assert found[4] == pytest.approx(expected[4], rel=1e-14, abs=0.0)
 
 
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 40), st.integers(1, 5), st.integers(0, 40),
+       st.sampled_from([None, 0.05, 0.3]), st.sampled_from([None, 0.02, 0.2]), st.floats(0.0, 0.6))
+def test_the_search_without_its_one_block_level_finds_the_same_pose(
+        seed: int, limit: int, angles: int, points: int, prior_xy: float | None, prior_theta: float | None,
+        min_score: float) -> None:
+    """correlative_search pools one level less than the branch and bound used to: the level whose one block
+    per angle held every offset. Starting from its children, in the order it made them, gives the same pose
+    and score, ties included (a field of three values has many), with or without a prior."""
+    rng = np.random.default_rng(seed)
+    span_levels = int(math.ceil(math.log2(2 * limit + 1)))
+    old_levels, levels = max(1, min(8, span_levels + 1)), max(1, min(8, span_levels))
+    pad = 1 << (old_levels - 1)
+    height, width = rng.integers(1, 40, 2)
+    field = rng.choice(np.array([0.0, 0.5, 1.0], np.float32), (height, width))
+    before, after = score_pyramid(field, old_levels), score_pyramid(field, levels, pad)
+    np.testing.assert_array_equal(after, before[:levels])
+    rows = rng.integers(0, before.shape[1] - 2 * limit, (angles, points))
+    cols = rng.integers(0, before.shape[2] - 2 * limit, (angles, points))
+    base, thetas = rows * before.shape[2] + cols, rng.uniform(-0.2, 0.2, angles)
+    priors = (-1.0 if prior_xy is None else prior_xy, -1.0 if prior_theta is None else prior_theta, min_score)
+    assert (branch_and_bound(after, base, thetas, 0.01, limit, 0.05, *priors)
+            == branch_and_bound(before, base, thetas, 0.01, limit, 0.05, *priors))
+
+
 @settings(max_examples=100, deadline=None)
 @given(st.integers(1, 50), st.integers(1, 50), st.floats(0.0, 0.5), st.integers(0, 2**32 - 1), st.integers(0, 8),
        st.integers(0, 8), st.integers(0, 8), st.integers(0, 8))

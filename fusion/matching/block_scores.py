@@ -114,9 +114,9 @@ def branch_and_bound(pyramid: np.ndarray, base: np.ndarray, thetas: np.ndarray, 
     per_axis = span // step + 1
     candidates = np.empty((len(thetas) * per_axis * per_axis, 3), np.int64)
     m = 0
-    for a in range(len(thetas)):
-        for ox in range(per_axis):
-            for oy in range(per_axis):
+    for a in range(len(thetas)):   # x first within a row of blocks, as :func:`_children` orders a block's four
+        for oy in range(per_axis):
+            for ox in range(per_axis):
                 candidates[m, 0], candidates[m, 1], candidates[m, 2] = a, ox * step, oy * step
                 m += 1
     scores = _scores(pyramid, top, base, candidates, limit, resolution, thetas, theta0, prior_std_xy_m,

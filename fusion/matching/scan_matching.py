@@ -57,13 +57,14 @@ def angular_step(resolution: float, max_range_m: float) -> float:
     return math.acos(max(-1.0, 1.0 - resolution ** 2 / (2.0 * d * d)))
 
 
-def score_pyramid(field: np.ndarray, levels: int) -> np.ndarray:
-    """Max-pooled copies (levels, H, W) of ``field`` padded with ``2**(levels-1)`` zero cells on every side.
+def score_pyramid(field: np.ndarray, levels: int, pad: int | None = None) -> np.ndarray:
+    """Max-pooled copies (levels, H, W) of ``field`` padded with ``pad`` (default ``2**(levels-1)``) zero cells
+    on every side.
 
     Level ``h`` holds at ``[r, c]`` the maximum of the padded field over ``[r, r + 2^h) x [c, c + 2^h)``,
     an upper bound of the score of every translation in that block (branch and bound).
     """
-    pad = 1 << (levels - 1)
+    pad = 1 << (levels - 1) if pad is None else pad
     pyramid = np.zeros((levels, field.shape[0] + 2 * pad, field.shape[1] + 2 * pad), np.float32)
     pyramid[0, pad:pad + field.shape[0], pad:pad + field.shape[1]] = field
     for h in range(1, levels):
@@ -106,8 +107,12 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     n_theta = int(math.floor(window_theta_rad / angular_step_rad))
     thetas = t0 + angular_step_rad * np.arange(-n_theta, n_theta + 1)
     limit = int(math.ceil(window_xy_m / res))
-    levels = max(1, min(8, int(math.ceil(math.log2(2 * limit + 1))) + 1))
-    pad = 1 << (levels - 1)
+    # Blocks of 2^(levels - 1) cells, two per axis: a level above them would hold every offset in one
+    # block per angle, and its blocks' children are these, in the order the search takes them (so of equal
+    # scores the same pose wins). The zero border is as wide as that block, wider than any offset.
+    span_levels = int(math.ceil(math.log2(2 * limit + 1)))
+    levels = max(1, min(8, span_levels))
+    pad = 1 << (max(1, min(8, span_levels + 1)) - 1)
 
     # each rotated point's cell for the lattice's centre offset (compiled: one pass, no (angles, N) temporaries)
     origin = grid.origin
@@ -117,10 +122,10 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     # fields' window, which the refinement reads too), max-pooled once per window.
     window = match_fields(grid, max_distance_m, sigma, wall_lines).around(
         np.array([c_lo - limit, c_hi + limit], np.float64), np.array([r_lo - limit, r_hi + limit], np.float64))
-    pyramids: dict[int, tuple[FieldWindow, np.ndarray]] = grid.cached(("pyramids", float(sigma)), dict)
-    if levels not in pyramids or pyramids[levels][0] is not window:
-        pyramids[levels] = (window, score_pyramid(window.likelihood, levels))
-    pyramid = pyramids[levels][1]
+    pyramids: dict[tuple[int, int], tuple[FieldWindow, np.ndarray]] = grid.cached(("pyramids", float(sigma)), dict)
+    if (levels, pad) not in pyramids or pyramids[levels, pad][0] is not window:
+        pyramids[levels, pad] = (window, score_pyramid(window.likelihood, levels, pad))
+    pyramid = pyramids[levels, pad][1]
     # Cell of each rotated point for offset (0, 0), clipped once so that every offset in
     # [0, 2 limit] stays in the array: a point off the grid then lands in the zero border,
     # which keeps level 0 exact and coarser levels upper bounds.

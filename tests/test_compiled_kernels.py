@@ -25,7 +25,7 @@ from trundle.fusion.mapping.nearest_cells import (
     occupied_cells,
     squared_distances,
     squared_nearest,
-    stamped_fields,
+    stamped_field,
 )
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, MatchFields, _likelihood, trace_rays
 from trundle.fusion.mapping.ray_casting import insert_scan, ray_cells, trace
@@ -305,19 +305,19 @@ def test_line_residuals_equal_numpy(problem: tuple[np.ndarray, int, int, np.ndar
        st.integers(0, 6), st.integers(0, 6))
 def test_squared_nearest_equals_the_stamp(height: int, width: int, density: float, seed: int, radius: int, top: int,
                                           left: int) -> None:
-    """A cell's squared distance found by rings (what a refinement reads) is what stamping every occupied cell
-    around the window gives it, and what every pair measured gives."""
+    """A cell's squared distance found by rings (what a refinement reads) is what every pair measured gives
+    (within the radius; one more beyond), and what a stamp of a field that falls with the distance reads."""
     mask = np.random.default_rng(seed).random((height, width)) < density
     rows, cols = np.nonzero(mask)
     top, left = min(top, height - 1), min(left, width - 1)
-    identity = np.arange(radius * radius + 2, dtype=np.float32)[None]   # the stamp's squared distance itself
-    stamped = stamped_fields(rows, cols, top, left, height - top, width - left, radius, identity)[0]
     occupied = occupied_index(mask)
     found = np.array([[squared_nearest(occupied, top + i, left + j, radius) for j in range(width - left)]
                       for i in range(height - top)])
-    np.testing.assert_array_equal(found, stamped)
     full = brute_force_squared(np.pad(mask, ((0, top), (0, left))), 0, height, width, radius)
     np.testing.assert_array_equal(found, full[top:, left:])
+    falling = -np.arange(radius * radius + 2, dtype=np.float32)   # the stamp's squared distance, negated
+    stamped = stamped_field(rows, cols, top, left, height - top, width - left, radius, falling)
+    np.testing.assert_array_equal(-stamped, found)
 
 
 ends = st.floats(-60.0, 60.0, allow_nan=False)
@@ -432,28 +432,23 @@ def test_max_pool_equals_numpy_to_the_bit(height: int, width: int, shift: int, s
 @EXAMPLES
 @given(st.integers(1, 40), st.integers(1, 40), st.floats(0.0, 0.08), st.integers(0, 2**32 - 1), st.integers(1, 12),
        st.integers(0, 6), st.integers(0, 6))
-def test_stamped_fields_equal_opencv(height: int, width: int, density: float, seed: int, radius: int, top: int,
-                                     left: int) -> None:
-    """The match fields from stamped distances against the OpenCV transform of the padded window they replaced:
-    distances (cells) equal to float32 rounding up to the radius, inf beyond; the distance and likelihood
-    fields as _compute made them from OpenCV's distances."""
+def test_the_stamped_likelihood_equals_opencvs_transform(height: int, width: int, density: float, seed: int,
+                                                        radius: int, top: int, left: int) -> None:
+    """The likelihood stamped over a window inside the padded array against the OpenCV transform of that array:
+    equal to float32 rounding up to the radius, the value for none beyond."""
     occupied = np.random.default_rng(seed).random((height, width)) < density
     rows, cols = np.nonzero(occupied)
     top, left = min(top, height - 1), min(left, width - 1)
     inner = (slice(top, height), slice(left, width))   # a window inside the padded array
-    cells = squared_distances(radius)
-    tables = np.stack([cells, np.minimum(cells * np.float32(0.05), np.float32(0.5)), _likelihood(cells, 0.05, 0.05)])
-    stamped, distance, likelihood = stamped_fields(rows, cols, top, left, height - top, width - left, radius, tables)
+    values = _likelihood(squared_distances(radius), 0.05, 0.05)
+    likelihood = stamped_field(rows, cols, top, left, height - top, width - left, radius, values)
     if not occupied.any():
-        assert np.all(np.isinf(stamped)) and np.all(distance == np.float32(0.5)) and np.all(likelihood == 0.0)
+        assert np.all(likelihood == values[-1])
         return
     expected = cv2.distanceTransform(np.where(occupied, 0, 255).astype(np.uint8), *DISTANCE_TRANSFORM)[inner]
     within = expected <= radius - 1e-3
-    np.testing.assert_allclose(stamped[within], expected[within], rtol=1e-6)
-    assert np.all(stamped[expected > radius + 1e-3] == np.inf)
-    np.testing.assert_allclose(distance[within], np.minimum(expected * np.float32(0.05), np.float32(0.5))[within],
-                               rtol=1e-6)
     np.testing.assert_allclose(likelihood[within], _likelihood(expected, 0.05, 0.05)[within], rtol=1e-5, atol=1e-7)
+    assert np.all(likelihood[expected > radius + 1e-3] == values[-1])
 
 
 @EXAMPLES
@@ -471,7 +466,7 @@ def test_the_match_fields_to_their_radii_equal_those_stamped_to_the_margin(
     assert fields.margin == fields.radius + 2 and fields.likelihood_radius <= fields.radius
 
     def stamped(radius: int, values: np.ndarray) -> np.ndarray:
-        return stamped_fields(rows, cols, 0, 0, height, width, radius, values[None])[0]
+        return stamped_field(rows, cols, 0, 0, height, width, radius, values)
 
     def likelihood(radius: int) -> np.ndarray:
         return _likelihood(squared_distances(radius), resolution, sigma)
@@ -482,8 +477,9 @@ def test_the_match_fields_to_their_radii_equal_those_stamped_to_the_margin(
     np.testing.assert_array_equal(stamped(fields.likelihood_radius, likelihood(fields.likelihood_radius)),
                                   stamped(fields.margin, likelihood(fields.margin)))
     np.testing.assert_array_equal(fields.distances, distance(fields.radius))
-    squared = brute_force_squared(occupied, 0, height, width, fields.radius)
-    np.testing.assert_array_equal(fields.distances[squared], stamped(fields.margin, distance(fields.margin)))
+    margin = distance(fields.margin)[brute_force_squared(occupied, 0, height, width, fields.margin)]
+    np.testing.assert_array_equal(fields.distances[brute_force_squared(occupied, 0, height, width, fields.radius)],
+                                  margin)
 
 
 @st.composite

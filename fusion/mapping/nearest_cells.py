@@ -27,36 +27,35 @@ from trundle.fusion.compiled import kernel
 
 def squared_distances(radius: int) -> np.ndarray:
     """The distances (cells, float32) a disc of ``radius`` cells can hold, indexed by their square, and inf
-    after them (no occupied cell within the radius): what :func:`stamped_fields`'s tables are made from."""
+    after them (no occupied cell within the radius): what the fields' tables are made from."""
     values = np.sqrt(np.arange(radius * radius + 2, dtype=np.float64)).astype(np.float32)
     values[-1] = np.inf
     return values
 
 
 @kernel
-def stamped_fields(rows: np.ndarray, cols: np.ndarray, row0: int, col0: int, height: int, width: int, radius: int,
-                   tables: np.ndarray) -> np.ndarray:
-    """Fields (T, height, width) of the distance to the nearest of the occupied cells ``(rows, cols)`` over
-    the window ``[row0, row0 + height) x [col0, col0 + width)`` (same coordinates).
+def stamped_field(rows: np.ndarray, cols: np.ndarray, row0: int, col0: int, height: int, width: int, radius: int,
+                  values: np.ndarray) -> np.ndarray:
+    """A field (height, width) over the window ``[row0, row0 + height) x [col0, col0 + width)`` (the
+    coordinates of ``rows``, ``cols``): ``values`` at each cell's squared distance in cells to the nearest of
+    the occupied cells ``(rows, cols)``.
 
-    ``tables`` (T, radius^2 + 2) holds each field's value per squared distance in cells, the last
-    column for none within ``radius`` (see :func:`squared_distances`).
+    ``values`` (radius^2 + 2,) must not increase with the squared distance (a likelihood), the last for
+    none within ``radius`` (see :func:`squared_distances`). Each occupied cell stamps its disc with the
+    larger of its value and the cell's: the value at the least squared distance, with no array of
+    distances and no pass over the window to look them up.
     """
-    none = radius * radius + 1
-    best = np.full((height, width), none, np.int32)
+    field = np.full((height, width), values[values.shape[0] - 1], np.float32)
     for k in range(rows.shape[0]):
         r, c = rows[k] - row0, cols[k] - col0
         for dr in range(max(-radius, -r), min(radius, height - 1 - r) + 1):
             reach = int(math.sqrt(radius * radius - dr * dr))
-            row = best[r + dr]
+            row = field[r + dr]
             for dc in range(max(-reach, -c), min(reach, width - 1 - c) + 1):
-                row[c + dc] = min(row[c + dc], dr * dr + dc * dc)
-    fields = np.empty((tables.shape[0], height, width), np.float32)
-    for t in range(tables.shape[0]):
-        for i in range(height):
-            for j in range(width):
-                fields[t, i, j] = tables[t, best[i, j]]
-    return fields
+                value = values[dr * dr + dc * dc]
+                if value > row[c + dc]:
+                    row[c + dc] = value
+    return field
 
 
 @kernel
@@ -154,7 +153,7 @@ def _nearest(occupied: np.ndarray, row: int, col: int, rings: int, chamfered: bo
 def squared_nearest(occupied: np.ndarray, row: int, col: int, radius: int) -> int:
     """The squared distance (cells^2) from cell (``row``, ``col``) of ``occupied`` (see :func:`occupied_cells`)
     to the nearest of its occupied cells, ``radius^2 + 1`` when none is within ``radius`` cells: the value
-    :func:`stamped_fields` gives that cell."""
+    a stamp of every occupied cell's disc would give that cell."""
     return min(_nearest(occupied, row, col, radius, False)[1], radius * radius + 1)
 
 

@@ -28,7 +28,7 @@ from trundle.fusion.mapping.nearest_cells import (
     all_squared_nearest,
     occupied_cells,
     squared_distances,
-    stamped_fields,
+    stamped_field,
 )
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
 from trundle.logs.errors import UserError
@@ -105,7 +105,7 @@ class MatchFields:
     ``exp(-d^2 / (2 sigma^2))``, 0 beyond 4 sigma; and with ``lines`` the walls the returns describe
     (:meth:`LogOddsGrid.line_data`) of the occupied cells around it, which a cell reads at its nearest
     occupied cell. Every value in the window is exact: each occupied cell of the window grown by the
-    margin stamps its likelihood into it (:func:`~trundle.fusion.mapping.nearest_cells.stamped_fields`;
+    margin stamps its likelihood into it (:func:`~trundle.fusion.mapping.nearest_cells.stamped_field`;
     the search reads every cell a lattice pose can reach), while a cell's distance and nearest wall cell
     are found where the refinement reads them (a few hundred cells;
     :func:`~trundle.fusion.mapping.nearest_cells.squared_nearest`, the stamp's value, and
@@ -159,8 +159,8 @@ class MatchFields:
         rows, cols, occupied = occupied_cells(grid.log_odds, pr0, pr1, pc0, pc1)
         shape = (max(r1 - r0, 0), max(c1 - c0, 0))
         # the likelihood is exact to its radius and zero from there; a distance is found where it is read
-        likelihood = stamped_fields(rows, cols, r0 - pr0, c0 - pc0, shape[0], shape[1], self.likelihood_radius,
-                                    self._likelihoods)[0]
+        likelihood = stamped_field(rows, cols, r0 - pr0, c0 - pc0, shape[0], shape[1], self.likelihood_radius,
+                                   self._likelihoods)
         lines = None
         if self.lines:
             lines = WallLines(np.full(shape, -2, np.int32), *grid.line_data(rows + pr0, cols + pc0, self.min_flatness))
@@ -174,10 +174,10 @@ class MatchFields:
 def _field_tables(resolution: float, max_distance_m: float, sigma_m: float, radius: int, likelihood_radius: int
                   ) -> tuple[np.ndarray, np.ndarray]:
     """The match fields' values per squared distance (cells), read-only and made once per setting (a grid
-    makes new fields at every update): the capped distance (m) to ``radius`` and the likelihood (1,
-    ``likelihood_radius^2 + 2``), as :func:`~trundle.fusion.mapping.nearest_cells.stamped_fields` takes it."""
+    makes new fields at every update): the capped distance (m) to ``radius`` and the likelihood to
+    ``likelihood_radius``, as :func:`~trundle.fusion.mapping.nearest_cells.stamped_field` takes it."""
     distances = np.minimum(squared_distances(radius) * np.float32(resolution), np.float32(max_distance_m))
-    likelihoods = _likelihood(squared_distances(likelihood_radius), resolution, sigma_m)[None]
+    likelihoods = _likelihood(squared_distances(likelihood_radius), resolution, sigma_m)
     distances.flags.writeable = likelihoods.flags.writeable = False
     return distances, likelihoods
 

@@ -271,6 +271,7 @@ def test_field_residuals_equal_numpy(problem: tuple[np.ndarray, int, int, np.nda
                                 *NO_WALLS, row0, col0, cx, cy, 0.3, -0.2, rx, ry, res, max_distance_m),
                 numpy_field_residuals(dense, row0, col0, cx, cy, rx, ry, res, max_distance_m))
     found = squared >= 0
+    assert found.any() == bool(len(cx))   # every point reads four cells, each found once and kept
     np.testing.assert_array_equal(distances[squared[found]], dense[found])
 
 

@@ -157,16 +157,39 @@ def squared_nearest(occupied: np.ndarray, row: int, col: int, radius: int) -> in
     return min(_nearest(occupied, row, col, radius, False)[1], radius * radius + 1)
 
 
+@kernel(inline=True)
+def kept_squared(squared: np.ndarray, width: int, occupied: np.ndarray, d_row: int, d_col: int, radius: int,
+                 flat: int) -> int:
+    """The squared distance of a window's cell at flat index ``flat``: kept in ``squared`` (the window's, ``width``
+    cells a row, flattened; -1: not found yet), else found (:func:`squared_nearest`) and kept. The window's
+    cell (0, 0) is ``occupied``'s (``d_row``, ``d_col``)."""
+    kept = squared[flat]
+    if kept < 0:
+        kept = squared_nearest(occupied, flat // width + d_row, flat % width + d_col, radius)
+        squared[flat] = kept
+    return kept
+
+
 @kernel
 def all_squared_nearest(squared: np.ndarray, occupied: np.ndarray, d_row: int, d_col: int, radius: int) -> np.ndarray:
-    """Every cell of ``squared`` (a window's squared distances, -1: not found yet) found, in place: the
-    window's cell (0, 0) is ``occupied``'s (``d_row``, ``d_col``) (:func:`squared_nearest`)."""
-    height, width = squared.shape
-    for i in range(height):
-        for j in range(width):
-            if squared[i, j] < 0:
-                squared[i, j] = squared_nearest(occupied, i + d_row, j + d_col, radius)
+    """Every cell of ``squared`` (a window's squared distances, -1: not found yet) found, in place
+    (:func:`kept_squared`)."""
+    flat = squared.reshape(-1)
+    for cell in range(flat.shape[0]):
+        kept_squared(flat, squared.shape[1], occupied, d_row, d_col, radius, cell)
     return squared
+
+
+@kernel(inline=True)
+def kept_nearest(nearest: np.ndarray, occupied: np.ndarray, row: int, col: int, d_row: int, d_col: int) -> int:
+    """The nearest occupied cell of a window's cell (``row``, ``col``): kept in ``nearest`` (the window's; -2: not
+    found yet), else found (:func:`chamfer_nearest`) and kept. The window's cell (0, 0) is ``occupied``'s
+    (``d_row``, ``d_col``)."""
+    kept = nearest[row, col]
+    if kept < -1:
+        kept = chamfer_nearest(occupied, row + d_row, col + d_col)
+        nearest[row, col] = kept
+    return kept
 
 
 @kernel

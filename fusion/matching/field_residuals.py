@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from trundle.fusion.compiled import kernel
-from trundle.fusion.mapping.nearest_cells import chamfer_nearest, squared_nearest
+from trundle.fusion.mapping.nearest_cells import kept_nearest, kept_squared
 
 # the largest coordinate a lookup may use inside a field of ``size`` cells: ``size - 1 - EDGE``
 EDGE = 0.000001
@@ -55,21 +55,6 @@ def _sample(flat: np.ndarray, height: int, width: int, u: float, v: float) -> tu
     return value, du, dv, inside
 
 
-@kernel(inline=True)
-def _distance(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, d_row: int, d_col: int, radius: int,
-              flat: int) -> float:
-    """The distance field's value at flat index ``flat`` of a window: its squared distance to the nearest
-    occupied cell, found (:func:`squared_nearest`) and kept in ``squared`` (-1: not yet) the first time,
-    looked up in ``distances``. The window's cell (0, 0) is ``occupied``'s (``d_row``, ``d_col``)."""
-    width = squared.shape[1]
-    i, j = flat // width, flat % width
-    s = squared[i, j]
-    if s < 0:
-        s = squared_nearest(occupied, i + d_row, j + d_col, radius)
-        squared[i, j] = s
-    return distances[s]
-
-
 @kernel
 def bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Value, d/du, d/dv of ``field`` (H, W) at continuous cell-centre coordinates (u, v: (N,) each, u the
@@ -97,14 +82,16 @@ def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.nda
     distance (m) to the nearest occupied cell, read bilinearly at the points' continuous grid cell
     coordinates (cx, cy), ``max_distance_m`` off the window; the distance of a cell is ``distances`` at its
     squared distance within ``radius`` cells, found the first time it is read and kept in ``squared`` (the
-    window's, -1: not yet; see :func:`_distance`). Point to line, with walls (``is_line`` not empty): where
-    the nearest occupied cell of a point's cell has its returns on a line (``is_line``), the signed
-    distance (m) of the point (rotated (rx, ry) plus the pose's (``pose_x``, ``pose_y``), grid frame) to
-    that line (``mean``, ``normal``); that cell is found the first time a point's cell asks
-    (:func:`~trundle.fusion.mapping.nearest_cells.chamfer_nearest`) and kept in ``nearest`` (the window's,
-    -2: not yet). Returns the residuals, their Jacobian (N, 3) with respect to the world-frame pose (x, y,
-    theta), 0 where the point is off the window or beyond ``max_distance_m``, and that active mask."""
+    window's, -1: not yet; :func:`~trundle.fusion.mapping.nearest_cells.kept_squared`). Point to line, with
+    walls (``is_line`` not empty): where the nearest occupied cell of a point's cell has its returns on a
+    line (``is_line``), the signed distance (m) of the point (rotated (rx, ry) plus the pose's (``pose_x``,
+    ``pose_y``), grid frame) to that line (``mean``, ``normal``); that cell is found the first time a
+    point's cell asks and kept in ``nearest`` (the window's, -2: not yet;
+    :func:`~trundle.fusion.mapping.nearest_cells.kept_nearest`). Returns the residuals, their Jacobian (N, 3)
+    with respect to the world-frame pose (x, y, theta), 0 where the point is off the window or beyond
+    ``max_distance_m``, and that active mask."""
     height, width = squared.shape
+    kept = squared.reshape(-1)
     d_row, d_col = row0 - occupied_row0, col0 - occupied_col0
     n = cx.shape[0]
     d = np.full(n, max_distance_m)
@@ -114,18 +101,15 @@ def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.nda
         return d, jac, active
     for i in range(n):
         i00, i01, i10, i11, fu, fv, inside = _corners(height, width, cx[i] - 0.5 - col0, cy[i] - 0.5 - row0)
-        value, du, dv = _interpolate(_distance(squared, distances, occupied, d_row, d_col, radius, i00),
-                                     _distance(squared, distances, occupied, d_row, d_col, radius, i01),
-                                     _distance(squared, distances, occupied, d_row, d_col, radius, i10),
-                                     _distance(squared, distances, occupied, d_row, d_col, radius, i11), fu, fv)
+        value, du, dv = _interpolate(distances[kept_squared(kept, width, occupied, d_row, d_col, radius, i00)],
+                                     distances[kept_squared(kept, width, occupied, d_row, d_col, radius, i01)],
+                                     distances[kept_squared(kept, width, occupied, d_row, d_col, radius, i10)],
+                                     distances[kept_squared(kept, width, occupied, d_row, d_col, radius, i11)], fu, fv)
         active[i] = inside and value < max_distance_m
         k = -1
         if active[i] and is_line.size:   # an active point's cell is in the window (inside)
-            row, col = int(math.floor(cy[i])), int(math.floor(cx[i]))
-            k = nearest[row - row0, col - col0]
-            if k < -1:
-                k = chamfer_nearest(occupied, row - occupied_row0, col - occupied_col0)
-                nearest[row - row0, col - col0] = k
+            k = kept_nearest(nearest, occupied, int(math.floor(cy[i])) - row0, int(math.floor(cx[i])) - col0, d_row,
+                             d_col)
         on_line = k >= 0 and is_line[k]
         if on_line:
             value = (rx[i] + pose_x - mean[k, 0]) * normal[k, 0] + (ry[i] + pose_y - mean[k, 1]) * normal[k, 1]

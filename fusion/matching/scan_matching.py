@@ -111,8 +111,7 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     # block per angle, and its blocks' children are these, in the order the search takes them (so of equal
     # scores the same pose wins). The zero border is as wide as that block, wider than any offset.
     span_levels = int(math.ceil(math.log2(2 * limit + 1)))
-    levels = max(1, min(8, span_levels))
-    pad = 1 << (max(1, min(8, span_levels + 1)) - 1)
+    levels, pad = max(1, min(8, span_levels)), 1 << min(span_levels, 7)
 
     # each rotated point's cell for the lattice's centre offset (compiled: one pass, no (angles, N) temporaries)
     origin = grid.origin

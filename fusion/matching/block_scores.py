@@ -1,5 +1,5 @@
 """The correlative search, compiled (numba, cached on disk; see docs/slam.md for the compile times): the
-max-pooled pyramid, the mean of a score grid under a rotated scan at many translations, and the whole
+mean of a score grid under a rotated scan at many translations, and the whole
 branch and bound over them in one call.
 
 The gather-and-sum replaces gathering an (M, N) index array in numpy per batch of candidates: the loop
@@ -36,22 +36,6 @@ def block_scores(grid: np.ndarray, base: np.ndarray, candidates: np.ndarray) -> 
         for n in range(count):
             total += flat[row[n] + shift]
         out[m] = total / max(count, 1)
-    return out
-
-
-@kernel
-def max_pool(level: np.ndarray, shift: int, out: np.ndarray) -> np.ndarray:
-    """The next level of a branch-and-bound pyramid into ``out``: at ``[r, c]`` the maximum of ``level``
-    (H, W) over ``[r, r + 2 shift) x [c, c + 2 shift)`` in steps of ``shift`` (the cells beyond the edge left out)."""
-    height, width = level.shape
-    for r in range(height):
-        for c in range(width - shift):
-            out[r, c] = max(level[r, c], level[r, c + shift])
-        for c in range(max(width - shift, 0), width):
-            out[r, c] = level[r, c]
-    for r in range(height - shift):
-        for c in range(width):
-            out[r, c] = max(out[r, c], out[r + shift, c])
     return out
 
 

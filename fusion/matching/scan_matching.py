@@ -6,8 +6,9 @@ and finds the best exactly, robust to poor initial guesses. The refinement then 
 robust (Huber) sum of squared distances from the points to the nearest occupied cells, read
 from a bilinearly interpolated distance field, with the one Levenberg-Marquardt core
 (:func:`solve_pose`), which gives sub-cell precision and, from the Gauss-Newton Hessian, a
-covariance for the match. Both are compiled (numba), each a call or two per match: the pyramid and the
-branch and bound in :mod:`~trundle.fusion.matching.block_scores`, the refinement's whole solve in
+covariance for the match. Both are compiled, each a call or a few per match: the pyramid by OpenCV's
+element-wise maxima, the branch and bound in :mod:`~trundle.fusion.matching.block_scores` (numba), the
+refinement's whole solve in
 :mod:`~trundle.fusion.matching.pose_solver` over the residuals of :mod:`~trundle.fusion.matching.field_residuals`.
 """
 
@@ -17,11 +18,12 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from trundle.fusion.geometry import wrap_angle
 from trundle.fusion.mapping.occupancy_grid import FieldWindow, LogOddsGrid, MatchFields
-from trundle.fusion.matching.block_scores import branch_and_bound, flat_cells, lattice_cells, max_pool
+from trundle.fusion.matching.block_scores import branch_and_bound, flat_cells, lattice_cells
 from trundle.fusion.matching.field_residuals import NO_WALLS, match_statistics
 from trundle.fusion.matching.pose_solver import DONE, solve_pose_in_window
 from trundle.fusion.optimization.levenberg_marquardt import Settings, levenberg_marquardt
@@ -62,13 +64,25 @@ def score_pyramid(field: np.ndarray, levels: int, pad: int | None = None) -> np.
     on every side.
 
     Level ``h`` holds at ``[r, c]`` the maximum of the padded field over ``[r, r + 2^h) x [c, c + 2^h)``,
-    an upper bound of the score of every translation in that block (branch and bound).
+    an upper bound of the score of every translation in that block (branch and bound). Each level is two
+    OpenCV element-wise maxima: of the level below and itself ``2^(h-1)`` rows down, then of that and itself
+    as many columns on (a cell within the shift of the far edge keeps its own value). OpenCV's vector code
+    is twice as fast as a compiled loop here, and a maximum is exact: the same values. No maximum reads the
+    array it writes (whether OpenCV may overlap them is not documented).
     """
     pad = 1 << (levels - 1) if pad is None else pad
-    pyramid = np.zeros((levels, field.shape[0] + 2 * pad, field.shape[1] + 2 * pad), np.float32)
-    pyramid[0, pad:pad + field.shape[0], pad:pad + field.shape[1]] = field
+    field = np.asarray(field, np.float32)
+    height, width = field.shape[0] + 2 * pad, field.shape[1] + 2 * pad
+    pyramid = np.empty((levels, height, width), np.float32)
+    cv2.copyMakeBorder(field, pad, pad, pad, pad, cv2.BORDER_CONSTANT, dst=pyramid[0], value=0.0)
+    down = np.empty((height, width), np.float32)   # a level's maximum down the columns
     for h in range(1, levels):
-        max_pool(pyramid[h - 1], 1 << (h - 1), pyramid[h])
+        below, level, shift = pyramid[h - 1], pyramid[h], 1 << (h - 1)
+        rows, cut = max(height - shift, 0), max(width - shift, 0)
+        cv2.max(below[:rows], below[shift:], dst=down[:rows])
+        down[rows:] = below[rows:]
+        cv2.max(down[:, :cut], down[:, shift:], dst=level[:, :cut])
+        level[:, cut:] = down[:, cut:]
     return pyramid
 
 

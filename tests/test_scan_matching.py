@@ -17,6 +17,7 @@ from trundle.fusion.matching.scan_matching import (
     angular_step,
     correlative_search,
     match_scan,
+    median_step,
     refine_pose,
     samples_walls_densely,
     score_pyramid,
@@ -185,3 +186,16 @@ def test_dense_and_sparse_scans() -> None:
     dense = scan_to_points(scan(ROOM, np.zeros(3), beams=1440, max_range=10.0))
     sparse = scan_to_points(scan(ROOM, np.zeros(3), beams=180, max_range=10.0))
     assert samples_walls_densely(dense, 0.05) and not samples_walls_densely(sparse, 0.05)
+
+
+@settings(max_examples=200, deadline=None)
+@given(arrays(np.float64, st.tuples(st.integers(2, 60), st.just(2)),
+              elements=st.floats(allow_nan=True, allow_infinity=True, width=64)),
+       st.integers(0, 2**32 - 1))
+def test_the_median_step_is_numpys_to_the_bit(points: np.ndarray, seed: int) -> None:
+    """The compiled median of consecutive distances against numpy's, on any values (NaN and infinities
+    included) and on scan-like ones (the same decision, and the same value)."""
+    like_a_scan = np.cumsum(np.random.default_rng(seed).normal(0.0, 0.03, (len(points), 2)), axis=0)
+    for values in (points, like_a_scan):
+        expected = np.median(np.hypot(*np.diff(values, axis=0).T))
+        assert median_step(values) == expected or (math.isnan(expected) and math.isnan(median_step(values)))

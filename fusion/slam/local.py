@@ -8,6 +8,7 @@ returns what it did with a scan and, for a keyframe, what it inserted (:class:`I
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass
 
 import numpy as np
@@ -73,14 +74,17 @@ class OdometryBuffer:
     def __init__(self, timeout_s: float) -> None:
         self.timeout_s = timeout_s
         self._odom: list[tuple[int, np.ndarray]] = []
+        self._stamps: list[int] = []   # the readings' stamps (ns), searched by bisection
 
     def add(self, odom: m.Odometry) -> None:
         """Remember a reading; one older than the last (a clock that stepped back) starts the buffer afresh."""
         if self._odom and odom.stamp_ns < self._odom[-1][0]:
             self._odom.clear()
+            self._stamps.clear()
         self._odom.append((odom.stamp_ns, np.array([odom.x, odom.y, odom.theta])))
+        self._stamps.append(odom.stamp_ns)
         if len(self._odom) > 256:
-            del self._odom[:128]
+            del self._odom[:128], self._stamps[:128]
 
     def at(self, stamp_ns: int) -> np.ndarray | None:
         """Odometry pose at ``stamp_ns``, interpolated between the readings around it. Outside the
@@ -88,9 +92,8 @@ class OdometryBuffer:
         counts as missing (None)."""
         if not self._odom:
             return None
-        stamps = np.array([s for s, _ in self._odom])
-        k = int(np.searchsorted(stamps, stamp_ns))
-        if k == 0 or k >= len(stamps):
+        k = bisect.bisect_left(self._stamps, stamp_ns)
+        if k == 0 or k >= len(self._stamps):
             nearest = self._odom[0] if k == 0 else self._odom[-1]
             if abs(stamp_ns - nearest[0]) * 1e-9 > self.timeout_s:
                 return None

@@ -177,6 +177,7 @@ def test_scan_returns_deskewed_equal_scan_to_points_to_the_bit(seed: int, beams:
     ranges = rng.uniform(0.0, 35.0, beams).astype(np.float32)
     ranges[rng.random(beams) < 0.1] = np.inf
     ranges[rng.random(beams) < 0.05] = np.nan
+    ranges[rng.random(beams) < 0.03] = -np.inf
     scan = LaserScan(0, "laser", -2.35, 2.35, 4.7 / max(beams, 1), time_increment, 0.025, 0.1, 30.0, ranges)
     mount = np.array([0.2, -0.1, 0.3]) if mounted else None
     low, high = (0.5, 20.0) if limits else (None, None)

@@ -73,34 +73,35 @@ class OdometryBuffer:
 
     def __init__(self, timeout_s: float) -> None:
         self.timeout_s = timeout_s
-        self._odom: list[tuple[int, np.ndarray]] = []
-        self._stamps: list[int] = []   # the readings' stamps (ns), searched by bisection
+        self._stamps: list[int] = []   # the readings' stamps (ns), ascending: searched by bisection
+        self._poses: list[np.ndarray] = []   # their poses (x, y, theta)
 
     def add(self, odom: m.Odometry) -> None:
         """Remember a reading; one older than the last (a clock that stepped back) starts the buffer afresh."""
-        if self._odom and odom.stamp_ns < self._odom[-1][0]:
-            self._odom.clear()
+        if self._stamps and odom.stamp_ns < self._stamps[-1]:
             self._stamps.clear()
-        self._odom.append((odom.stamp_ns, np.array([odom.x, odom.y, odom.theta])))
+            self._poses.clear()
         self._stamps.append(odom.stamp_ns)
-        if len(self._odom) > 256:
-            del self._odom[:128], self._stamps[:128]
+        self._poses.append(np.array([odom.x, odom.y, odom.theta]))
+        if len(self._stamps) > 256:
+            del self._stamps[:128], self._poses[:128]
 
     def at(self, stamp_ns: int) -> np.ndarray | None:
         """Odometry pose at ``stamp_ns``, interpolated between the readings around it. Outside the
         readings the nearest one stands in, unless it is more than ``timeout_s`` away: then odometry
         counts as missing (None)."""
-        if not self._odom:
+        stamps, poses = self._stamps, self._poses
+        if not stamps:
             return None
-        k = bisect.bisect_left(self._stamps, stamp_ns)
-        if k == 0 or k >= len(self._stamps):
-            nearest = self._odom[0] if k == 0 else self._odom[-1]
-            if abs(stamp_ns - nearest[0]) * 1e-9 > self.timeout_s:
+        k = bisect.bisect_left(stamps, stamp_ns)
+        if k == 0 or k >= len(stamps):
+            nearest = 0 if k == 0 else -1
+            if abs(stamp_ns - stamps[nearest]) * 1e-9 > self.timeout_s:
                 return None
-            return nearest[1].copy()
-        (s0, p0), (s1, p1) = self._odom[k - 1], self._odom[k]
+            return poses[nearest].copy()
+        s0, s1, p0 = stamps[k - 1], stamps[k], poses[k - 1]
         f = (stamp_ns - s0) / (s1 - s0) if s1 > s0 else 1.0
-        step = relative(p0, p1)
+        step = relative(p0, poses[k])
         return compose(p0, step * f)
 
 

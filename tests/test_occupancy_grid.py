@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import gc
 import math
+import weakref
 
 import numpy as np
 import pytest
@@ -12,6 +14,7 @@ from hypothesis import strategies as st
 from trundle.fusion.mapping.nearest_cells import chamfer_nearest
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, log_odds, trace_rays
 from trundle.fusion.mapping.ray_casting import ray_cells
+from trundle.fusion.matching.scan_matching import match_scan
 from trundle.logs import ros2
 
 
@@ -157,6 +160,30 @@ def test_rays_traced_once_update_every_grid_on_the_lattice() -> None:
                                    atol=1e-5)
     with pytest.raises(ValueError, match="lattice"):
         LogOddsGrid(0.05, origin_xy=(0.02, 0.0)).insert_traced(rays)
+
+
+def test_a_dropped_grid_is_freed_at_once_with_the_fields_and_pyramids_it_cached() -> None:
+    """A grid caches its match fields and pyramids, and they must not hold it: a reference cycle would keep
+    a dropped grid's arrays (megabytes per reference) until Python's cyclic collector ran."""
+    grid = LogOddsGrid(0.05, subcell=True)
+    angles = np.linspace(-math.pi, math.pi, 180, endpoint=False)
+    walls = 3.0 * np.column_stack([np.cos(angles), np.sin(angles)])
+    grid.insert_rays(np.zeros(2), walls)
+    result = match_scan(grid, walls[::2], np.array([0.05, -0.05, 0.02]))
+    assert result is not None
+    fields = grid.match_fields(0.5, 0.05, lines=True)
+    assert fields.window is not None and fields.grid is grid
+    alive = weakref.ref(grid)
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        del grid
+        assert alive() is None
+    finally:
+        if collecting:
+            gc.enable()
+    with pytest.raises(ReferenceError, match="gone"):
+        _ = fields.grid
 
 
 @settings(max_examples=40, deadline=None)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import copy
 import functools
 import math
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
@@ -116,7 +117,9 @@ class MatchFields:
     def __init__(
         self, grid: LogOddsGrid, max_distance_m: float, sigma_m: float, lines: bool, min_flatness: float
     ) -> None:
-        self.grid = grid
+        # weakly: the grid caches its fields, and a reference both ways would keep a dropped grid's arrays
+        # (megabytes) until Python's cyclic collector ran, and the next grid paged in fresh memory
+        self._grid = weakref.ref(grid)
         self.max_distance_m = float(max_distance_m)
         self.sigma_m = float(sigma_m)
         self.lines = lines
@@ -130,6 +133,14 @@ class MatchFields:
         self._window: FieldWindow | None = None
         height, width = grid.shape
         self._bounds = (height, 0, width, 0)   # rows [r0, r1), cols [c0, c1) of the window: none yet
+
+    @property
+    def grid(self) -> LogOddsGrid:
+        """The grid these fields are of."""
+        grid = self._grid()
+        if grid is None:
+            raise ReferenceError("the grid of these match fields is gone")
+        return grid
 
     @property
     def window(self) -> FieldWindow | None:

@@ -437,6 +437,34 @@ def test_the_pyramid_equals_numpy_to_the_bit(height: int, width: int, levels: in
     np.testing.assert_array_equal(score_pyramid(field, levels, pad), np.stack(expected))
 
 
+def test_a_pyramid_reuses_memory_only_when_no_array_uses_it() -> None:
+    """A pyramid takes the last pyramid's memory once that is dropped, and writes every cell of it (the values
+    left there are another field's); a pyramid alive, or a level kept past its pyramid, keeps its own."""
+    rng = np.random.default_rng(7)
+    big, small = rng.random((60, 70)).astype(np.float32), rng.random((30, 20)).astype(np.float32)
+
+    def address(array: np.ndarray) -> int:
+        return int(array.__array_interface__["data"][0])
+
+    first = score_pyramid(big, 4)
+    second = score_pyramid(big, 4)
+    assert not np.shares_memory(first, second)
+    np.testing.assert_array_equal(first, second)
+    where = address(second)
+    del second
+    third = score_pyramid(small, 3)
+    assert address(third) == where
+    expected = [np.pad(small, 4)]
+    for h in range(1, 3):
+        expected.append(numpy_max_pool(expected[-1], 1 << (h - 1)))
+    np.testing.assert_array_equal(third, np.stack(expected))
+    level = third[1]
+    del third
+    fourth = score_pyramid(big, 4)
+    assert not np.shares_memory(fourth, level) and not np.shares_memory(fourth, first)
+    np.testing.assert_array_equal(level, expected[1])
+
+
 @EXAMPLES
 @given(st.integers(1, 40), st.integers(1, 40), st.floats(0.0, 0.08), st.integers(0, 2**32 - 1), st.integers(1, 12),
        st.integers(0, 6), st.integers(0, 6))

@@ -19,7 +19,8 @@ from trundle.logs.errors import DeviceError
 from trundle.logs.reader import LogReader
 from trundle.logs.writer import Logger
 from trundle.tools.cli.main import main
-from trundle.tools.config.robot import parse_config
+from trundle.tools.config.robot import DiskConfig, LoggerConfig, parse_config
+from trundle.tools.daemon.disk_guard import DiskGuard
 from trundle.tools.daemon.service import Daemon
 from trundle.tools.daemon.status import StatusServer, format_status, query_status
 
@@ -247,6 +248,24 @@ def test_daemon_check_names_the_mcap_files_it_did_not_write(tmp_path, capsys):
     assert notice == (f"note: {tmp_path / 'logs'} holds 3 .mcap files the daemon of robot 'testbot' did not write "
                       "(aaa_precious.mcap, otherbot_20240101-000000.mcap, testbot_torn.mcap): "
                       "the disk guard never deletes them")
+
+
+def test_the_disk_status_says_low_before_recording_stops_and_not_before_it_resumes(tmp_path, monkeypatch, capsys):
+    """The guard stops and resumes recording from its checking thread while the status socket answers from
+    another: at each transition the status must already say why (a status read between the two said
+    "stopped for disk low" with "low": false)."""
+    free = {"bytes": 10e6}
+    real = shutil.disk_usage
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: Usage(real(p).total, 0, free["bytes"]))
+    seen: list[tuple[str, bool]] = []
+    guard = DiskGuard(DiskConfig(min_free_mb=100.0, action="stop"), LoggerConfig(folder=tmp_path), "testbot",
+                      current_log=lambda: None, stop_recording=lambda why: seen.append(("stop", guard.status["low"])),
+                      resume_recording=lambda: seen.append(("resume", guard.status["low"])))
+    guard.check()
+    free["bytes"] = 500e6
+    guard.check()
+    assert seen == [("stop", True), ("resume", False)]
+    assert "recording stopped: disk low" in capsys.readouterr().err
 
 
 def test_disk_guard_stops_recording_and_resumes(tmp_path, monkeypatch):

@@ -112,6 +112,10 @@ class DiskGuard:
                 print(f"trundle daemon: disk low: deleted {len(deleted)} of this robot's logs"
                       f"{' (' + ', '.join(deleted) + ')' if deleted else ''} in {folder}; "
                       f"{_files(len(others), 'other .mcap file')} kept", file=sys.stderr, flush=True)
+        # the status first: whoever sees recording stop or resume (the status socket) sees why
+        self.status = {"folder": str(folder), "free_bytes": free, "total_bytes": usage.total,
+                       "min_free_bytes": int(floor), "action": cfg.action, "low": free < floor,
+                       "deleted": self.deleted[-10:], "deleted_count": len(self.deleted)}
         if free < floor and not self.stopped:
             self.stopped = f"disk low: {free / 1e6:.0f} MB free in {folder}, below {cfg.min_free_mb:.0f} MB"
             self._stop_recording(self.stopped)
@@ -120,9 +124,6 @@ class DiskGuard:
             print("trundle daemon: disk space back, recording again", file=sys.stderr, flush=True)
             self.stopped = ""
             self._resume_recording()
-        self.status = {"folder": str(folder), "free_bytes": free, "total_bytes": usage.total,
-                       "min_free_bytes": int(floor), "action": cfg.action, "low": free < floor,
-                       "deleted": self.deleted[-10:], "deleted_count": len(self.deleted)}
 
     def diagnostics(self, robot: str) -> m.DiagnosticStatus:
         """The ``robot/disk`` entry of ``/diagnostics``: ERROR while low or unreadable."""

@@ -316,7 +316,11 @@ class ScipDriver(Driver):
         """QT until the sensor answers 00: TM2 out of time-adjust, SCIP2.0 out of SCIP 1.1, RB if abnormal."""
         for _ in range(4):
             reply = self._request_any_baud(b"QT\n")
-            status = self._status(reply)
+            try:
+                status = self._status(reply)
+            except DeviceError:   # a stale stream's data line can end in "QT": the next QT's echo is the real one
+                status = "unreadable"
+                continue
             if status == "00":
                 return
             if status == "0E":

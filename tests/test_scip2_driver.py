@@ -162,6 +162,7 @@ def test_sensor_still_streaming_at_connect_is_stopped_and_drained(tmp_path):
     with running(server, driver):
         wait_until(lambda: driver.counters["scans"] >= 5, "5 scans")
     assert driver.counters["stale_streams"] == 1 and driver.counters["drained_bytes"] > 0
+    assert driver.counters["errors"] == 0   # a data line of the stale stream that ends in "QT" is not its echo
     logged = match(device, sink, 0)
     assert {s.session for s in logged} == {2}  # nothing of the old session's stream (string OLD)
     assert device.commands[0] == b"QT"

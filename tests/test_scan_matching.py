@@ -16,6 +16,7 @@ from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.matching.scan_matching import (
     angular_step,
     correlative_search,
+    match_covariance,
     match_scan,
     median_step,
     refine_pose,
@@ -200,3 +201,41 @@ def test_the_median_step_is_numpys_to_the_bit(points: np.ndarray, seed: int) -> 
         with np.errstate(invalid="ignore"):  # infinity minus infinity is NaN here, as intended
             expected = np.median(np.hypot(*np.diff(values, axis=0).T))
         assert median_step(values) == expected or (math.isnan(expected) and math.isnan(median_step(values)))
+
+
+def numpy_covariance(jacobian: np.ndarray, residuals: np.ndarray, weights: np.ndarray, min_std_xy_m: float,
+                     min_std_theta_rad: float, max_variance: float = 100.0, shaped: bool = False) -> np.ndarray:
+    """The covariance as numpy computed it before it was compiled (the rows given are the inliers)."""
+    count = len(residuals)
+    jw = jacobian * weights[:, None]
+    hessian = jw.T @ jacobian
+    variance = max(float(np.sum(weights * residuals ** 2) / max(count - 3, 1)), 1e-10)
+    eigenvalues, vectors = np.linalg.eigh(hessian)
+    information = np.maximum(eigenvalues, variance / max_variance) / variance
+    raw = (vectors / information) @ vectors.T
+    floor = np.diag([min_std_xy_m ** 2, min_std_xy_m ** 2, min_std_theta_rad ** 2])
+    if not shaped:
+        covariance = raw + floor
+    else:
+        best_xy = float(np.linalg.eigvalsh(raw[:2, :2])[0])
+        scale = max(1.0, min_std_xy_m ** 2 / max(best_xy, 1e-300),
+                    min_std_theta_rad ** 2 / max(float(raw[2, 2]), 1e-300))
+        values, axes = np.linalg.eigh(scale * raw)
+        covariance = (axes * np.minimum(values, max_variance)) @ axes.T + 1e-6 * floor
+    return 0.5 * (covariance + covariance.T)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 700), st.integers(0, 2**32 - 1), st.booleans(), st.sampled_from([0.0, 0.1, 0.9, 1.0]))
+def test_the_compiled_covariance_is_numpys_to_the_bit(count: int, seed: int, shaped: bool, share_out: float) -> None:
+    """On rows as a match gives them (a corridor's: one column nearly zero; a few rows; none) and any inlier
+    mask, the same matrix as numpy's expression, to the bit."""
+    rng = np.random.default_rng(seed)
+    jacobian = rng.normal(size=(count, 3)) * 10.0 ** rng.uniform(-8.0, 2.0, 3)
+    residuals = rng.normal(0.0, 0.03, count)
+    weights = rng.uniform(0.0, 1.0, count)
+    inliers = rng.uniform(size=count) >= share_out
+    expected = numpy_covariance(jacobian[inliers], residuals[inliers], weights[inliers], 0.01, math.radians(0.25),
+                                shaped=shaped)
+    got = match_covariance(jacobian, residuals, weights, inliers, 0.01, math.radians(0.25), shaped=shaped)
+    assert np.array_equal(got, expected)

@@ -109,6 +109,6 @@ def icp(reference: LineReference | np.ndarray, points_xy: np.ndarray, initial_po
     residual, jac, weight, paired = state
     inliers = paired & (np.abs(residual) <= inlier_m)
     count = int(inliers.sum())
-    covariance = match_covariance(jac[inliers], residual[inliers], weight[inliers], min_std_xy_m, min_std_theta_rad)
+    covariance = match_covariance(jac, residual, weight, inliers, min_std_xy_m, min_std_theta_rad)
     return IcpResult(pose, covariance, float(np.mean(np.abs(residual[inliers]))) if count else float("nan"),
                      count / max(len(points), 1), iterations, converged)

@@ -280,17 +280,24 @@ class WheelsDriver(Driver):
 
     # -- health --------------------------------------------------------------------------------
     def silence_reason(self) -> str:
-        """What the bus carries instead of wheel readings: nothing, corrupt frames, or other nodes."""
+        """What the bus carries instead of wheel readings: nothing, corrupt frames, or other nodes; and the
+        wheels not trusted (an axis's error flag, no heartbeat), which is why the others alone are no reading."""
         if not self.counters["frames"]:
             return "no CAN frames at all (bus not connected or not terminated, wrong bit rate, nodes off?)"
         if self.counters["decode_errors"] and self.counters["decode_errors"] * 2 >= self.counters["frames"]:
             return f"{self.counters['decode_errors']} of {self.counters['frames']} frames could not be decoded"
         hints = [hint for protocol in self.protocols if (hint := protocol.silence_hint(self.seen_ids))]
-        return "; ".join(hints) or f"{self.counters['frames']} frames, none a reading of every wheel"
+        stale = self._stale_wheels()
+        return "; ".join([*hints, *([f"stale wheels: {', '.join(stale)}"] if stale else [])]) or (
+            f"{self.counters['frames']} frames, none a reading of every wheel")
+
+    def _stale_wheels(self) -> list[str]:
+        """The names of the wheels not trusted now."""
+        return [self.names[w] for w in range(len(self.names)) if w not in self._healthy]
 
     def diagnostics(self) -> m.DiagnosticStatus:
         status = super().diagnostics()
-        stale = [self.names[w] for w in range(len(self.names)) if w not in self._healthy]
+        stale = self._stale_wheels()
         values = [*status.values, ("bus_state", self.bus.state),
                   *sorted((f"bus.{k}", str(v)) for k, v in self.bus.counters.items()),
                   ("stale_wheels", ",".join(stale) or "none")]

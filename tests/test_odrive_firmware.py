@@ -94,6 +94,9 @@ def test_auto_takes_axes_without_get_version_for_0_5_and_still_trusts_their_erro
         bench.nodes[1].encoder_error = True  # 0.5: heartbeat byte 6 = encoder error: wheel 1 not trusted
         assert bench.wait(lambda: bench.driver.diagnostics().level == m.WARN)
         assert "stale wheels: right" in bench.driver.diagnostics().message
+        # with one wheel untrusted no reading has every wheel: past silence_s the silence is said, and why
+        assert bench.wait(lambda: "no wheel readings" in bench.driver.diagnostics().message)
+        assert "stale wheels: right" in bench.driver.diagnostics().message
 
 
 def test_a_0_6_heartbeat_read_as_0_5_says_so() -> None:

@@ -34,7 +34,9 @@ refinement (its fields and pyramid included, they are per reference) against Kar
 Karto, build at most 1x; median position and heading errors of both against the corrected poses. The
 comparison runs once more in a process of its own (``..._alone``): after three whole logs mapped in this
 process the allocator's heap is large and reused, and the matches that follow may run slower than in a
-fresh process (both figures are printed).
+fresh process (both figures are printed). Both run as a ``trundle`` process does, its allocator keeping
+freed memory for reuse (:mod:`trundle.fusion.mapping.allocator`; ``allocator_keeps_freed_memory`` says whether
+it could), and so does Karto in the same process.
 The compiled kernels' first-call times (numba: compiled into an empty cache, then loaded from it)
 are measured in fresh processes.
 Run: python tools/bench/bench_slam.py [--quick]
@@ -64,6 +66,7 @@ from trundle.fusion.evaluation.trajectory_errors import (
     trajectory_relations,
 )
 from trundle.fusion.geometry import scan_to_points, transform_points, voxel_filter, wrap_angle
+from trundle.fusion.mapping.allocator import keep_freed_memory
 from trundle.fusion.mapping.map_plot import Track, save_figure, trajectory_figure
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid
 from trundle.fusion.matching.icp import LineReference, icp
@@ -274,6 +277,8 @@ KARTO_ALONE = """
 import json, sys
 sys.path.insert(0, sys.argv[1])
 import bench_slam
+from trundle.fusion.mapping.allocator import keep_freed_memory
+keep_freed_memory()
 from trundle.logs.importers import carmen
 print(json.dumps(bench_slam.against_karto(sys.argv[2], carmen.read_carmen(sys.argv[3]), int(sys.argv[4]))))
 """
@@ -366,7 +371,8 @@ def main() -> None:
     for path in (exp2, intel):
         if not path.exists():
             raise SystemExit(f"public data not available: {path} (see ../shared/data/README.md)")
-    figures: dict[str, object] = {"load_average_1min_at_start": os.getloadavg()[0], "cpus": os.cpu_count()}
+    figures: dict[str, object] = {"load_average_1min_at_start": os.getloadavg()[0], "cpus": os.cpu_count(),
+                                  "allocator_keeps_freed_memory": keep_freed_memory()}
     with tempfile.TemporaryDirectory() as folder:
         exp2_mcap = Path(folder) / "exp2.mcap"
         breezyslam.import_breezyslam(exp2, exp2_mcap)

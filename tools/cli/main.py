@@ -124,5 +124,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def entry() -> None:
-    """Console-script entry point."""
+    """The process's entry point (console script, ``python -m trundle.tools.cli``): its allocator set to keep
+    freed memory for reuse (:mod:`trundle.fusion.mapping.allocator`), then :func:`main`."""
+    if len(sys.argv) > 1 and sys.argv[1] in COMMANDS:   # a command to run (not --help, not --version)
+        from trundle.fusion.mapping.allocator import keep_freed_memory
+        keep_freed_memory()
     sys.exit(main())

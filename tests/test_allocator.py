@@ -57,7 +57,7 @@ def test_the_users_allocator_settings_are_left_as_they_are(setting):
     assert faults("kept", **setting)[0] == "False"
 
 
-def test_a_command_sets_the_allocator_and_help_does_not(monkeypatch, capsys):
+def test_a_command_sets_the_allocator_and_help_does_not(monkeypatch):
     calls = []
     monkeypatch.setattr(allocator, "keep_freed_memory", lambda: calls.append(True) or True)
     for argv, code in ((["trundle", "--help"], 0), (["trundle", "info", "/nonexistent.mcap"], 2)):

@@ -8,7 +8,8 @@ development VM (a tenth of a match). Held in the heap instead, the same memory i
 
 Two settings, both glibc's own (``mallopt(3)``): blocks below :data:`MMAP_THRESHOLD` come from the heap
 (glibc's largest threshold on 64 bits), and the heap's free top is given back only beyond
-:data:`TRIM_THRESHOLD`, so a process holds at most that much freed memory. Either one alone is worse
+:data:`TRIM_THRESHOLD`, so a process keeps at most that much free memory at the top of its heap (set
+the mmap threshold first: if it fails, neither is set). Either one alone is worse
 than neither (a fixed trim threshold also fixes the mmap threshold at its 128 KiB default). A user's own
 settings (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``, ``GLIBC_TUNABLES`` naming malloc) are left
 as they are, and another C library (musl) is left alone.

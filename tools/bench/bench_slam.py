@@ -277,8 +277,7 @@ KARTO_ALONE = """
 import json, sys
 sys.path.insert(0, sys.argv[1])
 import bench_slam
-from trundle.fusion.mapping.allocator import keep_freed_memory
-keep_freed_memory()
+bench_slam.keep_freed_memory()
 from trundle.logs.importers import carmen
 print(json.dumps(bench_slam.against_karto(sys.argv[2], carmen.read_carmen(sys.argv[3]), int(sys.argv[4]))))
 """

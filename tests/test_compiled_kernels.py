@@ -824,25 +824,32 @@ def numpy_match_statistics(likelihood: np.ndarray, row0: int, col0: int, cx: np.
 
 @EXAMPLES
 @given(st.integers(0, 2**32 - 1), st.integers(0, 3000), st.integers(1, 40), st.integers(1, 40), st.integers(-5, 5),
-       st.integers(-5, 5), st.floats(0.01, 0.3))
+       st.integers(-5, 5), st.floats(0.01, 0.3), st.floats(-4.0, 4.0), st.sampled_from([0.05, 0.1, 0.025]))
 def test_match_statistics_equal_numpy_to_the_bit(seed: int, count: int, height: int, width: int, row0: int, col0: int,
-                                                 inlier: float) -> None:
-    """A match's score, overlap, overlap score, inlier residual and inliers (one kernel) against the numpy
-    lines they replaced: equal to the bit (the kernel's sums are numpy's pairwise ones)."""
+                                                 inlier: float, theta: float, resolution: float) -> None:
+    """A match's score, overlap, overlap score, inlier residual and inliers (one kernel, which places the points)
+    against the numpy lines they replaced, the points placed as refine_pose placed them: equal to the bit
+    (the kernel's sums are numpy's pairwise ones)."""
     rng = np.random.default_rng(seed)
     likelihood = np.where(rng.random((height, width)) < 0.3, 0.0, rng.random((height, width))).astype(np.float32)
     observed = rng.random((height + 6, width + 6)) < 0.7
-    cx = rng.uniform(-3.0, width + 9.0, count)
-    cy = rng.uniform(-3.0, height + 9.0, count)
-    cx[rng.random(count) < 0.02] = np.nan
-    cx[rng.random(count) < 0.02] = 1e30
+    origin = rng.uniform(-20.0, 20.0, 2)
+    pose = np.array([*(origin + rng.uniform(0.0, 1.0, 2) * (width + 6, height + 6) * resolution), theta])
+    px = rng.uniform(-1.0, 1.0, count) * max(height, width) * resolution
+    py = rng.uniform(-1.0, 1.0, count) * max(height, width) * resolution
+    px[rng.random(count) < 0.02] = np.nan
+    px[rng.random(count) < 0.02] = 1e30
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    cx = (c * px - s * py + (pose[0] - origin[0])) / resolution
+    cy = (s * px + c * py + (pose[1] - origin[1])) / resolution
     d = rng.normal(0.0, 0.2, count)
     active = rng.random(count) < 0.9
-    actual = match_statistics(likelihood, row0, col0, cx, cy, observed, d, active, inlier)
+    actual = match_statistics(likelihood, row0, col0, px, py, pose, origin, resolution, observed, d, active, inlier)
     expected = numpy_match_statistics(likelihood, row0, col0, cx, cy, observed, d, active, inlier)
     for a, e in zip(actual[:4], expected[:4], strict=True):
         assert np.array_equal(np.float64(a).view(np.uint64), np.float64(e).view(np.uint64)), (a, e)
     np.testing.assert_array_equal(actual[4], expected[4])
+    assert actual[5] == int(expected[4].sum())
 
 
 @EXAMPLES

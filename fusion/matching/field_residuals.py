@@ -184,25 +184,30 @@ def pairwise_sum(values: np.ndarray, start: int, count: int) -> float:
 
 
 @kernel
-def match_statistics(likelihood: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray,
-                     observed: np.ndarray, d: np.ndarray, active: np.ndarray, inlier_m: float
-                     ) -> tuple[float, float, float, float, np.ndarray]:
-    """A converged match's figures in one pass: at the points' continuous cell coordinates ``cx``, ``cy``
-    (the grid's), the mean likelihood (the window ``likelihood`` from ``row0``, ``col0``; 0 outside it),
-    the share of points on cells the grid ``observed`` and their mean likelihood (0: none), the mean
-    ``|d|`` of the inliers (``active`` and ``|d| <= inlier_m``; NaN: none) and the inlier mask. Means
-    are numpy's (:func:`pairwise_sum` over the same values in the same order), so equal to the bit."""
-    n = cx.shape[0]
+def match_statistics(likelihood: np.ndarray, row0: int, col0: int, px: np.ndarray, py: np.ndarray, pose: np.ndarray,
+                     origin: np.ndarray, resolution: float, observed: np.ndarray, d: np.ndarray, active: np.ndarray,
+                     inlier_m: float) -> tuple[float, float, float, float, np.ndarray, int]:
+    """A converged match's figures in one pass: with the points (``px``, ``py``, robot frame) at ``pose`` on the
+    grid (cell (0, 0) at ``origin``, ``resolution`` m), the mean likelihood (the window ``likelihood`` from
+    ``row0``, ``col0``; 0 outside it), the share of points on cells the grid ``observed`` and their mean
+    likelihood (0: none), the mean ``|d|`` of the inliers (``active`` and ``|d| <= inlier_m``; NaN: none),
+    the inlier mask and the inliers. The points' cell coordinates are numpy's expression element by
+    element, and the means numpy's (:func:`pairwise_sum` over the same values in the same order), so
+    equal to the bit."""
+    n = px.shape[0]
     height, width = likelihood.shape
     flat = likelihood.ravel()
     rows, cols = observed.shape
+    c, s = math.cos(pose[2]), math.sin(pose[2])
     lik = np.empty(n)
     known_lik = np.empty(n)
     known = 0
     for i in range(n):
-        value, _, _, inside = _sample(flat, height, width, cx[i] - 0.5 - col0, cy[i] - 0.5 - row0)
+        x = (c * px[i] - s * py[i] + (pose[0] - origin[0])) / resolution
+        y = (s * px[i] + c * py[i] + (pose[1] - origin[1])) / resolution
+        value, _, _, inside = _sample(flat, height, width, x - 0.5 - col0, y - 0.5 - row0)
         lik[i] = value if inside else 0.0
-        x, y = cx[i], cy[i]   # floor(x) in [0, cols) exactly when x is (NaN: neither)
+        # floor(x) in [0, cols) exactly when x is (NaN: neither)
         if x >= 0.0 and y >= 0.0 and x < cols and y < rows and observed[int(math.floor(y)), int(math.floor(x))]:
             known_lik[known] = lik[i]
             known += 1
@@ -218,4 +223,4 @@ def match_statistics(likelihood: np.ndarray, row0: int, col0: int, cx: np.ndarra
     overlap = known / n if n else 0.0
     overlap_score = pairwise_sum(known_lik, 0, known) / known if known else 0.0
     residual = pairwise_sum(residuals, 0, count) / count if count else math.nan
-    return score, overlap, overlap_score, residual, inliers
+    return score, overlap, overlap_score, residual, inliers, count

@@ -170,8 +170,8 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
                                                        float(origin[0]), float(origin[1]), res)
     # The likelihood over a window holding every cell a lattice pose puts a point on (the match
     # fields' window, which the refinement reads too), max-pooled once per window.
-    window = match_fields(grid, max_distance_m, sigma, wall_lines).around(
-        np.array([c_lo - limit, c_hi + limit], np.float64), np.array([r_lo - limit, r_hi + limit], np.float64))
+    window = match_fields(grid, max_distance_m, sigma, wall_lines).around_box(c_lo - limit, c_hi + limit,
+                                                                              r_lo - limit, r_hi + limit)
     pyramids: dict[tuple[int, int], tuple[FieldWindow, np.ndarray]] = grid.cached(("pyramids", float(sigma)), dict)
     if (levels, pad) not in pyramids or pyramids[levels, pad][0] is not window:
         pyramids[levels, pad] = (window, score_pyramid(window.likelihood, levels, pad))
@@ -324,12 +324,6 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
 
     px, py = points[:, 0], points[:, 1]
 
-    def placed(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, FieldWindow]:
-        """The points' continuous cell coordinates at the pose and the fields there."""
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        cx, cy = (c * px - s * py + (pose[0] - origin[0])) / res, (s * px + c * py + (pose[1] - origin[1])) / res
-        return cx, cy, fields.around(cx, cy)
-
     def solve(start: np.ndarray, walls: bool, window: FieldWindow
               ) -> tuple[np.ndarray, int, tuple[np.ndarray, ...], FieldWindow]:
         while True:   # the solve stops where a step leaves the window: grown, solved again
@@ -345,23 +339,26 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
                 huber, max_iterations, SCHEDULE, STEP_TOLERANCE)
             if status == DONE:
                 return pose, iterations, tuple(state), window
-            grown = fields.around(box[:2], box[2:])
+            grown = fields.around_box(*box.tolist())
             if grown is window:   # cannot happen for finite points (the kernel asks what around() gives)
                 raise RuntimeError(f"the match field window does not grow to {box}")
             window = grown
 
     # the window the search left (the solve grows it where its points go), else one where they start
-    window = fields.window if fields.window is not None else placed(np.asarray(initial_pose_xyt, np.float64))[2]
+    window = fields.window
+    if window is None:
+        x, y, theta = (float(v) for v in initial_pose_xyt)
+        c, s = math.cos(theta), math.sin(theta)
+        window = fields.around((c * px - s * py + (x - origin[0])) / res, (s * px + c * py + (y - origin[1])) / res)
     pose, iterations, (d, jac, weight, active), window = solve(initial_pose_xyt, False, window)
     walls = window.lines if fields.lines and max_iterations > 0 else None
     if walls is not None and len(walls.mean):  # from the field's wide basin to the walls
         pose, more, (d, jac, weight, active), window = solve(pose, True, window)
         iterations += more
-    cx, cy, window = placed(pose)
-    # score, overlap, overlap score, inlier residual and inliers in one compiled pass (numpy's means, to the bit)
-    score, overlap, overlap_score, residual, inliers = match_statistics(
-        window.likelihood, window.row0, window.col0, cx, cy, grid.observed, d, active, inlier)
-    n_in = int(inliers.sum())
+    # score, overlap, overlap score, inlier residual and inliers in one compiled pass (numpy's means, to the bit),
+    # in the window the solve ended in: it holds the points at the pose and the cells next to them
+    score, overlap, overlap_score, residual, inliers, n_in = match_statistics(
+        window.likelihood, window.row0, window.col0, px, py, pose, origin, res, grid.observed, d, active, inlier)
     covariance = match_covariance(jac, d, weight, inliers, min_std_xy_m, min_std_theta_rad, shaped=shaped_covariance)
     return MatchResult(pose, covariance, score, residual, n_in / max(len(points), 1), search_score, iterations,
                        overlap, overlap_score)

@@ -416,6 +416,43 @@ def test_neighbourhood_moments_equal_numpy(height: int, width: int, seed: int) -
                 numpy_neighbourhood_moments(moments, log_odds, rows, cols))
 
 
+def numpy_line_data(grid: LogOddsGrid, rows: np.ndarray, cols: np.ndarray, min_flatness: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """LogOddsGrid.line_data as numpy computed it from the neighbourhood moments before line_terms."""
+    assert grid.moments is not None
+    mean, sums = neighbourhood_moments(grid.moments.slots, grid.moments.rows, grid.log_odds, rows, cols)
+    mx, my = sums[:, 1] / sums[:, 0], sums[:, 2] / sums[:, 0]
+    sxx, sxy, syy = (sums[:, 3] / sums[:, 0] - mx * mx, sums[:, 4] / sums[:, 0] - mx * my,
+                     sums[:, 5] / sums[:, 0] - my * my)
+    angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
+    spread = np.sqrt(((sxx - syy) / 2.0) ** 2 + sxy ** 2)
+    centre = (sxx + syy) / 2.0
+    flat = 1.0 - (centre - spread) / np.maximum(centre + spread, 1e-12)
+    return (grid.origin + mean * grid.resolution, np.stack([-np.sin(angle), np.cos(angle)], axis=1),
+            (flat >= min_flatness) & (sums[:, 0] >= 3))
+
+
+@EXAMPLES
+@given(st.integers(0, 2**32 - 1), st.integers(1, 6), st.floats(0.0, 1.0), st.sampled_from([0.05, 0.1, 0.025]))
+def test_line_data_equals_numpy_to_the_bit(seed: int, scans: int, min_flatness: float, resolution: float) -> None:
+    """The walls' means, normals and line flags (line_terms, then numpy's arctan2) against the numpy lines they
+    replaced, on a grid of scans of walls, a corner and clutter: equal to the bit."""
+    rng = np.random.default_rng(seed)
+    grid = LogOddsGrid(resolution, subcell=True)
+    for _ in range(scans):
+        sensor = rng.uniform(-1.0, 1.0, 2)
+        wall = np.stack([np.linspace(-3.0, 3.0, 120), np.full(120, 2.0) + rng.normal(0.0, 0.01, 120)], axis=1)
+        side = np.stack([np.full(60, 3.0) + rng.normal(0.0, 0.01, 60), np.linspace(-2.0, 2.0, 60)], axis=1)
+        clutter = rng.uniform(-3.0, 3.0, (30, 2))
+        grid.insert_rays(sensor, np.vstack([wall, side, clutter]))
+    rows, cols = np.nonzero(grid.log_odds > 0.0)
+    actual = grid.line_data(rows, cols, min_flatness)
+    expected = numpy_line_data(grid, rows, cols, min_flatness)
+    for a, e in zip(actual, expected, strict=True):
+        assert a.shape == e.shape and a.dtype == e.dtype
+        np.testing.assert_array_equal(a, e)
+
+
 def numpy_max_pool(prev: np.ndarray, s: int) -> np.ndarray:
     level = prev.copy()
     if s < level.shape[1]:

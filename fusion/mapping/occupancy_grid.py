@@ -31,7 +31,7 @@ from trundle.fusion.mapping.nearest_cells import (
     squared_distances,
     stamped_field,
 )
-from trundle.fusion.mapping.wall_moments import neighbourhood_moments
+from trundle.fusion.mapping.wall_moments import line_terms
 from trundle.logs.errors import UserError
 from trundle.logs.messages import OccupancyGrid
 
@@ -429,17 +429,11 @@ class LogOddsGrid:
         """
         if self.moments is None:
             raise ValueError("wall lines need a grid built with subcell=True")
-        mean, sums = neighbourhood_moments(self.moments.slots, self.moments.rows, self.log_odds,
-                                           np.asarray(rows, np.int64), np.asarray(cols, np.int64))
-        mx, my = sums[:, 1] / sums[:, 0], sums[:, 2] / sums[:, 0]
-        sxx, sxy, syy = (sums[:, 3] / sums[:, 0] - mx * mx, sums[:, 4] / sums[:, 0] - mx * my,
-                         sums[:, 5] / sums[:, 0] - my * my)
-        angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the largest spread: the wall
-        spread = np.sqrt(((sxx - syy) / 2.0) ** 2 + sxy ** 2)
-        centre = (sxx + syy) / 2.0
-        flat = 1.0 - (centre - spread) / np.maximum(centre + spread, 1e-12)
-        return (self.origin + mean * self.resolution, np.stack([-np.sin(angle), np.cos(angle)], axis=1),
-                (flat >= min_flatness) & (sums[:, 0] >= 3))
+        mean, twice_sxy, difference, is_line = line_terms(
+            self.moments.slots, self.moments.rows, self.log_odds, np.asarray(rows, np.int64),
+            np.asarray(cols, np.int64), self.origin, self.resolution, float(min_flatness))
+        angle = 0.5 * np.arctan2(twice_sxy, difference)  # direction of the largest spread: the wall
+        return mean, np.stack([-np.sin(angle), np.cos(angle)], axis=1), is_line
 
     def likelihood_field(self, sigma_m: float) -> np.ndarray:
         """``exp(-d^2 / (2 sigma^2))`` of the distance to the nearest occupied cell, 0 beyond 4 sigma."""

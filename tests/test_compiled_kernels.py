@@ -919,16 +919,17 @@ def numpy_lattice_base(points: np.ndarray, thetas: np.ndarray, x0: float, y0: fl
 def test_lattice_and_flat_cells_equal_numpy_to_the_bit(seed: int, count: int, angles: int, x0: float, y0: float,
                                                         t0: float, res: float, limit: int, row0: int, col0: int,
                                                         height: int, width: int) -> None:
-    """The search's per-rotation cells of the scan's points (lattice_cells) and their clipped flat indices
-    (flat_cells) against the numpy expressions they replaced: the same integers."""
+    """The search's angles and per-rotation cells of the scan's points (lattice_cells) and their clipped flat
+    indices (flat_cells) against the numpy expressions they replaced: the same angles and integers."""
     rng = np.random.default_rng(seed)
     points = rng.normal(0.0, rng.uniform(0.1, 15.0), (count, 2))
-    thetas = t0 + 0.004 * np.arange(-(angles // 2), angles - angles // 2)
+    thetas = t0 + 0.004 * np.arange(-angles, angles + 1)
     origin = rng.uniform(-60, 10, 2)
     pad = 1 << max(1, min(8, int(math.ceil(math.log2(2 * limit + 1))) + 1)) - 1
     height, width = height + 2 * pad, width + 2 * pad
-    cols, rows, c_lo, c_hi, r_lo, r_hi = lattice_cells(points, np.cos(thetas), np.sin(thetas), x0, y0,
-                                                       float(origin[0]), float(origin[1]), res)
+    found, cols, rows, c_lo, c_hi, r_lo, r_hi = lattice_cells(points, t0, 0.004, angles, x0, y0, float(origin[0]),
+                                                              float(origin[1]), res)
+    np.testing.assert_array_equal(found, thetas)
     expected_cols, extent, expected_base = numpy_lattice_base(points, thetas, x0, y0, origin, res, limit, pad, row0,
                                                               col0, height, width)
     np.testing.assert_array_equal(cols, expected_cols)

@@ -155,24 +155,28 @@ def branch_and_bound(pyramid: np.ndarray, base: np.ndarray, thetas: np.ndarray, 
 
 
 @kernel
-def lattice_cells(points: np.ndarray, cos: np.ndarray, sin: np.ndarray, x0: float, y0: float, origin_x: float,
-                  origin_y: float, resolution: float) -> tuple[np.ndarray, np.ndarray, int, int, int, int]:
-    """The grid cell (column, row) of each point (N, 2, robot frame) with the robot at ``(x0, y0)`` turned by
-    each angle whose cosine and sine are given: ``floor((c x - s y + x0 - origin_x) / resolution)`` and
-    ``floor((s x + c y + y0 - origin_y) / resolution)``, as numpy evaluated them, (angles, N) each; and
-    the least and greatest column and row."""
+def lattice_cells(points: np.ndarray, theta0: float, step: float, half: int, x0: float, y0: float, origin_x: float,
+                  origin_y: float, resolution: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int, int]:
+    """The search's angles ``theta0 + step * k`` for k in ``[-half, half]`` (numpy's ``theta0 + step *
+    np.arange(-half, half + 1)``), and the grid cell (column, row) of each point (N, 2, robot frame) with the
+    robot at ``(x0, y0)`` turned by each: ``floor((c x - s y + x0 - origin_x) / resolution)`` and
+    ``floor((s x + c y + y0 - origin_y) / resolution)`` with the angle's cosine and sine (the C library's,
+    which numpy's equal here), as numpy evaluated them, (angles, N) each; and the least and greatest
+    column and row. Five numpy calls a search before."""
     count = points.shape[0]
-    cols = np.empty((cos.shape[0], count), np.int64)
-    rows = np.empty((cos.shape[0], count), np.int64)
-    for a in range(cos.shape[0]):
-        c, s = cos[a], sin[a]
+    thetas = np.empty(2 * half + 1)
+    cols = np.empty((thetas.shape[0], count), np.int64)
+    rows = np.empty((thetas.shape[0], count), np.int64)
+    for a in range(thetas.shape[0]):
+        thetas[a] = theta0 + step * np.float64(a - half)
+        c, s = math.cos(thetas[a]), math.sin(thetas[a])
         for n in range(count):
             px, py = points[n, 0], points[n, 1]
             cols[a, n] = math.floor((c * px - s * py + x0 - origin_x) / resolution)
             rows[a, n] = math.floor((s * px + c * py + y0 - origin_y) / resolution)
     if cols.size == 0:
-        return cols, rows, 0, 0, 0, 0
-    return cols, rows, cols.min(), cols.max(), rows.min(), rows.max()
+        return thetas, cols, rows, 0, 0, 0, 0
+    return thetas, cols, rows, cols.min(), cols.max(), rows.min(), rows.max()
 
 
 @kernel

@@ -156,7 +156,6 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     if angular_step_rad is None:
         angular_step_rad = angular_step(res, float(np.max(np.hypot(points[:, 0], points[:, 1]))))
     n_theta = int(math.floor(window_theta_rad / angular_step_rad))
-    thetas = t0 + angular_step_rad * np.arange(-n_theta, n_theta + 1)
     limit = int(math.ceil(window_xy_m / res))
     # Blocks of 2^(levels - 1) cells, two per axis: a level above them would hold every offset in one
     # block per angle, and its blocks' children are these, in the order the search takes them (so of equal
@@ -164,10 +163,11 @@ def correlative_search(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xy
     span_levels = int(math.ceil(math.log2(2 * limit + 1)))
     levels, pad = max(1, min(8, span_levels)), 1 << min(span_levels, 7)
 
-    # each rotated point's cell for the lattice's centre offset (compiled: one pass, no (angles, N) temporaries)
+    # the angles, and each rotated point's cell for the lattice's centre offset (compiled: one pass, no (angles, N)
+    # temporaries)
     origin = grid.origin
-    cols, rows, c_lo, c_hi, r_lo, r_hi = lattice_cells(points, np.cos(thetas), np.sin(thetas), x0, y0,
-                                                       float(origin[0]), float(origin[1]), res)
+    thetas, cols, rows, c_lo, c_hi, r_lo, r_hi = lattice_cells(points, t0, float(angular_step_rad), n_theta, x0, y0,
+                                                               float(origin[0]), float(origin[1]), res)
     # The likelihood over a window holding every cell a lattice pose puts a point on (the match
     # fields' window, which the refinement reads too), max-pooled once per window.
     window = match_fields(grid, max_distance_m, sigma, wall_lines).around_box(c_lo - limit, c_hi + limit,

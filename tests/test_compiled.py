@@ -83,7 +83,7 @@ def test_a_cache_that_cannot_be_made_leaves_numba_its_own(tmp_path: Path) -> Non
     environment["XDG_CACHE_HOME"] = str(blocked)
     program = ("import numpy as np, numba\n"
                "from trundle.fusion.mapping.nearest_cells import squared_nearest\n"
-               "print(squared_nearest(np.array([[0, -1], [-1, -1]], np.int32), 1, 1, 3), repr(numba.config.CACHE_DIR))")
+               "print(squared_nearest(np.array([0, 1, 1]), np.array([0]), 1, 1, 3), repr(numba.config.CACHE_DIR))")
     done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, env=environment,
                           check=True, timeout=300)
     assert done.stdout.split() == ["2", "''"]

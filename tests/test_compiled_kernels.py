@@ -224,6 +224,13 @@ def occupied_index(mask: np.ndarray) -> np.ndarray:
     return index
 
 
+def occupied_rows(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows' starts and the columns occupied_cells gives of a mask: row i's true columns are
+    ``cols[starts[i]:starts[i + 1]]``, by numpy's nonzero and searchsorted."""
+    rows, cols = np.nonzero(mask)
+    return np.searchsorted(rows, np.arange(mask.shape[0] + 1)), cols
+
+
 def brute_force_squared(mask: np.ndarray, margin: int, height: int, width: int, radius: int) -> np.ndarray:
     """The squared distance (cells^2) of each cell of the window ``margin`` cells inside ``mask`` to its nearest
     true cell, ``radius^2 + 1`` beyond ``radius``: every pair measured."""
@@ -267,7 +274,8 @@ def test_field_residuals_equal_numpy(problem: tuple[np.ndarray, int, int, np.nda
     mask, margin, radius, cx, cy = problem
     squared, distances, dense = window_fields(mask, margin, radius, res, max_distance_m)
     rx, ry = 0.3 * cx - 1.0, 0.2 * cy + 0.5
-    assert_same(field_residuals(squared, distances, occupied_index(mask), row0 - margin, col0 - margin, radius,
+    assert_same(field_residuals(squared, distances, occupied_index(mask), *occupied_rows(mask), row0 - margin,
+                                col0 - margin, radius,
                                 *NO_WALLS, row0, col0, cx, cy, 0.3, -0.2, rx, ry, res, max_distance_m),
                 numpy_field_residuals(dense, row0, col0, cx, cy, rx, ry, res, max_distance_m))
     found = squared >= 0
@@ -294,8 +302,9 @@ def test_line_residuals_equal_numpy(problem: tuple[np.ndarray, int, int, np.ndar
     rx, ry = 0.05 * cx - 0.5, 0.05 * cy + 0.2
     nearest = opencv_nearest(occupied)[margin:margin + dense.shape[0], margin:margin + dense.shape[1]]
     found = np.full(dense.shape, -2, np.int32)
-    assert_same(field_residuals(squared, distances, occupied, row0 - margin, col0 - margin, radius, found, mean,
-                                normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx, ry, 0.05, 0.5),
+    assert_same(field_residuals(squared, distances, occupied, *occupied_rows(mask), row0 - margin, col0 - margin,
+                                radius, found, mean, normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx, ry, 0.05,
+                                0.5),
                 numpy_line_residuals(dense, nearest, mean, normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx,
                                      ry, 0.05, 0.5))
     np.testing.assert_array_equal(found[found > -2], nearest[found > -2])   # the labels kept are OpenCV's
@@ -306,13 +315,16 @@ def test_line_residuals_equal_numpy(problem: tuple[np.ndarray, int, int, np.ndar
        st.integers(0, 6), st.integers(0, 6))
 def test_squared_nearest_equals_the_stamp(height: int, width: int, density: float, seed: int, radius: int, top: int,
                                           left: int) -> None:
-    """A cell's squared distance found by rings (what a refinement reads) is what every pair measured gives
-    (within the radius; one more beyond), and what a stamp of a field that falls with the distance reads."""
-    mask = np.random.default_rng(seed).random((height, width)) < density
+    """A cell's squared distance found from the rows' occupied cells (what a refinement reads) is what every pair
+    measured gives (within the radius; one more beyond), and what a stamp of a field that falls with the distance
+    reads."""
+    rng = np.random.default_rng(seed)
+    mask = rng.random((height, width)) < density
+    mask[rng.random(height) < 0.15, rng.integers(0, width):] = True   # walls along rows: many columns to bisect
     rows, cols = np.nonzero(mask)
     top, left = min(top, height - 1), min(left, width - 1)
-    occupied = occupied_index(mask)
-    found = np.array([[squared_nearest(occupied, top + i, left + j, radius) for j in range(width - left)]
+    starts, occupied_cols = occupied_rows(mask)
+    found = np.array([[squared_nearest(starts, occupied_cols, top + i, left + j, radius) for j in range(width - left)]
                       for i in range(height - top)])
     full = brute_force_squared(np.pad(mask, ((0, top), (0, left))), 0, height, width, radius)
     np.testing.assert_array_equal(found, full[top:, left:])
@@ -591,8 +603,9 @@ def test_compiled_refinement_equals_the_python_loop(problem: tuple[LogOddsGrid, 
         window = fields.around(cx, cy)
         assert window.lines is not None
         wall_arrays = (window.lines.nearest, window.lines.mean, window.lines.normal, window.lines.is_line)
-        d, jac, active = field_residuals(window.squared, window.distances, window.occupied, window.occupied_row0,
-                                         window.occupied_col0, window.radius, *(wall_arrays if walls else NO_WALLS),
+        d, jac, active = field_residuals(window.squared, window.distances, window.occupied, window.occupied_starts,
+                                         window.occupied_cols, window.occupied_row0, window.occupied_col0,
+                                         window.radius, *(wall_arrays if walls else NO_WALLS),
                                          window.row0, window.col0, cx, cy, float(pose[0]), float(pose[1]), rx, ry,
                                          0.05, 0.5)
         loss, weight = robust_loss(d * d, "huber", 0.05)
@@ -606,8 +619,8 @@ def test_compiled_refinement_equals_the_python_loop(problem: tuple[LogOddsGrid, 
         height, width = window.squared.shape
         wall_arrays = (window.lines.nearest, window.lines.mean, window.lines.normal, window.lines.is_line)
         status, box, pose, count, *state = solve_pose_in_window(
-            window.squared, window.distances, window.occupied, window.occupied_row0, window.occupied_col0,
-            window.radius, *(wall_arrays if walls else NO_WALLS),
+            window.squared, window.distances, window.occupied, window.occupied_starts, window.occupied_cols,
+            window.occupied_row0, window.occupied_col0, window.radius, *(wall_arrays if walls else NO_WALLS),
             np.array([window.row0, window.row0 + height, window.col0, window.col0 + width]), np.array(grid.shape),
             px, py, start, grid.origin, 0.05, 0.5, 0.05, iterations, SCHEDULE, STEP_TOLERANCE)
         if status == DONE:
@@ -747,13 +760,14 @@ def test_occupied_cells_equal_numpy(height: int, width: int, density: float, see
     log_odds[rng.random((height, width)) < 0.05] = 0.0   # exactly zero: not occupied
     pr0, pc0 = min(top, height), min(left, width)
     pr1, pc1 = max(height - bottom, pr0), max(width - right, pc0)
-    rows, cols, occupied = occupied_cells(log_odds, pr0, pr1, pc0, pc1)
+    rows, cols, occupied, starts = occupied_cells(log_odds, pr0, pr1, pc0, pc1)
     mask = log_odds[pr0:pr1, pc0:pc1] > 0.0
     expected_rows, expected_cols = np.nonzero(mask)
     np.testing.assert_array_equal(rows, expected_rows)
     np.testing.assert_array_equal(cols, expected_cols)
     assert rows.dtype == expected_rows.dtype and occupied.dtype == np.int32
     np.testing.assert_array_equal(occupied, occupied_index(mask))
+    np.testing.assert_array_equal(starts, occupied_rows(mask)[0])
 
 
 @st.composite

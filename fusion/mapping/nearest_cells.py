@@ -10,8 +10,9 @@ disc, not passes over the whole padded window.
 
 The refinement reads the capped distance (half a metre: a disc six times the likelihood's) and the
 wall lines' nearest cell at a few hundred cells where the window holds tens of thousands, so it finds
-them there, searching rings of cells around each: :func:`squared_nearest` gives the stamp's value,
-:func:`chamfer_nearest` OpenCV's labelled distance transform's label (``distanceTransformWithLabels``,
+them there: :func:`squared_nearest` the stamp's value, from the occupied cells of the rows around each
+(bisecting a row's), :func:`chamfer_nearest` OpenCV's labelled distance transform's label, searching rings
+of cells around each (``distanceTransformWithLabels``,
 which takes its 5 x 5 chamfer metric for L2; Borgefors 1986), ties included. Labelling the whole padded
 window cost a quarter of a match, and stamping the distance to its cap a sixth.
 """
@@ -66,24 +67,28 @@ def stamped_field(rows: np.ndarray, cols: np.ndarray, row0: int, col0: int, heig
 
 @kernel
 def occupied_cells(log_odds: np.ndarray, r0: int, r1: int, c0: int, c1: int
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The occupied cells (log-odds above 0) of ``log_odds[r0:r1, c0:c1]``: their rows and columns in that
-    window, in ``np.nonzero``'s (row-major) order, and the window's index of them (int32: each occupied
-    cell's position in that order, -1 elsewhere), which :func:`chamfer_nearest` searches. One pass where
-    numpy made a mask and its nonzero."""
+    window, in ``np.nonzero``'s (row-major) order; the window's index of them (int32: each occupied
+    cell's position in that order, -1 elsewhere), which :func:`chamfer_nearest` searches; and where each
+    row's cells start in that order (``starts[i]:starts[i + 1]``: row i's, its columns ascending), which
+    :func:`squared_nearest` searches. One pass where numpy made a mask and its nonzero."""
     height, width = r1 - r0, c1 - c0
     index = np.full((height, width), -1, np.int32)
     rows = np.empty(height * width, np.int64)
     cols = np.empty(height * width, np.int64)
+    starts = np.empty(height + 1, np.int64)
     count = 0
     for i in range(height):
+        starts[i] = count
         values, found = log_odds[r0 + i, c0:c1], index[i]   # a row's views: no index arithmetic per cell
         for j in range(width):
             if values[j] > np.float32(0.0):
                 found[j] = count
                 rows[count], cols[count] = i, j
                 count += 1
-    return rows[:count].copy(), cols[:count].copy(), index
+    starts[height] = count
+    return rows[:count].copy(), cols[:count].copy(), index, starts
 
 
 # OpenCV's 5 x 5 chamfer steps (1, 1.4 and 2.1969 cells: straight, diagonal, knight's move) in the fixed
@@ -123,15 +128,15 @@ def _wins_tie(d_row: int, d_col: int, m: int, other_row: int, other_col: int, ot
 
 
 @kernel
-def _nearest(occupied: np.ndarray, row: int, col: int, rings: int, chamfered: bool) -> tuple[int, int]:
+def _nearest(occupied: np.ndarray, row: int, col: int, rings: int) -> int:
     """The occupied cell (its value in ``occupied``; -1: none) nearest the cell (``row``, ``col``) within
-    ``rings`` rings of cells around it, and its distance: squared (cells^2) or, ``chamfered``, the 5 x 5
-    chamfer distance (:func:`chamfer`), equally near cells decided as OpenCV does (:func:`_wins_tie`). The
-    rings go out to where none can hold a nearer cell (a ring k cells out is at least k straight steps away)."""
+    ``rings`` rings of cells around it in the 5 x 5 chamfer metric (:func:`chamfer`), equally near cells
+    decided as OpenCV does (:func:`_wins_tie`). The rings go out to where none can hold a nearer cell (a
+    ring k cells out is at least k straight steps away)."""
     height, width = occupied.shape
     best, found, found_row, found_col = 1 << 62, -1, 0, 0
     for k in range(rings + 1):
-        if (k * STRAIGHT if chamfered else k * k) > best:
+        if k * STRAIGHT > best:
             break
         for d_row in range(-k, k + 1):
             i = row + d_row
@@ -143,45 +148,64 @@ def _nearest(occupied: np.ndarray, row: int, col: int, rings: int, chamfered: bo
                 if j < 0 or j >= width or occupied[i, j] < 0:
                     continue
                 m = occupied[i, j]
-                if chamfered:
-                    e = chamfer(d_row, d_col)
-                    nearer = e < best or (e == best and _wins_tie(d_row, d_col, m, found_row, found_col, found))
-                else:
-                    e = d_row * d_row + d_col * d_col
-                    nearer = e < best
-                if nearer:
+                e = chamfer(d_row, d_col)
+                if e < best or (e == best and _wins_tie(d_row, d_col, m, found_row, found_col, found)):
                     best, found, found_row, found_col = e, m, d_row, d_col
-    return found, best
+    return found
 
 
 @kernel
-def squared_nearest(occupied: np.ndarray, row: int, col: int, radius: int) -> int:
-    """The squared distance (cells^2) from cell (``row``, ``col``) of ``occupied`` (see :func:`occupied_cells`)
-    to the nearest of its occupied cells, ``radius^2 + 1`` when none is within ``radius`` cells: the value
-    a stamp of every occupied cell's disc would give that cell."""
-    return min(_nearest(occupied, row, col, radius, False)[1], radius * radius + 1)
+def squared_nearest(starts: np.ndarray, cols: np.ndarray, row: int, col: int, radius: int) -> int:
+    """The squared distance (cells^2) from cell (``row``, ``col``) to the nearest occupied cell (row i's columns
+    are ``cols[starts[i]:starts[i + 1]]``, ascending; see :func:`occupied_cells`), ``radius^2 + 1`` when none is
+    within ``radius`` cells: the value a stamp of every occupied cell's disc would give that cell.
+
+    Row by row outwards from the cell's, each row's nearest column found by bisection, until a row is as far
+    as the nearest found. A cell far from every wall read the (2 radius + 1)^2 cells around it one by one
+    (441 at the defaults): the refinement's first evaluations spent two thirds of their time there."""
+    height = starts.shape[0] - 1
+    best = radius * radius + 1
+    for k in range(radius + 1):
+        if k * k >= best:
+            break
+        for i in (row - k, row + k):   # k = 0: the cell's row twice
+            if i < 0 or i >= height or starts[i] == starts[i + 1]:
+                continue
+            low, high = starts[i], starts[i + 1]
+            while low < high:   # the first column at or right of the cell's
+                middle = (low + high) >> 1
+                if cols[middle] < col:
+                    low = middle + 1
+                else:
+                    high = middle
+            if low < starts[i + 1]:
+                best = min(best, k * k + (cols[low] - col) * (cols[low] - col))
+            if low > starts[i]:
+                best = min(best, k * k + (col - cols[low - 1]) * (col - cols[low - 1]))
+    return best
 
 
 @kernel(inline=True)
-def kept_squared(squared: np.ndarray, width: int, occupied: np.ndarray, d_row: int, d_col: int, radius: int,
-                 flat: int) -> int:
+def kept_squared(squared: np.ndarray, width: int, starts: np.ndarray, cols: np.ndarray, d_row: int, d_col: int,
+                 radius: int, flat: int) -> int:
     """The squared distance of a window's cell at flat index ``flat``: kept in ``squared`` (the window's, ``width``
-    cells a row, flattened; -1: not found yet), else found (:func:`squared_nearest`) and kept. The window's
-    cell (0, 0) is ``occupied``'s (``d_row``, ``d_col``)."""
+    cells a row, flattened; -1: not found yet), else found (:func:`squared_nearest`, the occupied cells
+    ``starts``, ``cols``) and kept. The window's cell (0, 0) is the occupied cells' (``d_row``, ``d_col``)."""
     kept = squared[flat]
     if kept < 0:
-        kept = squared_nearest(occupied, flat // width + d_row, flat % width + d_col, radius)
+        kept = squared_nearest(starts, cols, flat // width + d_row, flat % width + d_col, radius)
         squared[flat] = kept
     return kept
 
 
 @kernel
-def all_squared_nearest(squared: np.ndarray, occupied: np.ndarray, d_row: int, d_col: int, radius: int) -> np.ndarray:
+def all_squared_nearest(squared: np.ndarray, starts: np.ndarray, cols: np.ndarray, d_row: int, d_col: int,
+                        radius: int) -> np.ndarray:
     """Every cell of ``squared`` (a window's squared distances, -1: not found yet) found, in place
     (:func:`kept_squared`)."""
     flat = squared.reshape(-1)
     for cell in range(flat.shape[0]):
-        kept_squared(flat, squared.shape[1], occupied, d_row, d_col, radius, cell)
+        kept_squared(flat, squared.shape[1], starts, cols, d_row, d_col, radius, cell)
     return squared
 
 
@@ -204,4 +228,4 @@ def chamfer_nearest(occupied: np.ndarray, row: int, col: int) -> int:
     ``distanceTransformWithLabels(image, DIST_L2, ..., DIST_LABEL_PIXEL)`` gives that cell, where the
     image is 0 on ``occupied``'s occupied cells."""
     height, width = occupied.shape
-    return _nearest(occupied, row, col, max(row, height - 1 - row, col, width - 1 - col), True)[0]
+    return _nearest(occupied, row, col, max(row, height - 1 - row, col, width - 1 - col))

@@ -77,9 +77,10 @@ class FieldWindow:
     """Match fields over the cells ``[row0, row0 + h) x [col0, col0 + w)`` of a grid: the likelihood;
     the distance (m) to the nearest occupied cell, capped, which a cell's ``squared`` distance (cells^2,
     -1 until a match first reads it; see :meth:`distance`) looks up in ``distances`` (none within
-    ``radius`` cells: the last); the index of the occupied cells around the window from the grid's
-    (``occupied_row0``, ``occupied_col0``), in which both are found
-    (:func:`~trundle.fusion.mapping.nearest_cells.occupied_cells`); and the walls (None without them)."""
+    ``radius`` cells: the last); the occupied cells around the window from the grid's (``occupied_row0``,
+    ``occupied_col0``), as an index (the walls' nearest cells are found in it) and as each row's columns
+    (``occupied_cols[occupied_starts[i]:occupied_starts[i + 1]]``: the distances are found there; see
+    :func:`~trundle.fusion.mapping.nearest_cells.occupied_cells`); and the walls (None without them)."""
 
     row0: int
     col0: int
@@ -88,13 +89,15 @@ class FieldWindow:
     distances: np.ndarray
     radius: int
     occupied: np.ndarray
+    occupied_starts: np.ndarray
+    occupied_cols: np.ndarray
     occupied_row0: int
     occupied_col0: int
     lines: WallLines | None
 
     def distance(self) -> np.ndarray:
         """The distance field over the whole window (m, float32), every cell's found."""
-        all_squared_nearest(self.squared, self.occupied, self.row0 - self.occupied_row0,
+        all_squared_nearest(self.squared, self.occupied_starts, self.occupied_cols, self.row0 - self.occupied_row0,
                             self.col0 - self.occupied_col0, self.radius)
         return self.distances[self.squared]
 
@@ -173,7 +176,7 @@ class MatchFields:
         grid, margin = self.grid, self.margin
         height, width = grid.shape
         pr0, pr1, pc0, pc1 = max(r0 - margin, 0), min(r1 + margin, height), max(c0 - margin, 0), min(c1 + margin, width)
-        rows, cols, occupied = occupied_cells(grid.log_odds, pr0, pr1, pc0, pc1)
+        rows, cols, occupied, starts = occupied_cells(grid.log_odds, pr0, pr1, pc0, pc1)
         shape = (max(r1 - r0, 0), max(c1 - c0, 0))
         # the likelihood is exact to its radius and zero from there; a distance is found where it is read
         likelihood = stamped_field(rows, cols, r0 - pr0, c0 - pc0, shape[0], shape[1], self.likelihood_radius,
@@ -183,7 +186,7 @@ class MatchFields:
             lines = WallLines(np.full(shape, -2, np.int32), *grid.line_data(rows + pr0, cols + pc0, self.min_flatness))
         self._bounds = (r0, r1, c0, c1)
         self._window = FieldWindow(r0, c0, likelihood, np.full(shape, -1, np.int32), self.distances, self.radius,
-                                   occupied, pr0, pc0, lines)
+                                   occupied, starts, cols, pr0, pc0, lines)
         return self._window
 
 

@@ -70,15 +70,17 @@ def bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarra
 
 
 @kernel
-def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, occupied_row0: int,
-                    occupied_col0: int, radius: int, nearest: np.ndarray, mean: np.ndarray, normal: np.ndarray,
-                    is_line: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray, pose_x: float,
-                    pose_y: float, rx: np.ndarray, ry: np.ndarray, resolution: float, max_distance_m: float
+def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, starts: np.ndarray,
+                    cols: np.ndarray, occupied_row0: int, occupied_col0: int, radius: int, nearest: np.ndarray,
+                    mean: np.ndarray, normal: np.ndarray, is_line: np.ndarray, row0: int, col0: int, cx: np.ndarray,
+                    cy: np.ndarray, pose_x: float, pose_y: float, rx: np.ndarray, ry: np.ndarray, resolution: float,
+                    max_distance_m: float
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residuals of points against a match field window whose cell (0, 0) is the grid's (``row0``, ``col0``).
 
     ``occupied`` indexes the occupied cells around the window from the grid's (``occupied_row0``,
-    ``occupied_col0``) (:func:`~trundle.fusion.mapping.nearest_cells.occupied_cells`). Point to field: the
+    ``occupied_col0``), and ``starts``, ``cols`` hold each row's
+    (:func:`~trundle.fusion.mapping.nearest_cells.occupied_cells`). Point to field: the
     distance (m) to the nearest occupied cell, read bilinearly at the points' continuous grid cell
     coordinates (cx, cy), ``max_distance_m`` off the window; the distance of a cell is ``distances`` at its
     squared distance within ``radius`` cells, found the first time it is read and kept in ``squared`` (the
@@ -101,10 +103,11 @@ def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.nda
         return d, jac, active
     for i in range(n):
         i00, i01, i10, i11, fu, fv, inside = _corners(height, width, cx[i] - 0.5 - col0, cy[i] - 0.5 - row0)
-        value, du, dv = _interpolate(distances[kept_squared(kept, width, occupied, d_row, d_col, radius, i00)],
-                                     distances[kept_squared(kept, width, occupied, d_row, d_col, radius, i01)],
-                                     distances[kept_squared(kept, width, occupied, d_row, d_col, radius, i10)],
-                                     distances[kept_squared(kept, width, occupied, d_row, d_col, radius, i11)], fu, fv)
+        f00 = distances[kept_squared(kept, width, starts, cols, d_row, d_col, radius, i00)]
+        f01 = distances[kept_squared(kept, width, starts, cols, d_row, d_col, radius, i01)]
+        f10 = distances[kept_squared(kept, width, starts, cols, d_row, d_col, radius, i10)]
+        f11 = distances[kept_squared(kept, width, starts, cols, d_row, d_col, radius, i11)]
+        value, du, dv = _interpolate(f00, f01, f10, f11, fu, fv)
         active[i] = inside and value < max_distance_m
         k = -1
         if active[i] and is_line.size:   # an active point's cell is in the window (inside)

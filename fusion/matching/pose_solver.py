@@ -59,10 +59,11 @@ def solve3(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 
 
 @kernel
-def _evaluate(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, occupied_row0: int,
-              occupied_col0: int, radius: int, nearest: np.ndarray, mean: np.ndarray, normal: np.ndarray,
-              is_line: np.ndarray, bounds: np.ndarray, grid_shape: np.ndarray, px: np.ndarray, py: np.ndarray,
-              pose: np.ndarray, origin: np.ndarray, resolution: float, max_distance_m: float, huber_m: float
+def _evaluate(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, starts: np.ndarray, cols: np.ndarray,
+              occupied_row0: int, occupied_col0: int, radius: int, nearest: np.ndarray, mean: np.ndarray,
+              normal: np.ndarray, is_line: np.ndarray, bounds: np.ndarray, grid_shape: np.ndarray, px: np.ndarray,
+              py: np.ndarray, pose: np.ndarray, origin: np.ndarray, resolution: float, max_distance_m: float,
+              huber_m: float
               ) -> tuple[bool, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Huber cost, residuals, Jacobian, IRLS weights and active mask of the points at ``pose``; first,
     whether the window ``bounds`` (r0, r1, c0, c1) holds them and the box (c_min, c_max, r_min, r_max) they need."""
@@ -76,9 +77,9 @@ def _evaluate(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, 
         if r_lo < bounds[0] or r_hi > bounds[1] or c_lo < bounds[2] or c_hi > bounds[3]:
             empty = np.zeros(0)
             return False, box, 0.0, empty, np.zeros((0, 3)), empty, np.zeros(0, np.bool_)
-    d, jac, active = field_residuals(squared, distances, occupied, occupied_row0, occupied_col0, radius, nearest,
-                                     mean, normal, is_line, bounds[0], bounds[2], cx, cy, pose[0], pose[1], rx, ry,
-                                     resolution, max_distance_m)
+    d, jac, active = field_residuals(squared, distances, occupied, starts, cols, occupied_row0, occupied_col0, radius,
+                                     nearest, mean, normal, is_line, bounds[0], bounds[2], cx, cy, pose[0], pose[1],
+                                     rx, ry, resolution, max_distance_m)
     k2 = huber_m * huber_m
     weight = np.empty(len(d))
     cost = 0.0
@@ -95,12 +96,12 @@ def _evaluate(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, 
 
 
 @kernel
-def solve_pose_in_window(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, occupied_row0: int,
-                         occupied_col0: int, radius: int, nearest: np.ndarray, mean: np.ndarray, normal: np.ndarray,
-                         is_line: np.ndarray, bounds: np.ndarray, grid_shape: np.ndarray, px: np.ndarray,
-                         py: np.ndarray, initial_pose: np.ndarray, origin: np.ndarray, resolution: float,
-                         max_distance_m: float, huber_m: float, max_iterations: int, schedule: np.ndarray,
-                         step_tolerance: np.ndarray
+def solve_pose_in_window(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, starts: np.ndarray,
+                         cols: np.ndarray, occupied_row0: int, occupied_col0: int, radius: int, nearest: np.ndarray,
+                         mean: np.ndarray, normal: np.ndarray, is_line: np.ndarray, bounds: np.ndarray,
+                         grid_shape: np.ndarray, px: np.ndarray, py: np.ndarray, initial_pose: np.ndarray,
+                         origin: np.ndarray, resolution: float, max_distance_m: float, huber_m: float,
+                         max_iterations: int, schedule: np.ndarray, step_tolerance: np.ndarray
                          ) -> tuple[int, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg-Marquardt over one pose (x m, y m, theta rad; Euclidean, theta wrapped at the end) minimising
     the Huber cost of the points (``px``, ``py``, robot frame) against the window (grid cell (0, 0) at
@@ -116,8 +117,8 @@ def solve_pose_in_window(squared: np.ndarray, distances: np.ndarray, occupied: n
     min_fidelity, min_diagonal, relative, absolute = schedule[4], schedule[5], schedule[6], schedule[7]
     x = initial_pose.copy()
     ok, box, current, d, jac, weight, active = _evaluate(
-        squared, distances, occupied, occupied_row0, occupied_col0, radius, nearest, mean, normal, is_line, bounds,
-        grid_shape, px, py, x, origin, resolution, max_distance_m, huber_m)
+        squared, distances, occupied, starts, cols, occupied_row0, occupied_col0, radius, nearest, mean, normal,
+        is_line, bounds, grid_shape, px, py, x, origin, resolution, max_distance_m, huber_m)
     if not ok:
         return GROW, box, x, 0, d, jac, weight, active
     lam = initial_lambda
@@ -148,8 +149,8 @@ def solve_pose_in_window(squared: np.ndarray, distances: np.ndarray, occupied: n
                 continue
             candidate = x + dx
             ok, box, new_cost, nd, njac, nweight, nactive = _evaluate(
-                squared, distances, occupied, occupied_row0, occupied_col0, radius, nearest, mean, normal, is_line,
-                bounds, grid_shape, px, py, candidate, origin, resolution, max_distance_m, huber_m)
+                squared, distances, occupied, starts, cols, occupied_row0, occupied_col0, radius, nearest, mean,
+                normal, is_line, bounds, grid_shape, px, py, candidate, origin, resolution, max_distance_m, huber_m)
             if not ok:
                 return GROW, box, x, iterations, d, jac, weight, active
             predicted = 0.0   # -2 dx.g - dx.H.dx

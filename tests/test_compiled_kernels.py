@@ -953,6 +953,14 @@ def test_lattice_and_flat_cells_equal_numpy_to_the_bit(seed: int, count: int, an
     np.testing.assert_array_equal(base, expected_base)
 
 
+def test_flat_cells_refuse_a_window_their_int32_cannot_index() -> None:
+    """The flat indices are int32: a window whose last cell is 2^31 or more is refused, the last below it taken."""
+    cells = np.zeros((1, 1), np.int64)
+    assert flat_cells(cells, cells, 0, 0, 2**31 - 2**20 - 1, 1, 2**20)[0, 0] == 0
+    with pytest.raises(ValueError, match="2\\^31"):
+        flat_cells(cells, cells, 0, 0, 2**31 - 2**20, 1, 2**20)
+
+
 def numpy_submap_votes(grid: LogOddsGrid, frame: np.ndarray, points_map: np.ndarray, tolerance_m: np.ndarray
                        ) -> tuple[np.ndarray, np.ndarray]:
     """map_check._submap_votes as numpy computed it before submap_votes."""

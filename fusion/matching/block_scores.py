@@ -183,8 +183,12 @@ def lattice_cells(points: np.ndarray, theta0: float, step: float, half: int, x0:
 def flat_cells(cols: np.ndarray, rows: np.ndarray, col_shift: int, row_shift: int, max_col: int, max_row: int,
                width: int) -> np.ndarray:
     """Flat indices ``row * width + col`` of cells ``(rows, cols)`` shifted by ``(row_shift, col_shift)`` and
-    clipped to ``[0, max_row] x [0, max_col]`` (as ``np.clip``: the upper bound wins)."""
-    flat = np.empty(cols.shape, np.int64)
+    clipped to ``[0, max_row] x [0, max_col]`` (as ``np.clip``: the upper bound wins). int32, whose half of
+    the memory the branch and bound reads for every candidate makes it a tenth faster (a window of 2^31 cells
+    would be a grid of 8 GB: refused)."""
+    if max_row * width + max_col >= 1 << 31:
+        raise ValueError("a search window of 2^31 cells or more")
+    flat = np.empty(cols.shape, np.int32)
     for a in range(cols.shape[0]):
         for n in range(cols.shape[1]):
             col = min(max(cols[a, n] + col_shift, 0), max_col)

@@ -286,10 +286,10 @@ class WheelsDriver(Driver):
             return "no CAN frames at all (bus not connected or not terminated, wrong bit rate, nodes off?)"
         if self.counters["decode_errors"] and self.counters["decode_errors"] * 2 >= self.counters["frames"]:
             return f"{self.counters['decode_errors']} of {self.counters['frames']} frames could not be decoded"
-        hints = [hint for protocol in self.protocols if (hint := protocol.silence_hint(self.seen_ids))]
-        stale = self._stale_wheels()
-        return "; ".join([*hints, *([f"stale wheels: {', '.join(stale)}"] if stale else [])]) or (
-            f"{self.counters['frames']} frames, none a reading of every wheel")
+        reasons = [hint for protocol in self.protocols if (hint := protocol.silence_hint(self.seen_ids))]
+        if stale := self._stale_wheels():
+            reasons.append(f"stale wheels: {', '.join(stale)}")
+        return "; ".join(reasons) or f"{self.counters['frames']} frames, none a reading of every wheel"
 
     def _stale_wheels(self) -> list[str]:
         """The names of the wheels not trusted now."""

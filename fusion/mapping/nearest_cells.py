@@ -172,7 +172,9 @@ def squared_nearest(starts: np.ndarray, cols: np.ndarray, row: int, col: int, ra
             if i < 0 or i >= height or starts[i] == starts[i + 1]:
                 continue
             low, high = starts[i], starts[i + 1]
-            while low < high:   # the first column at or right of the cell's
+            # the first column at or right of the cell's (np.searchsorted on the row's slice: 15-20 us a
+            # match more, its view and call per row)
+            while low < high:
                 middle = (low + high) >> 1
                 if cols[middle] < col:
                     low = middle + 1

@@ -236,8 +236,9 @@ def against_karto(name: str, log: carmen.CarmenLog, count: int, seed: int = 1) -
         kscans[i].corrected_pose = kscans[i].odom_pose = karto.Pose2(*guess)
         start = time.process_time()
         grid = LogOddsGrid(0.05, subcell=True)
-        everything = np.vstack([np.vstack([sensor[None], hits]) for sensor, hits in references])
-        grid.ensure_contains(everything.min(axis=0), everything.max(axis=0))   # one allocation for the five
+        # one allocation for the five; a column's min and max (numpy's axis-0 reduction over (N, 2) took 24 us)
+        x, y = np.concatenate([sensor[None] for sensor, _ in references] + [hits for _, hits in references]).T
+        grid.ensure_contains(np.array([x.min(), y.min()]), np.array([x.max(), y.max()]))
         for sensor, hits in references:
             grid.insert_rays(sensor, hits)
         built = time.process_time()

@@ -28,7 +28,7 @@ from trundle.fusion.mapping.nearest_cells import (
     stamped_field,
 )
 from trundle.fusion.mapping.occupancy_grid import LogOddsGrid, MatchFields, _likelihood, trace_rays
-from trundle.fusion.mapping.ray_casting import insert_scan, ray_cells, trace
+from trundle.fusion.mapping.ray_casting import insert_scan, ray_cells, trace, trace_and_insert
 from trundle.fusion.mapping.submaps import Submap
 from trundle.fusion.mapping.wall_moments import neighbourhood_moments
 from trundle.fusion.matching.block_scores import block_scores, branch_and_bound, flat_cells, lattice_cells
@@ -411,6 +411,42 @@ def test_insert_scan_equals_the_numpy_flat_indices_and_updates(height: int, widt
         np.testing.assert_array_equal(rows[slots].transpose(2, 0, 1), expected[2])
     else:
         assert used == count
+
+
+@EXAMPLES
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0.05, 0.1, 0.3]), st.integers(0, 30), st.integers(0, 4),
+       st.floats(0.5, 12.0), st.booleans())
+def test_trace_and_insert_equals_trace_then_insert_scan(seed: int, resolution: float, hits: int, free: int,
+                                                        reach: float, with_moments: bool) -> None:
+    """insert_rays' one call against the two it replaces (trace, then insert_scan when the box is inside a grid
+    of 4 x 4 m): the same trace, the same cells, flags, moments and rows in use; outside, nothing written."""
+    rng = np.random.default_rng(seed)
+    origin = np.array([-2.0, -2.0]) + rng.uniform(-0.1, 0.1, 2)
+    size = int(round(4.0 / resolution))
+    log_odds = rng.uniform(-2.0, 3.5, (size, size)).astype(np.float32)
+    observed = rng.random((size, size)) < 0.5
+    holding = rng.random((size, size)) < 0.3
+    moments = np.where(holding, rng.uniform(0.0, 5.0, (6, size, size)), 0.0).astype(np.float32)
+    slots, rows, count = sparse(moments, holding)
+    if not with_moments:
+        slots = np.zeros((0, 0), np.int32)
+    sensor = rng.uniform(-0.5, 0.5, 2)
+    hits_xy, free_xy = (sensor + rng.uniform(-reach, reach, (n, 2)) / 2.0 for n in (hits, free))
+    expected = [array.copy() for array in (log_odds, observed, slots, rows)]
+    traced = trace(origin, resolution, sensor, hits_xy, free_xy)
+    inside = bool(np.all((traced[3] - origin) / resolution >= 0) and np.all((traced[4] - origin) / resolution < size))
+    expected_count, expected_flat = count, np.empty(0, np.int64)
+    if inside:
+        expected_count, expected_flat = insert_scan(*expected, count, traced[1], traced[2], traced[0], 0, 0, 0.8473,
+                                                    -0.4055, -2.0, 3.5)
+    done, used, flat, *trace_out = trace_and_insert(log_odds, observed, slots, rows, count, origin, resolution, sensor,
+                                                    hits_xy, free_xy, 0.8473, -0.4055, -2.0, 3.5)
+    assert done == inside and used == expected_count
+    np.testing.assert_array_equal(flat, expected_flat)
+    for actual, wanted in zip(trace_out, traced, strict=True):
+        np.testing.assert_array_equal(actual, wanted)
+    for actual, wanted in zip((log_odds, observed, slots, rows), expected, strict=True):
+        np.testing.assert_array_equal(actual, wanted)
 
 
 @EXAMPLES

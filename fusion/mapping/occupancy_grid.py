@@ -39,6 +39,7 @@ T = TypeVar("T")
 MAX_CELLS = 1 << 27  # 134 M cells (670 MB of log-odds and flags): 580 m square at 5 cm; beyond it, a mistake
 WINDOW_SLACK_CELLS = 10   # a match-field window grows by this much more than asked (the next scans move a little)
 _NO_SLOTS, _NO_ROWS = np.zeros((0, 0), np.int32), np.zeros((0, 6), np.float32)   # insert_scan's "no moments"
+_NO_FREE_ENDS = np.zeros((0, 2))
 
 
 def log_odds(probability: float) -> float:
@@ -67,9 +68,13 @@ def trace_rays(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hit
     origin = np.asarray(origin, np.float64).reshape(2).copy()
     crossed, hits, offsets, xy_min, xy_max = ray_casting.trace(
         origin, float(resolution), np.ascontiguousarray(sensor_xy, dtype=np.float64).reshape(2),
-        np.ascontiguousarray(hits_xy, dtype=np.float64).reshape(-1, 2),
-        np.zeros((0, 2)) if free_ends_xy is None else np.ascontiguousarray(free_ends_xy, np.float64).reshape(-1, 2))
+        np.ascontiguousarray(hits_xy, dtype=np.float64).reshape(-1, 2), _free_ends(free_ends_xy))
     return TracedRays(origin, crossed, hits, offsets, xy_min, xy_max)
+
+
+def _free_ends(free_ends_xy: np.ndarray | None) -> np.ndarray:
+    """Free ends (M, 2) as the tracing kernels take them (float64, contiguous; none: (0, 2))."""
+    return _NO_FREE_ENDS if free_ends_xy is None else np.ascontiguousarray(free_ends_xy, np.float64).reshape(-1, 2)
 
 
 @dataclass(frozen=True)
@@ -323,9 +328,23 @@ class LogOddsGrid:
         """Update with rays from ``sensor_xy`` (2,): returns at ``hits_xy`` (N, 2), free space to ``free_ends_xy``.
 
         Coordinates in metres in the grid's frame. ``free_ends_xy`` (M, 2) are the ends of rays that
-        saw nothing (cleared, but no hit marked), e.g. no-return beams cut at a chosen distance.
+        saw nothing (cleared, but no hit marked), e.g. no-return beams cut at a chosen distance. Rays
+        inside the grid are traced and inserted in one compiled call; others grow it first.
         """
-        self.insert_traced(trace_rays(self.origin, self.resolution, sensor_xy, hits_xy, free_ends_xy))
+        if not self.log_odds.flags.writeable:
+            self.insert_traced(trace_rays(self.origin, self.resolution, sensor_xy, hits_xy, free_ends_xy))
+            return
+        hits = np.ascontiguousarray(hits_xy, dtype=np.float64).reshape(-1, 2)
+        slots, rows, count = self._moment_rows(len(hits))
+        origin = self.origin.copy()
+        inside, count, hit_flat, *traced = ray_casting.trace_and_insert(
+            self.log_odds, self.observed, slots, rows, count, origin, self.resolution,
+            np.ascontiguousarray(sensor_xy, dtype=np.float64).reshape(2), hits, _free_ends(free_ends_xy), self.l_hit,
+            self.l_miss, self.l_min, self.l_max)
+        if inside:
+            self._inserted(count, hit_flat)
+        else:
+            self.insert_traced(TracedRays(origin, *traced))
 
     def insert_traced(self, rays: TracedRays) -> None:
         """Update with rays traced on this grid's cell lattice (:func:`trace_rays`): one trace serves
@@ -338,19 +357,29 @@ class LogOddsGrid:
         col_shift, row_shift = (round(v) for v in shift)   # half to even, as np.rint
         if not all(abs(v - k) <= 1e-6 + 1e-5 * abs(k) for v, k in zip(shift, (col_shift, row_shift), strict=True)):
             raise ValueError("rays traced on another cell lattice")
-        moments = self.moments
-        if moments is not None and moments.count + len(rays.hits) > len(moments.rows):
-            grown = np.zeros((2 * (moments.count + len(rays.hits)), 6), np.float32)   # a new row for every return
-            grown[:moments.count] = moments.rows[:moments.count]
-            moments.rows = grown
-        slots, rows, count = (_NO_SLOTS, _NO_ROWS, 0) if moments is None else (moments.slots, moments.rows,
-                                                                              moments.count)
+        slots, rows, count = self._moment_rows(len(rays.hits))
         # each cell once per scan, hits winning over misses; the returns' moments in their cells
         count, hit_flat = ray_casting.insert_scan(self.log_odds, self.observed, slots, rows, count, rays.hits,
                                                   rays.offsets, rays.crossed, row_shift, col_shift, self.l_hit,
                                                   self.l_miss, self.l_min, self.l_max)
-        if moments is not None:
-            moments.count = count
+        self._inserted(count, hit_flat)
+
+    def _moment_rows(self, returns: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """The moments' slots, rows and rows in use for an insert of ``returns`` returns (room made for a new
+        row each), or empty ones without moments."""
+        moments = self.moments
+        if moments is None:
+            return _NO_SLOTS, _NO_ROWS, 0
+        if moments.count + returns > len(moments.rows):
+            grown = np.zeros((2 * (moments.count + returns), 6), np.float32)
+            grown[:moments.count] = moments.rows[:moments.count]
+            moments.rows = grown
+        return moments.slots, moments.rows, moments.count
+
+    def _inserted(self, count: int, hit_flat: np.ndarray) -> None:
+        """After an insert: the moment rows in use, the returns' cells marked (``mark_returns``), caches dropped."""
+        if self.moments is not None:
+            self.moments.count = count
         if self.returned is not None:
             self.returned.reshape(-1)[hit_flat] = True
         self._changed()

@@ -131,3 +131,25 @@ def insert_scan(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarray, r
     if slots.size:
         count = add_moments(slots, rows, count, hit_flat, offsets)
     return count, hit_flat
+
+
+@kernel
+def trace_and_insert(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarray, rows: np.ndarray, count: int,
+                     origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hits_xy: np.ndarray,
+                     free_ends_xy: np.ndarray, l_hit: float, l_miss: float, l_min: float, l_max: float
+                     ) -> tuple[bool, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`trace` on the grid's own lattice (cell (0, 0) at ``origin``), then :func:`insert_scan` when the box
+    of sensor, returns and free ends lies inside the grid: one call where a Python insert made two and the
+    object between them (a seventh of an insert of 180 beams). Returns whether it was inserted, the moment
+    rows in use, the returns' flat indices (empty if not inserted) and the trace (crossed cells, return
+    cells, offsets, box), which an insert outside the grid takes after growing it."""
+    crossed, hits, offsets, low, high = trace(origin, resolution, sensor_xy, hits_xy, free_ends_xy)
+    height, width = log_odds.shape
+    # LogOddsGrid.ensure_contains' test, its arithmetic: NaN is never inside
+    inside = height > 0 and (low[0] - origin[0]) / resolution >= 0 and (low[1] - origin[1]) / resolution >= 0 \
+        and (high[0] - origin[0]) / resolution < width and (high[1] - origin[1]) / resolution < height
+    hit_flat = np.empty(0, np.int64)
+    if inside:
+        count, hit_flat = insert_scan(log_odds, observed, slots, rows, count, hits, offsets, crossed, 0, 0, l_hit,
+                                      l_miss, l_min, l_max)
+    return inside, count, hit_flat, crossed, hits, offsets, low, high

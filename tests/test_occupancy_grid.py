@@ -90,6 +90,50 @@ def test_free_ends_clear_without_marking_a_hit() -> None:
     assert np.all(grid.log_odds[grid.observed] < 0)
 
 
+def numpy_growth(grid: LogOddsGrid, xy_min: np.ndarray, xy_max: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
+    """ensure_contains' new origin and shape as numpy computed them before it computed them on floats."""
+    height, width = grid.shape
+    lo = np.floor(grid.world_to_cell(xy_min)).astype(np.int64)
+    hi = np.floor(grid.world_to_cell(xy_max)).astype(np.int64)
+    if not height:
+        pad_lo = -lo + grid.grow_cells
+        new_w, new_h = hi - lo + 1 + 2 * grid.grow_cells
+    else:
+        pad_lo = np.maximum(-lo, 0) + np.where(lo < 0, grid.grow_cells, 0)
+        pad_hi = np.maximum(hi - (width - 1, height - 1), 0) + np.where(hi >= (width, height), grid.grow_cells, 0)
+        new_w, new_h = width + pad_lo[0] + pad_hi[0], height + pad_lo[1] + pad_hi[1]
+    return grid.origin - pad_lo * grid.resolution, (int(new_h), int(new_w))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(-40.0, 40.0), st.floats(-40.0, 40.0), st.floats(0.0, 30.0), st.floats(0.0, 30.0)),
+                min_size=1, max_size=4), st.sampled_from([0.05, 0.1, 0.03]), st.integers(0, 70))
+def test_growth_equals_numpy(boxes: list[tuple[float, float, float, float]], resolution: float, grow: int) -> None:
+    """The origin and shape a grid grows to, box after box, bit for bit as numpy's arithmetic had them, and the
+    cells it held kept where they were (their centres, to rounding: the origin moved)."""
+    grid = LogOddsGrid(resolution, grow_cells=grow, origin_xy=(0.013, -0.021), mark_returns=True, subcell=True)
+    for x, y, w, h in boxes:
+        xy_min, xy_max = np.array([x, y]), np.array([x + w, y + h])
+        inside = grid.shape[0] and np.all(grid.world_to_cell(xy_min) >= 0) \
+            and np.all(grid.world_to_cell(xy_max) < grid.shape[::-1])
+        origin, shape = (grid.origin, grid.shape) if inside else numpy_growth(grid, xy_min, xy_max)
+        marked = grid.cell_centers(*np.nonzero(grid.observed))
+        grid.ensure_contains(xy_min, xy_max)
+        np.testing.assert_array_equal(grid.origin, origin)
+        assert grid.shape == shape
+        np.testing.assert_allclose(grid.cell_centers(*np.nonzero(grid.observed)), marked, rtol=0, atol=1e-9)
+        grid.observed[grid.shape[0] // 2, grid.shape[1] // 3] = True
+
+
+def test_a_box_that_is_not_finite_is_refused() -> None:
+    grid = LogOddsGrid(0.05)
+    with pytest.raises(ValueError, match="not finite"):
+        grid.ensure_contains(np.array([math.nan, 0.0]), np.array([1.0, 1.0]))
+    with pytest.raises(ValueError, match="not finite"):
+        grid.ensure_contains(np.array([0.0, 0.0]), np.array([1.0, math.inf]))
+    assert grid.shape == (0, 0)
+
+
 def test_distance_and_likelihood_fields_are_exact_for_one_occupied_cell() -> None:
     grid = LogOddsGrid(0.05)
     grid.insert_rays(np.array([0.0, 0.0]), np.array([[0.5, 0.5]]))

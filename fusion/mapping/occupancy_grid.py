@@ -293,35 +293,40 @@ class LogOddsGrid:
         if height and (x0 - ox) / res >= 0 and (y0 - oy) / res >= 0 and (x1 - ox) / res < width \
                 and (y1 - oy) / res < height:
             return
-        lo = np.floor(self.world_to_cell(xy_min)).astype(np.int64)
-        hi = np.floor(self.world_to_cell(xy_max)).astype(np.int64)
+        if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
+            raise ValueError(f"the box to hold, {[x0, y0]} to {[x1, y1]}, is not finite")
+        # the cells of the box's corners and the margins, on floats too (numpy's took 14 us a new grid)
+        col_lo, row_lo = math.floor((x0 - ox) / res), math.floor((y0 - oy) / res)
+        col_hi, row_hi = math.floor((x1 - ox) / res), math.floor((y1 - oy) / res)
+        grow = self.grow_cells
         if not height:
-            pad_lo = -lo + self.grow_cells
-            new_w, new_h = hi - lo + 1 + 2 * self.grow_cells
+            pad_col, pad_row = grow - col_lo, grow - row_lo
+            new_w, new_h = col_hi - col_lo + 1 + 2 * grow, row_hi - row_lo + 1 + 2 * grow
         else:
-            pad_lo = np.maximum(-lo, 0) + np.where(lo < 0, self.grow_cells, 0)
-            pad_hi = np.maximum(hi - (width - 1, height - 1), 0) + np.where(hi >= (width, height), self.grow_cells, 0)
-            new_w, new_h = width + pad_lo[0] + pad_hi[0], height + pad_lo[1] + pad_hi[1]
-        if int(new_h) * int(new_w) > MAX_CELLS:
-            raise UserError(f"the map would grow to {int(new_w)} x {int(new_h)} cells at {self.resolution:g} m per "
-                            f"cell ({int(new_w) * self.resolution:.0f} x {int(new_h) * self.resolution:.0f} m), over "
+            pad_col, pad_row = (max(-lo, 0) + (grow if lo < 0 else 0) for lo in (col_lo, row_lo))
+            new_w = width + pad_col + max(col_hi - (width - 1), 0) + (grow if col_hi >= width else 0)
+            new_h = height + pad_row + max(row_hi - (height - 1), 0) + (grow if row_hi >= height else 0)
+        if new_h * new_w > MAX_CELLS:
+            raise UserError(f"the map would grow to {new_w} x {new_h} cells at {self.resolution:g} m per "
+                            f"cell ({new_w * self.resolution:.0f} x {new_h * self.resolution:.0f} m), over "
                             f"the {MAX_CELLS:,} cell limit: use a coarser [slam.submaps] resolution")
-        grown = np.zeros((int(new_h), int(new_w)), np.float32)
-        seen = np.zeros((int(new_h), int(new_w)), bool)
+        old = (slice(pad_row, pad_row + height), slice(pad_col, pad_col + width))
+        grown = np.zeros((new_h, new_w), np.float32)
+        seen = np.zeros((new_h, new_w), bool)
         if height:
-            grown[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.log_odds
-            seen[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.observed
+            grown[old] = self.log_odds
+            seen[old] = self.observed
         if self.moments is not None:
-            slots = np.zeros((int(new_h), int(new_w)), np.int32)
+            slots = np.zeros((new_h, new_w), np.int32)
             if height:
-                slots[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.moments.slots
+                slots[old] = self.moments.slots
             self.moments.slots = slots
         if self.returned is not None:
-            returned = np.zeros((int(new_h), int(new_w)), bool)
-            returned[pad_lo[1]:pad_lo[1] + height, pad_lo[0]:pad_lo[0] + width] = self.returned
+            returned = np.zeros((new_h, new_w), bool)
+            returned[old] = self.returned
             self.returned = returned
         self.log_odds, self.observed = grown, seen
-        self.origin = self.origin - pad_lo * self.resolution
+        self.origin = np.array([ox - pad_col * res, oy - pad_row * res])
         self._changed()
 
     def insert_rays(self, sensor_xy: np.ndarray, hits_xy: np.ndarray, free_ends_xy: np.ndarray | None = None) -> None:
@@ -336,15 +341,14 @@ class LogOddsGrid:
             return
         hits = np.ascontiguousarray(hits_xy, dtype=np.float64).reshape(-1, 2)
         slots, rows, count = self._moment_rows(len(hits))
-        origin = self.origin.copy()
         inside, count, hit_flat, *traced = ray_casting.trace_and_insert(
-            self.log_odds, self.observed, slots, rows, count, origin, self.resolution,
+            self.log_odds, self.observed, slots, rows, count, self.origin, self.resolution,
             np.ascontiguousarray(sensor_xy, dtype=np.float64).reshape(2), hits, _free_ends(free_ends_xy), self.l_hit,
             self.l_miss, self.l_min, self.l_max)
         if inside:
             self._inserted(count, hit_flat)
         else:
-            self.insert_traced(TracedRays(origin, *traced))
+            self.insert_traced(TracedRays(self.origin.copy(), *traced))   # traced on the lattice as it was
 
     def insert_traced(self, rays: TracedRays) -> None:
         """Update with rays traced on this grid's cell lattice (:func:`trace_rays`): one trace serves

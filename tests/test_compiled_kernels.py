@@ -340,8 +340,11 @@ ends = st.floats(-60.0, 60.0, allow_nan=False)
 @given(st.floats(-20.0, 20.0), st.floats(-20.0, 20.0), hnp.arrays(np.float64, st.tuples(st.integers(0, 20), st.just(2)),
                                                                   elements=ends))
 def test_ray_cells_equal_numpy_to_the_bit(x: float, y: float, targets: np.ndarray) -> None:
+    """As (row, col), and as flat indices of a grid 1000 cells wide (the rays' cells as insert_flat reads them)."""
     start = np.array([x, y])
-    np.testing.assert_array_equal(ray_cells(start, targets), numpy_ray_cells(start, targets))
+    expected = numpy_ray_cells(start, targets)
+    np.testing.assert_array_equal(ray_cells(start, targets), expected)
+    np.testing.assert_array_equal(ray_cells(start, targets, 1000), expected[:, :1] * 1000 + expected[:, 1:])
 
 
 def sparse(moments: np.ndarray, holding: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -419,7 +422,8 @@ def test_insert_scan_equals_the_numpy_flat_indices_and_updates(height: int, widt
 def test_trace_and_insert_equals_trace_then_insert_scan(seed: int, resolution: float, hits: int, free: int,
                                                         reach: float, with_moments: bool) -> None:
     """insert_rays' one call against the two it replaces (trace, then insert_scan when the box is inside a grid
-    of 4 x 4 m): the same trace, the same cells, flags, moments and rows in use; outside, nothing written."""
+    of 4 x 4 m; the one call traces flat indices): the same cells, flags, moments, rows in use and returns'
+    indices; outside, nothing written."""
     rng = np.random.default_rng(seed)
     origin = np.array([-2.0, -2.0]) + rng.uniform(-0.1, 0.1, 2)
     size = int(round(4.0 / resolution))
@@ -439,12 +443,10 @@ def test_trace_and_insert_equals_trace_then_insert_scan(seed: int, resolution: f
     if inside:
         expected_count, expected_flat = insert_scan(*expected, count, traced[1], traced[2], traced[0], 0, 0, 0.8473,
                                                     -0.4055, -2.0, 3.5)
-    done, used, flat, *trace_out = trace_and_insert(log_odds, observed, slots, rows, count, origin, resolution, sensor,
-                                                    hits_xy, free_xy, 0.8473, -0.4055, -2.0, 3.5)
+    done, used, flat = trace_and_insert(log_odds, observed, slots, rows, count, origin, resolution, sensor, hits_xy,
+                                        free_xy, 0.8473, -0.4055, -2.0, 3.5)
     assert done == inside and used == expected_count
     np.testing.assert_array_equal(flat, expected_flat)
-    for actual, wanted in zip(trace_out, traced, strict=True):
-        np.testing.assert_array_equal(actual, wanted)
     for actual, wanted in zip((log_odds, observed, slots, rows), expected, strict=True):
         np.testing.assert_array_equal(actual, wanted)
 

@@ -336,19 +336,18 @@ class LogOddsGrid:
         saw nothing (cleared, but no hit marked), e.g. no-return beams cut at a chosen distance. Rays
         inside the grid are traced and inserted in one compiled call; others grow it first.
         """
-        if not self.log_odds.flags.writeable:
-            self.insert_traced(trace_rays(self.origin, self.resolution, sensor_xy, hits_xy, free_ends_xy))
-            return
         hits = np.ascontiguousarray(hits_xy, dtype=np.float64).reshape(-1, 2)
-        slots, rows, count = self._moment_rows(len(hits))
-        inside, count, hit_flat, *traced = ray_casting.trace_and_insert(
-            self.log_odds, self.observed, slots, rows, count, self.origin, self.resolution,
-            np.ascontiguousarray(sensor_xy, dtype=np.float64).reshape(2), hits, _free_ends(free_ends_xy), self.l_hit,
-            self.l_miss, self.l_min, self.l_max)
-        if inside:
-            self._inserted(count, hit_flat)
-        else:
-            self.insert_traced(TracedRays(self.origin.copy(), *traced))   # traced on the lattice as it was
+        sensor = np.ascontiguousarray(sensor_xy, dtype=np.float64).reshape(2)
+        if self.log_odds.flags.writeable:
+            slots, rows, count = self._moment_rows(len(hits))
+            inserted, count, hit_flat = ray_casting.trace_and_insert(
+                self.log_odds, self.observed, slots, rows, count, self.origin, self.resolution, sensor, hits,
+                _free_ends(free_ends_xy), self.l_hit, self.l_miss, self.l_min, self.l_max)
+            if inserted:
+                self._inserted(count, hit_flat)
+                return
+        # outside the grid (traced again: a grid grows seldom, its margins amortise it) or read-only
+        self.insert_traced(trace_rays(self.origin, self.resolution, sensor, hits, free_ends_xy))
 
     def insert_traced(self, rays: TracedRays) -> None:
         """Update with rays traced on this grid's cell lattice (:func:`trace_rays`): one trace serves

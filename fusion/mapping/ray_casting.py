@@ -14,29 +14,35 @@ from trundle.fusion.compiled import kernel
 
 
 @kernel
-def ray_cells(start: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Cells (row, col) crossed by rays from ``start`` (2,) to each of ``ends`` (N, 2), end cells excluded.
+def ray_cells(start: np.ndarray, ends: np.ndarray, width: int = 0) -> np.ndarray:
+    """Cells crossed by rays from ``start`` (2,) to each of ``ends`` (N, 2), end cells excluded: (row, col) each
+    (K, 2), or with a ``width`` each cell's flat index ``row * width + col`` (K, 1), half the memory for an
+    update to read.
 
     Coordinates in cells (x = column, y = row; cell k spans [k, k+1)). Each ray is sampled at
     ``ceil(max(|dx|, |dy|))`` equal steps (a DDA line, like Bresenham's).
     """
     n = ends.shape[0]
+    sx, sy = start[0], start[1]   # held in registers: the stores to the cells might alias the array to the compiler
     steps = np.empty(n, np.int64)
     total = 0
     for r in range(n):
-        steps[r] = int(np.ceil(max(abs(ends[r, 0] - start[0]), abs(ends[r, 1] - start[1]))))
+        steps[r] = int(np.ceil(max(abs(ends[r, 0] - sx), abs(ends[r, 1] - sy))))
         total += steps[r]
-    cells = np.empty((total, 2), np.int64)
+    cells = np.empty((total, 1 if width else 2), np.int64)
     k = 0
     for r in range(n):
-        dx, dy = ends[r, 0] - start[0], ends[r, 1] - start[1]
+        dx, dy = ends[r, 0] - sx, ends[r, 1] - sy
         end_x, end_y = int(np.floor(ends[r, 0])), int(np.floor(ends[r, 1]))
         count = steps[r]
         for i in range(count):
             t = i / count
-            x, y = int(np.floor(start[0] + t * dx)), int(np.floor(start[1] + t * dy))
+            x, y = int(np.floor(sx + t * dx)), int(np.floor(sy + t * dy))
             if x != end_x or y != end_y:
-                cells[k, 0], cells[k, 1] = y, x
+                if width:
+                    cells[k, 0] = y * width + x
+                else:
+                    cells[k, 0], cells[k, 1] = y, x
                 k += 1
     return cells[:k]
 
@@ -47,29 +53,44 @@ def trace(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hits_xy:
     """Rays from ``sensor_xy`` (2,) to the returns ``hits_xy`` (N, 2) and the free ends ``free_ends_xy``
     (M, 2) (metres) on the lattice of ``resolution`` m cells whose cell (0, 0) starts at ``origin``: the
     cells crossed (:func:`ray_cells`), the returns' cells as (row, col), their offsets in those cells
-    (u, v in [0, 1)) and the bounding box (m) of sensor, returns and free ends (NaN if any is).
-    numpy's arithmetic, element by element: ``(xy - origin) / resolution``, its floor and the remainder."""
+    (u, v in [0, 1)) and the bounding box (m) of sensor, returns and free ends (NaN if any is)."""
+    start, ends, hit_cells, offsets, low, high = _ray_ends(origin, resolution, sensor_xy, hits_xy, free_ends_xy)
+    return ray_cells(start, ends), hit_cells, offsets, low, high
+
+
+@kernel(inline=True)
+def _ray_ends(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hits_xy: np.ndarray,
+              free_ends_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                 np.ndarray]:
+    """:func:`trace`'s rays before their cells: the sensor's and the ends' cell coordinates, the returns'
+    cells and offsets and the box. numpy's arithmetic, element by element: ``(xy - origin) / resolution``,
+    its floor and the remainder."""
     n, m = hits_xy.shape[0], free_ends_xy.shape[0]
     ends = np.empty((n + m, 2))
     hit_cells = np.empty((n, 2), np.int64)
     offsets = np.empty((n, 2))
-    low, high = sensor_xy.copy(), sensor_xy.copy()
+    # scalars, held in registers (stores to the arrays might alias them to the compiler)
+    ox, oy, low_x, low_y = origin[0], origin[1], sensor_xy[0], sensor_xy[1]
+    high_x, high_y = low_x, low_y
     for i in range(n + m):
-        for a in range(2):
-            value = hits_xy[i, a] if i < n else free_ends_xy[i - n, a]
-            if value < low[a] or value != value:   # numpy's min and max: NaN wins
-                low[a] = value
-            if value > high[a] or value != value:
-                high[a] = value
-            ends[i, a] = (value - origin[a]) / resolution
-            if i < n:
-                cell = np.int64(np.floor(ends[i, a]))
-                hit_cells[i, 1 - a] = cell
-                offsets[i, a] = ends[i, a] - cell
-    start = np.empty(2)
-    for a in range(2):
-        start[a] = (sensor_xy[a] - origin[a]) / resolution
-    return ray_cells(start, ends), hit_cells, offsets, low, high
+        x, y = (hits_xy[i, 0], hits_xy[i, 1]) if i < n else (free_ends_xy[i - n, 0], free_ends_xy[i - n, 1])
+        if x < low_x or x != x:   # numpy's min and max: NaN wins
+            low_x = x
+        if x > high_x or x != x:
+            high_x = x
+        if y < low_y or y != y:
+            low_y = y
+        if y > high_y or y != y:
+            high_y = y
+        u, v = (x - ox) / resolution, (y - oy) / resolution
+        ends[i, 0], ends[i, 1] = u, v
+        if i < n:
+            col, row = np.int64(np.floor(u)), np.int64(np.floor(v))
+            hit_cells[i, 0], hit_cells[i, 1] = row, col
+            offsets[i, 0], offsets[i, 1] = u - col, v - row
+    start = np.array([(sensor_xy[0] - ox) / resolution, (sensor_xy[1] - oy) / resolution])
+    low, high = np.array([low_x, low_y]), np.array([high_x, high_y])
+    return start, ends, hit_cells, offsets, low, high
 
 
 @kernel
@@ -100,56 +121,72 @@ def insert_scan(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarray, r
                 hits: np.ndarray, offsets: np.ndarray, crossed: np.ndarray, row_shift: int, col_shift: int,
                 l_hit: float, l_miss: float, l_min: float, l_max: float) -> tuple[int, np.ndarray]:
     """One traced scan into a grid: the returns' cells ``hits`` and the ``crossed`` cells are (row, col) on a
-    lattice whose cell (0, 0) is the grid's (``row_shift``, ``col_shift``). ``log_odds`` (float32) takes
-    ``l_miss`` once on every crossed cell that holds no return and ``l_hit`` once on every return's cell,
-    clamped to [l_min, l_max], and ``observed`` is set on both; unless ``slots`` is empty, each return's
-    moments go to its cell's row (:func:`add_moments`). Returns the moment rows in use and the returns'
-    flat indices.
+    lattice whose cell (0, 0) is the grid's (``row_shift``, ``col_shift``); :func:`insert_flat` on their flat
+    indices. Returns the moment rows in use and the returns' flat indices."""
+    width = log_odds.shape[1]
+    hit_flat = np.empty(hits.shape[0], np.int64)
+    for j in range(hits.shape[0]):
+        hit_flat[j] = (hits[j, 0] + row_shift) * width + hits[j, 1] + col_shift
+    crossed_flat = np.empty((crossed.shape[0], 1), np.int64)
+    for j in range(crossed.shape[0]):
+        crossed_flat[j, 0] = (crossed[j, 0] + row_shift) * width + crossed[j, 1] + col_shift
+    return insert_flat(log_odds, observed, slots, rows, count, hit_flat, offsets, crossed_flat, l_hit, l_miss, l_min,
+                       l_max), hit_flat
+
+
+@kernel
+def insert_flat(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarray, rows: np.ndarray, count: int,
+                hit_flat: np.ndarray, offsets: np.ndarray, crossed: np.ndarray, l_hit: float, l_miss: float,
+                l_min: float, l_max: float) -> int:
+    """One scan into a grid by flat cell index: the returns' cells ``hit_flat`` (N,) and the crossed cells
+    ``crossed`` (K, 1). ``log_odds`` (float32) takes ``l_miss`` once on every crossed cell that holds no
+    return and ``l_hit`` once on every return's cell, clamped to [l_min, l_max], and ``observed`` is set on
+    both; unless ``slots`` is empty, each return's moments go to its cell's row (:func:`add_moments`).
+    Returns the moment rows in use.
 
     A cell crossed by many rays or hit by many returns changes once: every new value is computed from
     the values before the scan, then written.
     """
-    width = log_odds.shape[1]
     flat, seen = log_odds.ravel(), observed.ravel()
     miss, hit = np.float32(l_miss), np.float32(l_hit)
     low, high = np.float32(l_min), np.float32(l_max)
-    hit_flat = np.empty(hits.shape[0], np.int64)
-    before_hits = np.empty(hits.shape[0], np.float32)
-    for j in range(hits.shape[0]):
-        hit_flat[j] = (hits[j, 0] + row_shift) * width + hits[j, 1] + col_shift
+    before_hits = np.empty(hit_flat.shape[0], np.float32)
+    for j in range(hit_flat.shape[0]):
         before_hits[j] = flat[hit_flat[j]]
     freed = np.empty(crossed.shape[0], np.float32)
     for j in range(crossed.shape[0]):
-        freed[j] = max(flat[(crossed[j, 0] + row_shift) * width + crossed[j, 1] + col_shift] + miss, low)
+        freed[j] = max(flat[crossed[j, 0]] + miss, low)
     for j in range(crossed.shape[0]):
-        cell = (crossed[j, 0] + row_shift) * width + crossed[j, 1] + col_shift
-        flat[cell] = freed[j]
-        seen[cell] = True
-    for j in range(hits.shape[0]):   # a return's cell is not free, whatever crossed it
+        flat[crossed[j, 0]] = freed[j]
+        seen[crossed[j, 0]] = True
+    for j in range(hit_flat.shape[0]):   # a return's cell is not free, whatever crossed it
         flat[hit_flat[j]] = min(before_hits[j] + hit, high)
         seen[hit_flat[j]] = True
     if slots.size:
         count = add_moments(slots, rows, count, hit_flat, offsets)
-    return count, hit_flat
+    return count
 
 
 @kernel
 def trace_and_insert(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarray, rows: np.ndarray, count: int,
                      origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hits_xy: np.ndarray,
                      free_ends_xy: np.ndarray, l_hit: float, l_miss: float, l_min: float, l_max: float
-                     ) -> tuple[bool, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`trace` on the grid's own lattice (cell (0, 0) at ``origin``), then :func:`insert_scan` when the box
-    of sensor, returns and free ends lies inside the grid: one call where a Python insert made two and the
-    object between them (a seventh of an insert of 180 beams). Returns whether it was inserted, the moment
-    rows in use, the returns' flat indices (empty if not inserted) and the trace (crossed cells, return
-    cells, offsets, box), which an insert outside the grid takes after growing it."""
-    crossed, hits, offsets, low, high = trace(origin, resolution, sensor_xy, hits_xy, free_ends_xy)
+                     ) -> tuple[bool, int, np.ndarray]:
+    """:func:`trace` on the grid's own lattice (cell (0, 0) at ``origin``) and, when the box of sensor, returns
+    and free ends lies inside the grid, :func:`insert_flat` of its cells traced as flat indices: one call where
+    a Python insert made two and the object between them, and cells of half the memory. Returns whether it
+    was inserted (else nothing is written: the grid must grow first), the moment rows in use and the returns'
+    flat indices (empty if not inserted)."""
+    start, ends, hits, offsets, low, high = _ray_ends(origin, resolution, sensor_xy, hits_xy, free_ends_xy)
     height, width = log_odds.shape
     # LogOddsGrid.ensure_contains' test, its arithmetic: NaN is never inside
     inside = height > 0 and (low[0] - origin[0]) / resolution >= 0 and (low[1] - origin[1]) / resolution >= 0 \
         and (high[0] - origin[0]) / resolution < width and (high[1] - origin[1]) / resolution < height
-    hit_flat = np.empty(0, np.int64)
-    if inside:
-        count, hit_flat = insert_scan(log_odds, observed, slots, rows, count, hits, offsets, crossed, 0, 0, l_hit,
-                                      l_miss, l_min, l_max)
-    return inside, count, hit_flat, crossed, hits, offsets, low, high
+    if not inside:
+        return False, count, np.empty(0, np.int64)
+    hit_flat = np.empty(hits.shape[0], np.int64)
+    for j in range(hits.shape[0]):
+        hit_flat[j] = hits[j, 0] * width + hits[j, 1]
+    count = insert_flat(log_odds, observed, slots, rows, count, hit_flat, offsets, ray_cells(start, ends, width),
+                        l_hit, l_miss, l_min, l_max)
+    return True, count, hit_flat

@@ -233,6 +233,22 @@ def test_a_dropped_grid_is_freed_at_once_with_the_fields_and_pyramids_it_cached(
         _ = fields.grid
 
 
+@pytest.mark.parametrize(("max_distance_m", "kind"), [(0.5, np.int8), (3.0, np.int16), (10.0, np.int32)])
+def test_a_windows_squared_distances_take_the_narrowest_integer(max_distance_m: float, kind: type) -> None:
+    """A window keeps its cells' squared distances (up to radius^2 + 1 = 101, 3,601 and 40,001 cells^2 here) in
+    int8, int16 or int32, and its distances are the whole grid's in each."""
+    grid = LogOddsGrid(0.05, subcell=True)
+    angles = np.linspace(-math.pi, math.pi, 180, endpoint=False)
+    grid.insert_rays(np.zeros(2), np.column_stack([4.0 * np.cos(angles), 2.5 * np.sin(angles)]))
+    fields = grid.match_fields(max_distance_m, 0.05)
+    corner = grid.world_to_cell(np.array([[-3.0, -2.0], [3.0, 2.0]]))
+    window = fields.around(corner[:, 0], corner[:, 1])
+    assert window.squared.dtype == kind
+    h, w = window.squared.shape
+    rows, cols = np.mgrid[window.row0:window.row0 + h, window.col0:window.col0 + w]
+    np.testing.assert_allclose(window.distance(), grid.distance_field(max_distance_m)[rows, cols], atol=1e-6)
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 10_000), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(0.1, 4.0))
 def test_match_field_windows_equal_the_whole_grid_fields(seed: int, x: float, y: float, size: float) -> None:

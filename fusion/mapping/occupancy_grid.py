@@ -81,9 +81,10 @@ def _free_ends(free_ends_xy: np.ndarray | None) -> np.ndarray:
 class FieldWindow:
     """Match fields over the cells ``[row0, row0 + h) x [col0, col0 + w)`` of a grid: the likelihood;
     the distance (m) to the nearest occupied cell, capped, which a cell's ``squared`` distance (cells^2,
-    -1 until a match first reads it; see :meth:`distance`) looks up in ``distances`` (none within
-    ``radius`` cells: the last); the occupied cells around the window from the grid's (``occupied_row0``,
-    ``occupied_col0``), as an index (the walls' nearest cells are found in it) and as each row's columns
+    -1 until a match first reads it, in the narrowest integer that holds ``radius^2 + 1``; see
+    :meth:`distance`) looks up in ``distances`` (none within ``radius`` cells: the last); the occupied cells
+    around the window from the grid's (``occupied_row0``, ``occupied_col0``), as an index (the walls'
+    nearest cells are found in it) and as each row's columns
     (``occupied_cols[occupied_starts[i]:occupied_starts[i + 1]]``: the distances are found there; see
     :func:`~trundle.fusion.mapping.nearest_cells.occupied_cells`); and the walls (None without them)."""
 
@@ -135,6 +136,10 @@ class MatchFields:
         # the cells within which the fields differ from their value far from any wall: distance capped, likelihood 0
         self.radius = int(math.ceil(max(self.max_distance_m, 4.0 * self.sigma_m) / grid.resolution))
         self.likelihood_radius = int(math.ceil(4.0 * self.sigma_m / grid.resolution))
+        # a window's squared distances (0 to radius^2 + 1, -1 not found yet) in the fewest bytes that hold them:
+        # the window is filled with -1 at every new window, a fill that cost 15 us a match as int32
+        largest = self.radius * self.radius + 1
+        self._squared_type = np.int8 if largest <= 127 else np.int16 if largest <= 32767 else np.int32
         self.margin = self.radius + 2   # the occupied cells gathered around a window: the labels' and the walls'
         self.distances, self._likelihoods = _field_tables(grid.resolution, self.max_distance_m, self.sigma_m,
                                                           self.radius, self.likelihood_radius)
@@ -190,8 +195,9 @@ class MatchFields:
         if self.lines:
             lines = WallLines(np.full(shape, -2, np.int32), *grid.line_data(rows + pr0, cols + pc0, self.min_flatness))
         self._bounds = (r0, r1, c0, c1)
-        self._window = FieldWindow(r0, c0, likelihood, np.full(shape, -1, np.int32), self.distances, self.radius,
-                                   occupied, starts, cols, pr0, pc0, lines)
+        squared = np.full(shape, -1, self._squared_type)
+        self._window = FieldWindow(r0, c0, likelihood, squared, self.distances, self.radius, occupied, starts, cols,
+                                   pr0, pc0, lines)
         return self._window
 
 

@@ -294,10 +294,7 @@ class LogOddsGrid:
         height, width = self.shape
         (x0, y0), (x1, y1) = np.asarray(xy_min, np.float64).tolist(), np.asarray(xy_max, np.float64).tolist()
         (ox, oy), res = self.origin.tolist(), self.resolution
-        # world_to_cell's arithmetic on floats (an insert asks every scan): floor(v) >= 0 and floor(v) < n
-        # exactly when v >= 0 and v < n, NaN neither
-        if height and (x0 - ox) / res >= 0 and (y0 - oy) / res >= 0 and (x1 - ox) / res < width \
-                and (y1 - oy) / res < height:
+        if ray_casting.box_inside(x0, y0, x1, y1, ox, oy, res, height, width):   # on floats: an insert asks every scan
             return
         if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
             raise ValueError(f"the box to hold, {[x0, y0]} to {[x1, y1]}, is not finite")

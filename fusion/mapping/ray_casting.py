@@ -167,6 +167,16 @@ def insert_flat(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarray, r
     return count
 
 
+@kernel(inline=True)
+def box_inside(x_min: float, y_min: float, x_max: float, y_max: float, origin_x: float, origin_y: float,
+               resolution: float, height: int, width: int) -> bool:
+    """Does the box ``[x_min, x_max] x [y_min, y_max]`` (m) lie in a grid of ``height`` x ``width`` cells of
+    ``resolution`` m whose cell (0, 0) starts at (``origin_x``, ``origin_y``)? ``LogOddsGrid.world_to_cell``'s
+    arithmetic: a cell coordinate's floor is in ``[0, n)`` exactly when it is; NaN never is."""
+    return height > 0 and (x_min - origin_x) / resolution >= 0 and (y_min - origin_y) / resolution >= 0 \
+        and (x_max - origin_x) / resolution < width and (y_max - origin_y) / resolution < height
+
+
 @kernel
 def trace_and_insert(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarray, rows: np.ndarray, count: int,
                      origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hits_xy: np.ndarray,
@@ -179,10 +189,7 @@ def trace_and_insert(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarr
     flat indices (empty if not inserted)."""
     start, ends, hits, offsets, low, high = _ray_ends(origin, resolution, sensor_xy, hits_xy, free_ends_xy)
     height, width = log_odds.shape
-    # LogOddsGrid.ensure_contains' test, its arithmetic: NaN is never inside
-    inside = height > 0 and (low[0] - origin[0]) / resolution >= 0 and (low[1] - origin[1]) / resolution >= 0 \
-        and (high[0] - origin[0]) / resolution < width and (high[1] - origin[1]) / resolution < height
-    if not inside:
+    if not box_inside(low[0], low[1], high[0], high[1], origin[0], origin[1], resolution, height, width):
         return False, count, np.empty(0, np.int64)
     hit_flat = np.empty(hits.shape[0], np.int64)
     for j in range(hits.shape[0]):

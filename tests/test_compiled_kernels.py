@@ -68,11 +68,12 @@ def numpy_bilinear(field: np.ndarray, u: np.ndarray, v: np.ndarray
 
 
 def numpy_field_residuals(distance: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray,
-                          rx: np.ndarray, ry: np.ndarray, res: float, max_distance_m: float
+                          rx: np.ndarray, ry: np.ndarray, res: float, max_distance_m: float, far: float
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Off the field, a point's distance is ``far``, the field's value with no occupied cell near."""
     d, du, dv, inside = numpy_bilinear(distance, cx - 0.5 - col0, cy - 0.5 - row0)
     active = inside & (d < max_distance_m)
-    d[~inside] = max_distance_m
+    d[~inside] = far
     jac = np.empty((len(d), 3))
     jac[:, 0] = np.where(active, du, 0.0) / res
     jac[:, 1] = np.where(active, dv, 0.0) / res
@@ -82,7 +83,7 @@ def numpy_field_residuals(distance: np.ndarray, row0: int, col0: int, cx: np.nda
 
 def numpy_line_residuals(distance: np.ndarray, nearest: np.ndarray, mean: np.ndarray, normal: np.ndarray,
                          is_line: np.ndarray, row0: int, col0: int, cx: np.ndarray, cy: np.ndarray, pose_x: float,
-                         pose_y: float, rx: np.ndarray, ry: np.ndarray, res: float, max_distance_m: float
+                         pose_y: float, rx: np.ndarray, ry: np.ndarray, res: float, max_distance_m: float, far: float
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     qx, qy = rx + pose_x, ry + pose_y
     d, du, dv, inside = numpy_bilinear(distance, cx - 0.5 - col0, cy - 0.5 - row0)
@@ -94,7 +95,7 @@ def numpy_line_residuals(distance: np.ndarray, nearest: np.ndarray, mean: np.nda
     k = np.maximum(k, 0)
     nx, ny = normal[k, 0], normal[k, 1]
     d = np.where(line, (qx - mean[k, 0]) * nx + (qy - mean[k, 1]) * ny, d)
-    d[~inside] = max_distance_m
+    d[~inside] = far
     jac = np.stack([np.where(line, nx, du / res), np.where(line, ny, dv / res), np.zeros(len(d))], axis=1)
     jac[~active] = 0.0
     jac[:, 2] = ry * -jac[:, 0] + rx * jac[:, 1]
@@ -277,7 +278,7 @@ def test_field_residuals_equal_numpy(problem: tuple[np.ndarray, int, int, np.nda
     assert_same(field_residuals(squared, distances, occupied_index(mask), *occupied_rows(mask), row0 - margin,
                                 col0 - margin, radius,
                                 *NO_WALLS, row0, col0, cx, cy, 0.3, -0.2, rx, ry, res, max_distance_m),
-                numpy_field_residuals(dense, row0, col0, cx, cy, rx, ry, res, max_distance_m))
+                numpy_field_residuals(dense, row0, col0, cx, cy, rx, ry, res, max_distance_m, distances[-1]))
     found = squared >= 0
     assert found.any() == bool(len(cx))   # every point reads four cells, each found once and kept
     np.testing.assert_array_equal(distances[squared[found]], dense[found])
@@ -306,7 +307,7 @@ def test_line_residuals_equal_numpy(problem: tuple[np.ndarray, int, int, np.ndar
                                 radius, found, mean, normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx, ry, 0.05,
                                 0.5),
                 numpy_line_residuals(dense, nearest, mean, normal, is_line, row0, col0, cx, cy, pose_x, pose_y, rx,
-                                     ry, 0.05, 0.5))
+                                     ry, 0.05, 0.5, distances[-1]))
     np.testing.assert_array_equal(found[found > -2], nearest[found > -2])   # the labels kept are OpenCV's
 
 
@@ -390,7 +391,8 @@ def test_insert_scan_equals_the_numpy_flat_indices_and_updates(height: int, widt
                                                                crossed: int, row_shift: int, col_shift: int,
                                                                with_moments: bool) -> None:
     """One call per scan against insert_traced's numpy flat indices and the updates it replaced: log-odds
-    (clamped, once per scan however many rays cross a cell), observed flags and moments."""
+    (clamped, once per scan however many rays cross a cell), observed flags and moments; the swept box grown by
+    the rays'."""
     rng = np.random.default_rng(seed)
     log_odds = rng.uniform(-2.0, 3.5, (height, width)).astype(np.float32)
     observed = rng.random((height, width)) < 0.5
@@ -404,8 +406,12 @@ def test_insert_scan_equals_the_numpy_flat_indices_and_updates(height: int, widt
     crossed_flat = (crossed_cells[:, 0] + row_shift) * width + crossed_cells[:, 1] + col_shift
     expected = (log_odds.copy(), observed.copy(), moments.copy())
     numpy_update(*expected, hit_flat, crossed_flat, offsets, 0.8473, -0.4055, -2.0, 3.5)
+    swept, low, high = np.array([0.5, -1.0, 2.0, 0.0]), rng.uniform(-2.0, 2.0, 2), rng.uniform(-2.0, 2.0, 2)
+    expected_swept = np.concatenate([np.minimum(swept[:2], low), np.maximum(swept[2:], high)])
     used, flat = insert_scan(log_odds, observed, slots if with_moments else np.zeros((0, 0), np.int32), rows, count,
-                             hit_cells, offsets, crossed_cells, row_shift, col_shift, 0.8473, -0.4055, -2.0, 3.5)
+                             hit_cells, offsets, crossed_cells, row_shift, col_shift, 0.8473, -0.4055, -2.0, 3.5, swept,
+                             low, high)
+    np.testing.assert_array_equal(swept, expected_swept)
     np.testing.assert_array_equal(flat, hit_flat)
     np.testing.assert_array_equal(log_odds, expected[0])
     np.testing.assert_array_equal(observed, expected[1])
@@ -423,7 +429,7 @@ def test_trace_and_insert_equals_trace_then_insert_scan(seed: int, resolution: f
                                                         reach: float, with_moments: bool) -> None:
     """insert_rays' one call against the two it replaces (trace, then insert_scan when the box is inside a grid
     of 4 x 4 m; the one call traces flat indices): the same cells, flags, moments, rows in use and returns'
-    indices; outside, nothing written."""
+    indices and swept box; outside, nothing written."""
     rng = np.random.default_rng(seed)
     origin = np.array([-2.0, -2.0]) + rng.uniform(-0.1, 0.1, 2)
     size = int(round(4.0 / resolution))
@@ -440,12 +446,14 @@ def test_trace_and_insert_equals_trace_then_insert_scan(seed: int, resolution: f
     traced = trace(origin, resolution, sensor, hits_xy, free_xy)
     inside = bool(np.all((traced[3] - origin) / resolution >= 0) and np.all((traced[4] - origin) / resolution < size))
     expected_count, expected_flat = count, np.empty(0, np.int64)
+    swept, expected_swept = np.array([0.1, 0.2, 0.3, 0.4]), np.array([0.1, 0.2, 0.3, 0.4])
     if inside:
         expected_count, expected_flat = insert_scan(*expected, count, traced[1], traced[2], traced[0], 0, 0, 0.8473,
-                                                    -0.4055, -2.0, 3.5)
+                                                    -0.4055, -2.0, 3.5, expected_swept, traced[3], traced[4])
     done, used, flat = trace_and_insert(log_odds, observed, slots, rows, count, origin, resolution, sensor, hits_xy,
-                                        free_xy, 0.8473, -0.4055, -2.0, 3.5)
+                                        free_xy, 0.8473, -0.4055, -2.0, 3.5, swept)
     assert done == inside and used == expected_count
+    np.testing.assert_array_equal(swept, expected_swept)
     np.testing.assert_array_equal(flat, expected_flat)
     for actual, wanted in zip((log_odds, observed, slots, rows), expected, strict=True):
         np.testing.assert_array_equal(actual, wanted)
@@ -659,7 +667,7 @@ def test_compiled_refinement_equals_the_python_loop(problem: tuple[LogOddsGrid, 
         status, box, pose, count, *state = solve_pose_in_window(
             window.squared, window.distances, window.occupied, window.occupied_starts, window.occupied_cols,
             window.occupied_row0, window.occupied_col0, window.radius, *(wall_arrays if walls else NO_WALLS),
-            np.array([window.row0, window.row0 + height, window.col0, window.col0 + width]), np.array(grid.shape),
+            np.array([window.row0, window.row0 + height, window.col0, window.col0 + width]), np.array(fields.extent),
             px, py, start, grid.origin, 0.05, 0.5, 0.05, iterations, SCHEDULE, STEP_TOLERANCE)
         if status == DONE:
             break

@@ -253,7 +253,8 @@ def test_a_windows_squared_distances_take_the_narrowest_integer(max_distance_m: 
 @given(st.integers(0, 10_000), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(0.1, 4.0))
 def test_match_field_windows_equal_the_whole_grid_fields(seed: int, x: float, y: float, size: float) -> None:
     """Over the window a match asks for, the distance (capped), the likelihood and the nearest wall are
-    what the whole grid's fields give; asking outside the window grows it."""
+    what the whole grid's fields give; off the fields' extent (the rays' box and a margin, not the grid's
+    margin for growth) they are the values far from any wall; asking outside the window grows it."""
     rng = np.random.default_rng(seed)
     grid = LogOddsGrid(0.05, subcell=True)
     for _ in range(3):
@@ -266,8 +267,14 @@ def test_match_field_windows_equal_the_whole_grid_fields(seed: int, x: float, y:
     window = fields.around(corner[:, 0], corner[:, 1])
     h, w = window.squared.shape
     rows, cols = np.mgrid[window.row0:window.row0 + h, window.col0:window.col0 + w]
-    assert rows.min() <= max(math.floor(corner[:, 1].min()) - 1, 0) and cols.max() >= min(
-        math.floor(corner[:, 0].max()) + 1, grid.shape[1] - 1)
+    top, bottom, left, right = fields.extent
+    assert rows.min() <= max(math.floor(corner[:, 1].min()) - 1, top) and cols.max() >= min(
+        math.floor(corner[:, 0].max()) + 1, right - 1)
+    outside = np.ones(grid.shape, bool)
+    outside[top:bottom, left:right] = False
+    assert outside.any()
+    assert np.all(grid.distance_field(0.5)[outside] == np.float32(0.5))
+    assert not grid.likelihood_field(0.05)[outside].any()
     np.testing.assert_allclose(window.distance(), grid.distance_field(0.5)[rows, cols], atol=1e-6)
     np.testing.assert_allclose(window.likelihood, grid.likelihood_field(0.05)[rows, cols], atol=1e-6)
     exact_cells = grid.distance_field(10.0)[rows, cols] / 0.05
@@ -285,7 +292,29 @@ def test_match_field_windows_equal_the_whole_grid_fields(seed: int, x: float, y:
     np.testing.assert_allclose(lines.mean[k], mean)
     np.testing.assert_allclose(lines.normal[k], normal)
     np.testing.assert_array_equal(lines.is_line[k], is_line)
-    if (h, w) != grid.shape:   # a cell of the grid outside the window grows it
-        far = np.array([0.5, 0.5]) if window.row0 or window.col0 else np.array(grid.shape[::-1]) - 0.5
+    if (h, w) != (bottom - top, right - left):   # a cell of the extent outside the window grows it
+        first = (window.row0, window.col0) != (top, left)
+        far = np.array([left, top]) + 0.5 if first else np.array([right, bottom]) - 0.5
         grown = fields.around(far[:1], far[1:])
         assert grown.squared.size > window.squared.size
+
+
+def test_the_swept_extent_is_the_rays_box_and_a_margin_through_growth_and_copies() -> None:
+    """The cells every inserted ray lies in, grown by a margin and clipped to the grid, on whichever path the rays
+    went in (one call, or traced for the submaps) and after the grid grows; a copy keeps it; arrays set otherwise
+    than by inserts (a loaded map) have the whole grid."""
+    grid = LogOddsGrid(0.1)
+    assert grid.swept_extent(3) == (0, 0, 0, 0)
+    grid.insert_rays(np.array([0.05, 0.05]), np.array([[1.05, 0.55], [-0.45, -0.95]]))
+    assert grid.shape == (16 + 128, 16 + 128)   # y -1.0..0.5 m, x -0.5..1.0 m, and the margin for growth
+    # the box's cells from the origin (-0.5 - 6.4, -1.0 - 6.4) m, and 3 more each side
+    assert grid.swept_extent(3) == (64 - 3, 64 + 15 + 1 + 3, 64 - 3, 64 + 15 + 1 + 3)
+    assert grid.swept_extent(100) == (0, grid.shape[0], 0, grid.shape[1])
+    grid.insert_traced(trace_rays(grid.origin, grid.resolution, np.array([0.05, 0.05]), np.array([[20.05, 0.05]])))
+    row0 = int(round((-1.0 - grid.origin[1]) / 0.1))
+    col0 = int(round((-0.5 - grid.origin[0]) / 0.1))
+    assert grid.swept_extent(0) == (row0, row0 + 16, col0, col0 + 206)
+    assert grid.copy().swept_extent(2) == grid.swept_extent(2)
+    loaded = grid.copy()
+    loaded.log_odds = loaded.log_odds.copy()
+    assert loaded.swept_extent(2) == (0, grid.shape[0], 0, grid.shape[1])

@@ -144,8 +144,12 @@ class MatchFields:
         self.distances, self._likelihoods = _field_tables(grid.resolution, self.max_distance_m, self.sigma_m,
                                                           self.radius, self.likelihood_radius)
         self._window: FieldWindow | None = None
-        height, width = grid.shape
-        self._bounds = (height, 0, width, 0)   # rows [r0, r1), cols [c0, c1) of the window: none yet
+        # the cells a window may hold (rows [r0, r1), cols [c0, c1)): beyond the margin of the rays' box every
+        # field has its value far from any wall, and a read off the window gets that value (a grid's margin
+        # for growth, 3.2 m of unknown cells each side by default, is not computed)
+        self.extent = grid.swept_extent(self.margin)
+        r0, r1, c0, c1 = self.extent
+        self._bounds = (r1, r0, c1, c0)   # rows [r0, r1), cols [c0, c1) of the window: none yet
 
     @property
     def grid(self) -> LogOddsGrid:
@@ -162,7 +166,7 @@ class MatchFields:
 
     def around(self, cols: np.ndarray, rows: np.ndarray) -> FieldWindow:
         """The fields over a window holding the cells at continuous cell coordinates ``cols``, ``rows``
-        (x, y: column and row) and the cells next to them."""
+        (x, y: column and row) and the cells next to them, within :attr:`extent`."""
         if not len(cols):
             return self._window or self._compute(0, 0, 0, 0)
         return self.around_box(float(cols.min()), float(cols.max()), float(rows.min()), float(rows.max()))
@@ -171,16 +175,16 @@ class MatchFields:
         """The fields over a window holding the box ``[col_min, col_max] x [row_min, row_max]`` (continuous
         cell coordinates) and the cells next to it. On floats: numpy's reductions and floors cost a tenth of
         a match (a search and a refinement ask two to four times)."""
-        height, width = self.grid.shape
+        top, bottom, left, right = self.extent
         c_lo, c_hi = math.floor(col_min) - 1, math.floor(col_max) + 2
         r_lo, r_hi = math.floor(row_min) - 1, math.floor(row_max) + 2
-        r_lo, c_lo, r_hi, c_hi = max(r_lo, 0), max(c_lo, 0), min(r_hi, height), min(c_hi, width)
+        r_lo, c_lo, r_hi, c_hi = max(r_lo, top), max(c_lo, left), min(r_hi, bottom), min(c_hi, right)
         r0, r1, c0, c1 = self._bounds
         if self._window is not None and r_lo >= r0 and c_lo >= c0 and r_hi <= r1 and c_hi <= c1:
             return self._window
         slack = WINDOW_SLACK_CELLS
-        return self._compute(max(min(r0, r_lo - slack), 0), min(max(r1, r_hi + slack), height),
-                             max(min(c0, c_lo - slack), 0), min(max(c1, c_hi + slack), width))
+        return self._compute(max(min(r0, r_lo - slack), top), min(max(r1, r_hi + slack), bottom),
+                             max(min(c0, c_lo - slack), left), min(max(c1, c_hi + slack), right))
 
     def _compute(self, r0: int, r1: int, c0: int, c1: int) -> FieldWindow:
         grid, margin = self.grid, self.margin
@@ -274,6 +278,10 @@ class LogOddsGrid:
         # per cell: returns, sum of their x and y offsets in the cell, and of x^2, xy, y^2 (cell units)
         self.moments = ReturnMoments(np.zeros((0, 0), np.int32), np.zeros((64, 6), np.float32)) if subcell else None
         self.returned: np.ndarray | None = np.zeros((0, 0), bool) if mark_returns else None
+        # the box (m: x0, y0, x1, y1) of every ray inserted into these arrays, where any occupied cell lies; a
+        # grid whose arrays were set otherwise (a loaded map) has none, and its cells may be occupied anywhere
+        self._swept = np.array([math.inf, math.inf, -math.inf, -math.inf])
+        self._swept_cells: np.ndarray | None = self.log_odds
         self.version = 0
         self._cache: dict[tuple, object] = {}
 
@@ -328,6 +336,8 @@ class LogOddsGrid:
             returned = np.zeros((new_h, new_w), bool)
             returned[old] = self.returned
             self.returned = returned
+        if self._swept_cells is self.log_odds:
+            self._swept_cells = grown
         self.log_odds, self.observed = grown, seen
         self.origin = np.array([ox - pad_col * res, oy - pad_row * res])
         self._changed()
@@ -345,7 +355,7 @@ class LogOddsGrid:
             slots, rows, count = self._moment_rows(len(hits))
             inserted, count, hit_flat = ray_casting.trace_and_insert(
                 self.log_odds, self.observed, slots, rows, count, self.origin, self.resolution, sensor, hits,
-                _free_ends(free_ends_xy), self.l_hit, self.l_miss, self.l_min, self.l_max)
+                _free_ends(free_ends_xy), self.l_hit, self.l_miss, self.l_min, self.l_max, self._swept)
             if inserted:
                 self._inserted(count, hit_flat)
                 return
@@ -367,7 +377,8 @@ class LogOddsGrid:
         # each cell once per scan, hits winning over misses; the returns' moments in their cells
         count, hit_flat = ray_casting.insert_scan(self.log_odds, self.observed, slots, rows, count, rays.hits,
                                                   rays.offsets, rays.crossed, row_shift, col_shift, self.l_hit,
-                                                  self.l_miss, self.l_min, self.l_max)
+                                                  self.l_miss, self.l_min, self.l_max, self._swept, rays.xy_min,
+                                                  rays.xy_max)
         self._inserted(count, hit_flat)
 
     def _moment_rows(self, returns: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -403,9 +414,11 @@ class LogOddsGrid:
         """An independent copy of the grid (its cells, flags and moments; no cached fields)."""
         clone = copy.copy(self)
         clone.origin, clone.log_odds, clone.observed = self.origin.copy(), self.log_odds.copy(), self.observed.copy()
+        clone._swept = self._swept.copy()
         if self.moments is not None:
             clone.moments = ReturnMoments(self.moments.slots.copy(), self.moments.rows.copy(), self.moments.count)
         clone.returned = None if self.returned is None else self.returned.copy()
+        clone._swept_cells = clone.log_odds if self._swept_cells is self.log_odds else None
         clone._cache = {}
         return clone
 
@@ -421,6 +434,23 @@ class LogOddsGrid:
         """Centres (N, 2) of the occupied cells, in metres."""
         rows, cols = np.nonzero(self.occupied(threshold))
         return self.cell_centers(rows, cols)
+
+    def swept_extent(self, margin: int) -> tuple[int, int, int, int]:
+        """The cells (rows [r0, r1), columns [c0, c1)) of the box every inserted ray lies in, grown by ``margin``
+        cells and clipped to the grid: no cell outside it was ever occupied, so a field that depends only on
+        the occupied cells within ``margin`` is the same everywhere outside. The whole grid if its arrays were
+        set otherwise than by inserts (a loaded map); empty if no ray went in."""
+        height, width = self.shape
+        if self._swept_cells is not self.log_odds:
+            return 0, height, 0, width
+        x0, y0, x1, y1 = self._swept.tolist()
+        if x0 > x1:
+            return 0, 0, 0, 0
+        (ox, oy), res = self.origin.tolist(), self.resolution
+        # ensure_contains' cells of the box's corners
+        c0, r0 = math.floor((x0 - ox) / res) - margin, math.floor((y0 - oy) / res) - margin
+        c1, r1 = math.floor((x1 - ox) / res) + margin + 1, math.floor((y1 - oy) / res) + margin + 1
+        return max(r0, 0), min(r1, height), max(c0, 0), min(c1, width)
 
     def cached(self, key: tuple, factory: Callable[[], T]) -> T:
         """``factory()`` computed once per grid version (fields and pyramids for matching)."""

@@ -116,13 +116,23 @@ def add_moments(slots: np.ndarray, rows: np.ndarray, count: int, hit_flat: np.nd
     return count
 
 
+@kernel(inline=True)
+def sweep(swept: np.ndarray, low: np.ndarray, high: np.ndarray) -> None:
+    """Grow the box ``swept`` (x0, y0, x1, y1; m) to hold the box ``low``..``high`` (x, y each)."""
+    swept[0], swept[1] = min(swept[0], low[0]), min(swept[1], low[1])
+    swept[2], swept[3] = max(swept[2], high[0]), max(swept[3], high[1])
+
+
 @kernel
 def insert_scan(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarray, rows: np.ndarray, count: int,
                 hits: np.ndarray, offsets: np.ndarray, crossed: np.ndarray, row_shift: int, col_shift: int,
-                l_hit: float, l_miss: float, l_min: float, l_max: float) -> tuple[int, np.ndarray]:
+                l_hit: float, l_miss: float, l_min: float, l_max: float, swept: np.ndarray, low: np.ndarray,
+                high: np.ndarray) -> tuple[int, np.ndarray]:
     """One traced scan into a grid: the returns' cells ``hits`` and the ``crossed`` cells are (row, col) on a
     lattice whose cell (0, 0) is the grid's (``row_shift``, ``col_shift``); :func:`insert_flat` on their flat
-    indices. Returns the moment rows in use and the returns' flat indices."""
+    indices, and the box ``swept`` grown by the rays' box ``low``..``high`` (:func:`sweep`). Returns the moment
+    rows in use and the returns' flat indices."""
+    sweep(swept, low, high)
     width = log_odds.shape[1]
     hit_flat = np.empty(hits.shape[0], np.int64)
     for j in range(hits.shape[0]):
@@ -180,17 +190,19 @@ def box_inside(x_min: float, y_min: float, x_max: float, y_max: float, origin_x:
 @kernel
 def trace_and_insert(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarray, rows: np.ndarray, count: int,
                      origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hits_xy: np.ndarray,
-                     free_ends_xy: np.ndarray, l_hit: float, l_miss: float, l_min: float, l_max: float
-                     ) -> tuple[bool, int, np.ndarray]:
+                     free_ends_xy: np.ndarray, l_hit: float, l_miss: float, l_min: float, l_max: float,
+                     swept: np.ndarray) -> tuple[bool, int, np.ndarray]:
     """:func:`trace` on the grid's own lattice (cell (0, 0) at ``origin``) and, when the box of sensor, returns
     and free ends lies inside the grid, :func:`insert_flat` of its cells traced as flat indices: one call where
-    a Python insert made two and the object between them, and cells of half the memory. Returns whether it
+    a Python insert made two and the object between them, and cells of half the memory; the box ``swept`` grown
+    by the rays' (:func:`sweep`). Returns whether it
     was inserted (else nothing is written: the grid must grow first), the moment rows in use and the returns'
     flat indices (empty if not inserted)."""
     start, ends, hits, offsets, low, high = _ray_ends(origin, resolution, sensor_xy, hits_xy, free_ends_xy)
     height, width = log_odds.shape
     if not box_inside(low[0], low[1], high[0], high[1], origin[0], origin[1], resolution, height, width):
         return False, count, np.empty(0, np.int64)
+    sweep(swept, low, high)
     hit_flat = np.empty(hits.shape[0], np.int64)
     for j in range(hits.shape[0]):
         hit_flat[j] = hits[j, 0] * width + hits[j, 1]

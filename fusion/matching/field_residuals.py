@@ -82,9 +82,10 @@ def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.nda
     ``occupied_col0``), and ``starts``, ``cols`` hold each row's
     (:func:`~trundle.fusion.mapping.nearest_cells.occupied_cells`). Point to field: the
     distance (m) to the nearest occupied cell, read bilinearly at the points' continuous grid cell
-    coordinates (cx, cy), ``max_distance_m`` off the window; the distance of a cell is ``distances`` at its
-    squared distance within ``radius`` cells, found the first time it is read and kept in ``squared`` (the
-    window's, -1: not yet; :func:`~trundle.fusion.mapping.nearest_cells.kept_squared`). Point to line, with
+    coordinates (cx, cy), off the window the value far from any wall (``distances``' last); the distance of
+    a cell is ``distances`` at its squared distance within ``radius`` cells, found the first time it is read
+    and kept in ``squared`` (the window's, -1: not yet; :func:`~trundle.fusion.mapping.nearest_cells.kept_squared`).
+    Point to line, with
     walls (``is_line`` not empty): where the nearest occupied cell of a point's cell has its returns on a
     line (``is_line``), the signed distance (m) of the point (rotated (rx, ry) plus the pose's (``pose_x``,
     ``pose_y``), grid frame) to that line (``mean``, ``normal``); that cell is found the first time a
@@ -96,7 +97,7 @@ def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.nda
     kept = squared.reshape(-1)
     d_row, d_col = row0 - occupied_row0, col0 - occupied_col0
     n = cx.shape[0]
-    d = np.full(n, max_distance_m)
+    d = np.full(n, np.float64(distances[distances.shape[0] - 1]))   # off the window: far from any wall
     jac = np.zeros((n, 3))
     active = np.zeros(n, np.bool_)
     if height == 0 or width == 0:

@@ -61,19 +61,20 @@ def solve3(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 @kernel
 def _evaluate(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, starts: np.ndarray, cols: np.ndarray,
               occupied_row0: int, occupied_col0: int, radius: int, nearest: np.ndarray, mean: np.ndarray,
-              normal: np.ndarray, is_line: np.ndarray, bounds: np.ndarray, grid_shape: np.ndarray, px: np.ndarray,
+              normal: np.ndarray, is_line: np.ndarray, bounds: np.ndarray, extent: np.ndarray, px: np.ndarray,
               py: np.ndarray, pose: np.ndarray, origin: np.ndarray, resolution: float, max_distance_m: float,
               huber_m: float
               ) -> tuple[bool, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Huber cost, residuals, Jacobian, IRLS weights and active mask of the points at ``pose``; first,
-    whether the window ``bounds`` (r0, r1, c0, c1) holds them and the box (c_min, c_max, r_min, r_max) they need."""
+    whether the window ``bounds`` (r0, r1, c0, c1) holds them within the fields' ``extent`` (r0, r1, c0, c1; off
+    it every field has its far value) and the box (c_min, c_max, r_min, r_max) they need."""
     c, s = math.cos(pose[2]), math.sin(pose[2])
     rx, ry = c * px - s * py, s * px + c * py
     cx, cy = (rx + (pose[0] - origin[0])) / resolution, (ry + (pose[1] - origin[1])) / resolution
     box = np.array([np.min(cx), np.max(cx), np.min(cy), np.max(cy)]) if len(cx) else np.zeros(4)
     if len(cx):
-        c_lo, c_hi = max(int(np.floor(box[0])) - 1, 0), min(int(np.floor(box[1])) + 2, grid_shape[1])
-        r_lo, r_hi = max(int(np.floor(box[2])) - 1, 0), min(int(np.floor(box[3])) + 2, grid_shape[0])
+        c_lo, c_hi = max(int(np.floor(box[0])) - 1, extent[2]), min(int(np.floor(box[1])) + 2, extent[3])
+        r_lo, r_hi = max(int(np.floor(box[2])) - 1, extent[0]), min(int(np.floor(box[3])) + 2, extent[1])
         if r_lo < bounds[0] or r_hi > bounds[1] or c_lo < bounds[2] or c_hi > bounds[3]:
             empty = np.zeros(0)
             return False, box, 0.0, empty, np.zeros((0, 3)), empty, np.zeros(0, np.bool_)
@@ -99,14 +100,14 @@ def _evaluate(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, 
 def solve_pose_in_window(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, starts: np.ndarray,
                          cols: np.ndarray, occupied_row0: int, occupied_col0: int, radius: int, nearest: np.ndarray,
                          mean: np.ndarray, normal: np.ndarray, is_line: np.ndarray, bounds: np.ndarray,
-                         grid_shape: np.ndarray, px: np.ndarray, py: np.ndarray, initial_pose: np.ndarray,
+                         extent: np.ndarray, px: np.ndarray, py: np.ndarray, initial_pose: np.ndarray,
                          origin: np.ndarray, resolution: float, max_distance_m: float, huber_m: float,
                          max_iterations: int, schedule: np.ndarray, step_tolerance: np.ndarray
                          ) -> tuple[int, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg-Marquardt over one pose (x m, y m, theta rad; Euclidean, theta wrapped at the end) minimising
     the Huber cost of the points (``px``, ``py``, robot frame) against the window (grid cell (0, 0) at
     ``origin``; the window's fields and walls as :func:`field_residuals` takes them, ``is_line`` empty: point
-    to field).
+    to field; the cells it may hold, ``extent``, as :func:`_evaluate` takes it).
 
     ``schedule`` = initial lambda, lambda factor, min lambda, max lambda, min model fidelity, min diagonal,
     relative tolerance, absolute tolerance (Marquardt damping). Returns the status (``DONE`` or ``GROW``),
@@ -118,7 +119,7 @@ def solve_pose_in_window(squared: np.ndarray, distances: np.ndarray, occupied: n
     x = initial_pose.copy()
     ok, box, current, d, jac, weight, active = _evaluate(
         squared, distances, occupied, starts, cols, occupied_row0, occupied_col0, radius, nearest, mean, normal,
-        is_line, bounds, grid_shape, px, py, x, origin, resolution, max_distance_m, huber_m)
+        is_line, bounds, extent, px, py, x, origin, resolution, max_distance_m, huber_m)
     if not ok:
         return GROW, box, x, 0, d, jac, weight, active
     lam = initial_lambda
@@ -150,7 +151,7 @@ def solve_pose_in_window(squared: np.ndarray, distances: np.ndarray, occupied: n
             candidate = x + dx
             ok, box, new_cost, nd, njac, nweight, nactive = _evaluate(
                 squared, distances, occupied, starts, cols, occupied_row0, occupied_col0, radius, nearest, mean,
-                normal, is_line, bounds, grid_shape, px, py, candidate, origin, resolution, max_distance_m, huber_m)
+                normal, is_line, bounds, extent, px, py, candidate, origin, resolution, max_distance_m, huber_m)
             if not ok:
                 return GROW, box, x, iterations, d, jac, weight, active
             predicted = 0.0   # -2 dx.g - dx.H.dx

@@ -335,7 +335,7 @@ def refine_pose(grid: LogOddsGrid, points_xy: np.ndarray, initial_pose_xyt: np.n
             status, box, pose, iterations, *state = solve_pose_in_window(
                 window.squared, window.distances, window.occupied, window.occupied_starts, window.occupied_cols,
                 window.occupied_row0, window.occupied_col0, window.radius, nearest, mean, normal, is_line, bounds,
-                np.array(grid.shape, np.int64), px, py, np.asarray(start, np.float64), origin, res, max_distance_m,
+                np.array(fields.extent, np.int64), px, py, np.asarray(start, np.float64), origin, res, max_distance_m,
                 huber, max_iterations, SCHEDULE, STEP_TOLERANCE)
             if status == DONE:
                 return pose, iterations, tuple(state), window

@@ -30,9 +30,11 @@ searching +-0.3 m / +-10 deg, Karto with slam_toolbox's defaults. Timed in CPU s
 matchers interleaved scan by scan so load disturbs both alike; per match: trundle's search and
 refinement (its fields and pyramid included, they are per reference) against Karto's ``match_scan``
 (which builds its own correlation grid from the five scans each call), and trundle's reference build
-(ray casting the five scans into the grid) against the same Karto call. Goals: match at most 2x
-Karto, build at most 1x; median position and heading errors of both against the corrected poses. The
-comparison runs once more in a process of its own (``..._alone``): after three whole logs mapped in this
+(ray casting the five scans into the grid) against the same Karto call; of the build, the new grid
+(its box and three zeroed arrays, ``..._reference_grid_ms``) is printed too, the part a heap's history
+moves most. Goals: match at most 2x Karto, build at most 1x; median position and heading errors of both
+against the corrected poses. The comparison runs once more in a process of its own (``..._alone``): after
+three whole logs mapped in this
 process the allocator's heap is large and reused, and the matches that follow may run slower than in a
 fresh process (both figures are printed). Both run as a ``trundle`` process does, its allocator keeping
 freed memory for reuse (:mod:`trundle.fusion.mapping.allocator`; ``allocator_keeps_freed_memory`` says whether
@@ -221,7 +223,7 @@ def against_karto(name: str, log: carmen.CarmenLog, count: int, seed: int = 1) -
     matcher = karto_matcher(0.05)
     tracking = SlamConfig().tracking
     rng = np.random.default_rng(seed)
-    ours: dict[str, list[float]] = {"build": [], "match": [], "error_m": [], "error_deg": []}
+    ours: dict[str, list[float]] = {"build": [], "grid": [], "match": [], "error_m": [], "error_deg": []}
     theirs: dict[str, list[float]] = {"match": [], "error_m": [], "error_deg": []}
     for i in range(5, len(scans), 5)[:count]:
         turn, reach = rng.uniform(-math.pi, math.pi), rng.uniform(0.0, 0.15)
@@ -239,6 +241,7 @@ def against_karto(name: str, log: carmen.CarmenLog, count: int, seed: int = 1) -
         # one allocation for the five; a column's min and max (numpy's axis-0 reduction over (N, 2) took 24 us)
         x, y = np.concatenate([sensor[None] for sensor, _ in references] + [hits for _, hits in references]).T
         grid.ensure_contains(np.array([x.min(), y.min()]), np.array([x.max(), y.max()]))
+        allocated = time.process_time()
         for sensor, hits in references:
             grid.insert_rays(sensor, hits)
         built = time.process_time()
@@ -249,6 +252,7 @@ def against_karto(name: str, log: carmen.CarmenLog, count: int, seed: int = 1) -
         found = matcher.match_scan(kscans[i], kscans[i - 5:i], True, True)
         theirs["match"].append(time.process_time() - matched)
         ours["build"].append(built - start)
+        ours["grid"].append(allocated - start)
         ours["match"].append(matched - built)
         for figures, pose in ((ours, None if result is None else result.pose),
                               (theirs, np.array([found.best_pose.x, found.best_pose.y, found.best_pose.yaw]))):
@@ -264,6 +268,7 @@ def against_karto(name: str, log: carmen.CarmenLog, count: int, seed: int = 1) -
     return {f"{name}_karto_matches": len(ours["match"]),
             f"{name}_trundle_match_ms": 1e3 * median["trundle_match"],
             f"{name}_trundle_reference_build_ms": 1e3 * median["trundle_build"],
+            f"{name}_trundle_reference_grid_ms": 1e3 * median["trundle_grid"],
             f"{name}_karto_match_ms": karto_ms,
             f"{name}_match_vs_karto": 1e3 * median["trundle_match"] / karto_ms,
             f"{name}_reference_build_vs_karto": 1e3 * median["trundle_build"] / karto_ms,

@@ -69,8 +69,14 @@ def _evaluate(squared: np.ndarray, distances: np.ndarray, occupied: np.ndarray, 
     whether the window ``bounds`` (r0, r1, c0, c1) holds them within the fields' ``extent`` (r0, r1, c0, c1; off
     it every field has its far value) and the box (c_min, c_max, r_min, r_max) they need."""
     c, s = math.cos(pose[2]), math.sin(pose[2])
-    rx, ry = c * px - s * py, s * px + c * py
-    cx, cy = (rx + (pose[0] - origin[0])) / resolution, (ry + (pose[1] - origin[1])) / resolution
+    n = px.shape[0]
+    rx, ry, cx, cy = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    tx, ty = pose[0] - origin[0], pose[1] - origin[1]
+    for i in range(n):   # numpy's four expressions element by element, in one pass
+        rx[i] = c * px[i] - s * py[i]
+        ry[i] = s * px[i] + c * py[i]
+        cx[i] = (rx[i] + tx) / resolution
+        cy[i] = (ry[i] + ty) / resolution
     box = np.array([np.min(cx), np.max(cx), np.min(cy), np.max(cy)]) if len(cx) else np.zeros(4)
     if len(cx):
         c_lo, c_hi = max(int(np.floor(box[0])) - 1, extent[2]), min(int(np.floor(box[1])) + 2, extent[3])

@@ -195,9 +195,8 @@ def trace_and_insert(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarr
     """:func:`trace` on the grid's own lattice (cell (0, 0) at ``origin``) and, when the box of sensor, returns
     and free ends lies inside the grid, :func:`insert_flat` of its cells traced as flat indices: one call where
     a Python insert made two and the object between them, and cells of half the memory; the box ``swept`` grown
-    by the rays' (:func:`sweep`). Returns whether it
-    was inserted (else nothing is written: the grid must grow first), the moment rows in use and the returns'
-    flat indices (empty if not inserted)."""
+    by the rays' (:func:`sweep`). Returns whether it was inserted (else nothing is written: the grid must grow
+    first), the moment rows in use and the returns' flat indices (empty if not inserted)."""
     start, ends, hits, offsets, low, high = _ray_ends(origin, resolution, sensor_xy, hits_xy, free_ends_xy)
     height, width = log_odds.shape
     if not box_inside(low[0], low[1], high[0], high[1], origin[0], origin[1], resolution, height, width):

@@ -80,18 +80,16 @@ def field_residuals(squared: np.ndarray, distances: np.ndarray, occupied: np.nda
 
     ``occupied`` indexes the occupied cells around the window from the grid's (``occupied_row0``,
     ``occupied_col0``), and ``starts``, ``cols`` hold each row's
-    (:func:`~trundle.fusion.mapping.nearest_cells.occupied_cells`). Point to field: the
-    distance (m) to the nearest occupied cell, read bilinearly at the points' continuous grid cell
-    coordinates (cx, cy), off the window the value far from any wall (``distances``' last); the distance of
-    a cell is ``distances`` at its squared distance within ``radius`` cells, found the first time it is read
-    and kept in ``squared`` (the window's, -1: not yet; :func:`~trundle.fusion.mapping.nearest_cells.kept_squared`).
-    Point to line, with
-    walls (``is_line`` not empty): where the nearest occupied cell of a point's cell has its returns on a
-    line (``is_line``), the signed distance (m) of the point (rotated (rx, ry) plus the pose's (``pose_x``,
-    ``pose_y``), grid frame) to that line (``mean``, ``normal``); that cell is found the first time a
-    point's cell asks and kept in ``nearest`` (the window's, -2: not yet;
-    :func:`~trundle.fusion.mapping.nearest_cells.kept_nearest`). Returns the residuals, their Jacobian (N, 3)
-    with respect to the world-frame pose (x, y, theta), 0 where the point is off the window or beyond
+    (:func:`~trundle.fusion.mapping.nearest_cells.occupied_cells`). Point to field: the distance (m) to the nearest
+    occupied cell, read bilinearly at the points' continuous grid cell coordinates (cx, cy), off the window the
+    value far from any wall (``distances``' last); the distance of a cell is ``distances`` at its squared distance
+    within ``radius`` cells, found the first time it is read and kept in ``squared`` (the window's, -1: not yet;
+    :func:`~trundle.fusion.mapping.nearest_cells.kept_squared`). Point to line, with walls (``is_line`` not empty):
+    where the nearest occupied cell of a point's cell has its returns on a line (``is_line``), the signed distance
+    (m) of the point (rotated (rx, ry) plus the pose's (``pose_x``, ``pose_y``), grid frame) to that line (``mean``,
+    ``normal``); that cell is found the first time a point's cell asks and kept in ``nearest`` (the window's, -2:
+    not yet; :func:`~trundle.fusion.mapping.nearest_cells.kept_nearest`). Returns the residuals, their Jacobian
+    (N, 3) with respect to the world-frame pose (x, y, theta), 0 where the point is off the window or beyond
     ``max_distance_m``, and that active mask."""
     height, width = squared.shape
     kept = squared.reshape(-1)

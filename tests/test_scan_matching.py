@@ -240,3 +240,23 @@ def test_the_compiled_covariance_is_numpys_to_the_bit(count: int, seed: int, sha
                                 shaped=shaped)
     got = match_covariance(jacobian, residuals, weights, inliers, 0.01, math.radians(0.25), shaped=shaped)
     assert np.array_equal(got, expected)
+
+
+def test_a_match_is_the_same_with_its_fields_clipped_to_the_rays_box(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The match fields are computed only over the box of the rays inserted and its margin: a scan that reaches
+    past that box, into the grid's margin for growth and beyond the grid, is matched exactly as with fields
+    over the whole grid (search, refinement, covariance and scores, to the bit)."""
+    grid = build_map(ROOM, [(0.0, 0.0, 0.0), (1.0, 0.5, 0.5)], max_range=2.5)
+    truth = np.array([0.5, 0.2, 0.1])
+    points = scan_to_points(scan(ROOM, truth, beams=360, noise_m=0.01, seed=5))
+    start = truth + np.array([0.08, -0.06, 0.03])
+    top, bottom, left, right = grid.swept_extent(12)
+    reach = grid.world_to_cell(transform_points(truth, points))
+    assert (reach[:, 0] >= right).any() and (reach[:, 0] < grid.shape[1]).any()   # past the box, into the margin
+    clipped = match_scan(grid.copy(), points, start, shaped_covariance=True)
+    monkeypatch.setattr(LogOddsGrid, "swept_extent", lambda self, margin: (0, self.shape[0], 0, self.shape[1]))
+    whole = match_scan(grid.copy(), points, start, shaped_covariance=True)
+    assert clipped is not None and whole is not None
+    for name in ("pose", "covariance", "score", "residual_m", "inlier_fraction", "search_score", "iterations",
+                 "overlap", "overlap_score"):
+        np.testing.assert_array_equal(getattr(clipped, name), getattr(whole, name), err_msg=name)

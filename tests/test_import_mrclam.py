@@ -82,6 +82,13 @@ def test_times_are_exact_nanoseconds():
     assert seconds_ns("1248275403.011") - seconds_ns("1248275403.010") == 1_000_000
 
 
+@pytest.mark.parametrize("token", ["inf", "-Infinity", "nan", "sNaN", "1e400", "-1", "x"])
+def test_a_time_that_is_no_time_is_a_value_error(token):
+    """Found by the fuzz test below: Decimal reads "inf", and int() of it raised OverflowError, not the data error."""
+    with pytest.raises(ValueError):
+        seconds_ns(token)
+
+
 def test_malformed_rows_are_counted_and_dropped(tmp_path):
     odometry = "100.0 0.1 0.0\n100.5 0.1\nbad 0.1 0.0\n101.0 nan 0.0\n101.5 0.1 0.0\n"
     measurements = "100.5 18 2.0 0.1\n100.6 18.5 2.0 0.1\n100.7 18 -1.0 0.1\n100.8 18 2.0\n"

@@ -64,9 +64,12 @@ def seconds_ns(token: str) -> int:
     """Decimal Unix seconds to integer nanoseconds, exactly (a float would round ~100 ns); a time
     before 1970 or past 2262 (outside int64 nanoseconds, as MCAP and our stamps hold them) is a ValueError."""
     try:
-        ns = int((Decimal(token) * 1_000_000_000).to_integral_value())
+        value = Decimal(token)
     except InvalidOperation:
         raise ValueError(f"not a time: {token!r}") from None
+    if not value.is_finite():   # "inf" and "nan" are decimals, but no integer
+        raise ValueError(f"not a time: {token!r}")
+    ns = int((value * 1_000_000_000).to_integral_value())
     if not 0 <= ns < 1 << 63:
         raise ValueError(f"time out of range: {token!r}")
     return ns

@@ -21,12 +21,12 @@ from trundle.fusion.evaluation.trajectory_errors import (
     relation_error,
     relative_pose_error,
     revisit_relations,
-    seconds_to_ns,
     trajectory_relations,
 )
 from trundle.fusion.geometry import compose
 from trundle.fusion.mapping.map_io import write_trajectory_csv
 from trundle.logs.errors import DataError, UserError
+from trundle.logs.stamps import seconds_ns
 
 INTEL = Path(__file__).parents[2] / "shared" / "data" / "intel" / "intel.gfs.log"
 SECOND = 1_000_000_000
@@ -136,10 +136,11 @@ def test_relations_file_exact_times(tmp_path):
     assert relations.t2_ns.tolist() == [1232658644149293000, 1232658645100000000]
     np.testing.assert_allclose(relations.deltas, [[1.031273, -0.003531, -0.009755], [0.5, 0, 0.1]])
     assert isinstance(read_reference(path), Relations)
-    assert seconds_to_ns("0.000000001") == 1
+    assert seconds_ns("0.000000001") == 1
 
 
-@pytest.mark.parametrize("line", ["1 2 3", "1 2 a 0 0 0 0 0", "1 2 nan 0 0 0 0 0"])
+@pytest.mark.parametrize("line", ["1 2 3", "1 2 a 0 0 0 0 0", "1 2 nan 0 0 0 0 0", "inf 2 0 0 0 0 0 0",
+                                  "1 -1 0 0 0 0 0 0"])
 def test_bad_relations_line_is_a_data_error(tmp_path, line):
     path = tmp_path / "x.relations"
     path.write_text("1 2 0 0 0 0 0 0\n" + line + "\n")

@@ -19,10 +19,10 @@ from trundle.logs.importers.mrclam import (
     import_mrclam,
     integrate,
     read_mrclam,
-    seconds_ns,
     sighting_covariance,
 )
 from trundle.logs.reader import LogReader
+from trundle.logs.stamps import seconds_ns
 from trundle.tools.cli.main import main
 
 BARCODES = "# Subject #    Barcode #\n" + "".join(f"{s} {b}\n" for s, b in

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ from trundle.fusion.geometry import compose, relative, wrap_angle
 from trundle.fusion.mapping.map_io import read_trajectory_csv
 from trundle.logs.errors import DataError, UserError
 from trundle.logs.paths import input_file
+from trundle.logs.stamps import seconds_ns
 
 DEFAULT_TOLERANCE_NS = 1_000_000  # 1 ms: scans are tens of milliseconds apart
 
@@ -113,11 +113,6 @@ class RelativeError:
 
 # --- inputs ----------------------------------------------------------------------------------
 
-def seconds_to_ns(token: str) -> int:
-    """Decimal seconds (e.g. ``1232658478.161285``) to integer nanoseconds, exactly."""
-    return int((Decimal(token) * 1_000_000_000).to_integral_value())
-
-
 def read_relations(path: str | Path) -> Relations:
     """A Freiburg ``.relations`` file: ``t1 t2 x y z roll pitch yaw`` per line (s, m, rad)."""
     path = Path(path)
@@ -133,9 +128,9 @@ def read_relations(path: str | Path) -> Relations:
                 values = [float(t) for t in tokens[2:]]
                 if not all(math.isfinite(v) for v in values):
                     raise ValueError
-                t1.append(seconds_to_ns(tokens[0]))
-                t2.append(seconds_to_ns(tokens[1]))
-            except (ValueError, InvalidOperation):
+                t1.append(seconds_ns(tokens[0]))
+                t2.append(seconds_ns(tokens[1]))
+            except ValueError:
                 raise DataError(
                     f"{path}:{number}: expected 't1 t2 x y z roll pitch yaw', got {line.strip()!r}"
                 ) from None

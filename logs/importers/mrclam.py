@@ -27,7 +27,6 @@ import math
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +34,7 @@ import numpy as np
 from trundle.logs import messages as m
 from trundle.logs.errors import DataError, UsageError, UserError
 from trundle.logs.importers import Item, open_text, write_log
+from trundle.logs.stamps import seconds_ns
 from trundle.logs.topics import LANDMARK_TOPIC, ODOM_TOPIC
 
 RANGE_SIGMA_M = 0.02
@@ -58,21 +58,6 @@ class MrclamRun:
     groundtruth_ns: np.ndarray | None = None
     groundtruth: np.ndarray | None = None
     malformed: dict[str, int] = field(default_factory=dict)
-
-
-def seconds_ns(token: str) -> int:
-    """Decimal Unix seconds to integer nanoseconds, exactly (a float would round ~100 ns); a time
-    before 1970 or past 2262 (outside int64 nanoseconds, as MCAP and our stamps hold them) is a ValueError."""
-    try:
-        value = Decimal(token)
-    except InvalidOperation:
-        raise ValueError(f"not a time: {token!r}") from None
-    if not value.is_finite():   # "inf" and "nan" are decimals, but no integer
-        raise ValueError(f"not a time: {token!r}")
-    ns = int((value * 1_000_000_000).to_integral_value())
-    if not 0 <= ns < 1 << 63:
-        raise ValueError(f"time out of range: {token!r}")
-    return ns
 
 
 def _rows(path: Path, columns: int, what: str, malformed: dict[str, int], integer: tuple[int, ...] = ()

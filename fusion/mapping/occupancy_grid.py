@@ -72,6 +72,16 @@ def trace_rays(origin: np.ndarray, resolution: float, sensor_xy: np.ndarray, hit
     return TracedRays(origin, crossed, hits, offsets, xy_min, xy_max)
 
 
+def _corner_cells(x0: float, y0: float, x1: float, y1: float, origin_x: float, origin_y: float, resolution: float
+                  ) -> tuple[int, int, int, int]:
+    """The cells (column, row) of the corners (``x0``, ``y0``) and (``x1``, ``y1``) (m) on the lattice of
+    ``resolution`` m cells whose cell (0, 0) starts at (``origin_x``, ``origin_y``):
+    :meth:`LogOddsGrid.world_to_cell`'s arithmetic and its floor, on Python floats (numpy's on two-element arrays
+    took 14 us a new grid)."""
+    return (math.floor((x0 - origin_x) / resolution), math.floor((y0 - origin_y) / resolution),
+            math.floor((x1 - origin_x) / resolution), math.floor((y1 - origin_y) / resolution))
+
+
 def _free_ends(free_ends_xy: np.ndarray | None) -> np.ndarray:
     """Free ends (M, 2) as the tracing kernels take them (float64, contiguous; none: (0, 2))."""
     return _NO_FREE_ENDS if free_ends_xy is None else np.ascontiguousarray(free_ends_xy, np.float64).reshape(-1, 2)
@@ -306,9 +316,7 @@ class LogOddsGrid:
             return
         if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
             raise ValueError(f"the box to hold, {[x0, y0]} to {[x1, y1]}, is not finite")
-        # the cells of the box's corners and the margins, on floats too (numpy's took 14 us a new grid)
-        col_lo, row_lo = math.floor((x0 - ox) / res), math.floor((y0 - oy) / res)
-        col_hi, row_hi = math.floor((x1 - ox) / res), math.floor((y1 - oy) / res)
+        col_lo, row_lo, col_hi, row_hi = _corner_cells(x0, y0, x1, y1, ox, oy, res)
         grow = self.grow_cells
         if not height:
             pad_col, pad_row = grow - col_lo, grow - row_lo
@@ -447,10 +455,8 @@ class LogOddsGrid:
         if x0 > x1:
             return 0, 0, 0, 0
         (ox, oy), res = self.origin.tolist(), self.resolution
-        # ensure_contains' cells of the box's corners
-        c0, r0 = math.floor((x0 - ox) / res) - margin, math.floor((y0 - oy) / res) - margin
-        c1, r1 = math.floor((x1 - ox) / res) + margin + 1, math.floor((y1 - oy) / res) + margin + 1
-        return max(r0, 0), min(r1, height), max(c0, 0), min(c1, width)
+        c0, r0, c1, r1 = _corner_cells(x0, y0, x1, y1, ox, oy, res)
+        return max(r0 - margin, 0), min(r1 + margin + 1, height), max(c0 - margin, 0), min(c1 + margin + 1, width)
 
     def cached(self, key: tuple, factory: Callable[[], T]) -> T:
         """``factory()`` computed once per grid version (fields and pyramids for matching)."""

@@ -134,14 +134,20 @@ def insert_scan(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarray, r
     rows in use and the returns' flat indices."""
     sweep(swept, low, high)
     width = log_odds.shape[1]
-    hit_flat = np.empty(hits.shape[0], np.int64)
-    for j in range(hits.shape[0]):
-        hit_flat[j] = (hits[j, 0] + row_shift) * width + hits[j, 1] + col_shift
-    crossed_flat = np.empty((crossed.shape[0], 1), np.int64)
-    for j in range(crossed.shape[0]):
-        crossed_flat[j, 0] = (crossed[j, 0] + row_shift) * width + crossed[j, 1] + col_shift
+    hit_flat = _flat_indices(hits, width, row_shift, col_shift)
+    crossed_flat = _flat_indices(crossed, width, row_shift, col_shift).reshape(-1, 1)
     return insert_flat(log_odds, observed, slots, rows, count, hit_flat, offsets, crossed_flat, l_hit, l_miss, l_min,
                        l_max), hit_flat
+
+
+@kernel(inline=True)
+def _flat_indices(cells: np.ndarray, width: int, row_shift: int, col_shift: int) -> np.ndarray:
+    """The flat indices ``row * width + col`` (N,) in a grid ``width`` cells wide of cells (N, 2) (row, col) on a
+    lattice whose cell (0, 0) is the grid's (``row_shift``, ``col_shift``)."""
+    flat = np.empty(cells.shape[0], np.int64)
+    for j in range(cells.shape[0]):
+        flat[j] = (cells[j, 0] + row_shift) * width + cells[j, 1] + col_shift
+    return flat
 
 
 @kernel
@@ -202,9 +208,7 @@ def trace_and_insert(log_odds: np.ndarray, observed: np.ndarray, slots: np.ndarr
     if not box_inside(low[0], low[1], high[0], high[1], origin[0], origin[1], resolution, height, width):
         return False, count, np.empty(0, np.int64)
     sweep(swept, low, high)
-    hit_flat = np.empty(hits.shape[0], np.int64)
-    for j in range(hits.shape[0]):
-        hit_flat[j] = hits[j, 0] * width + hits[j, 1]
+    hit_flat = _flat_indices(hits, width, 0, 0)
     count = insert_flat(log_odds, observed, slots, rows, count, hit_flat, offsets, ray_cells(start, ends, width),
                         l_hit, l_miss, l_min, l_max)
     return True, count, hit_flat

@@ -34,11 +34,10 @@ refinement (its fields and pyramid included, they are per reference) against Kar
 (its box and three zeroed arrays, ``..._reference_grid_ms``) is printed too, the part a heap's history
 moves most. Goals: match at most 2x Karto, build at most 1x; median position and heading errors of both
 against the corrected poses. The comparison runs once more in a process of its own (``..._alone``): after
-three whole logs mapped in this
-process the allocator's heap is large and reused, and the matches that follow may run slower than in a
-fresh process (both figures are printed). Both run as a ``trundle`` process does, its allocator keeping
-freed memory for reuse (:mod:`trundle.fusion.mapping.allocator`; ``allocator_keeps_freed_memory`` says whether
-it could), and so does Karto in the same process.
+three whole logs mapped in this process the allocator's heap is large and reused, and the matches that
+follow may run slower than in a fresh process (both figures are printed). Both run as a ``trundle`` process
+does, its allocator keeping freed memory for reuse (:mod:`trundle.fusion.mapping.allocator`;
+``allocator_keeps_freed_memory`` says whether it could), and so does Karto in the same process.
 The compiled kernels' first-call times (numba: compiled into an empty cache, then loaded from it)
 are measured in fresh processes.
 Run: python tools/bench/bench_slam.py [--quick]

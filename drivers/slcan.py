@@ -134,6 +134,8 @@ class SlcanBus(can.BusABC):
         None waits for ever) passed. Reads every byte the port holds in one system call
         (:class:`SerialLink`: a select and a read, where pyserial's ``read(in_waiting)`` took two
         reads and three system calls a frame)."""
+        if self._lines:   # read before: no deadline to keep (two pyserial Timeouts were a fifth of a frame's recv)
+            return self._lines.popleft()
         deadline = serial.Timeout(timeout_s)  # type: ignore[arg-type]  # pyserial's Timeout takes None: no deadline
         while not self._lines:
             try:
@@ -151,9 +153,11 @@ class SlcanBus(can.BusABC):
 
     # -- python-can's bus interface ------------------------------------------------------------
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        deadline = serial.Timeout(timeout)  # type: ignore[arg-type]  # pyserial's Timeout takes None: no deadline
+        deadline: serial.Timeout | None = None   # started once the adapter must be waited for
         while True:
-            line = self.read_line(deadline.time_left())
+            if deadline is None and not self._lines:
+                deadline = serial.Timeout(timeout)  # type: ignore[arg-type]  # pyserial's Timeout takes None: no deadline
+            line = self.read_line(None if deadline is None else deadline.time_left())
             if line is None:
                 return None, False
             if line[:1] and line[:1] in FRAME_KINDS:
@@ -162,7 +166,7 @@ class SlcanBus(can.BusABC):
                     raise ProtocolError(f"garbled SLCAN frame line {line[:32]!r}")
                 msg.timestamp = time.time()
                 return msg, False
-            if deadline.expired():  # a reply (OK, z, Fxx, ...) and no time left
+            if deadline is not None and deadline.expired():  # a reply (OK, z, Fxx, ...) and no time left
                 return None, False
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:

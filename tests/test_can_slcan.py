@@ -112,6 +112,17 @@ def test_a_garbled_line_is_a_protocol_error_and_reading_goes_on(buses):
     assert (stamped.arbitration_id, bytes(stamped.data)) == (0x001, b"\xAA\xBB")
 
 
+def test_frames_read_behind_replies_come_even_with_no_time_left(buses):
+    """A frame, a reply (``z``) and a frame read in one burst: a poll with no time left (``recv(0)``) skips the
+    reply already read and returns the frame behind it (it once gave up at the reply); then None."""
+    _, ours, pair = buses
+    pair.b.write(format_frame(FRAMES[0]) + b"z\r" + format_frame(FRAMES[1]))
+    time.sleep(0.2)   # the whole burst waits in the pty: the first recv reads it in one go
+    assert same(ours.recv(1.0), FRAMES[0])
+    assert same(ours.recv(0), FRAMES[1])
+    assert ours.recv(0) is None
+
+
 def read_until(link: PtyLink, expected: bytes, timeout_s: float = 5.0) -> bytes:
     """What the host wrote, read until it is as long as ``expected`` (commands written one at a
     time reach the pty in as many reads on a loaded machine) or ``timeout_s`` passes."""

@@ -122,8 +122,9 @@ class WheelsDriver(Driver):
         n = len(names)
         if sum(len(p.wheels) for p in protocols) != n:
             raise UserError(f"{n} wheel names for {sum(len(p.wheels) for p in protocols)} encoders")
-        self.direction = np.asarray(direction, dtype=np.float64)
-        self.gear_ratio = np.asarray(gear_ratio, dtype=np.float64)
+        # Python floats: a frame's scaling is a few scalar operations, which numpy's scalars made slower
+        self.direction = [float(v) for v in direction]
+        self.gear_ratio = [float(v) for v in gear_ratio]
         self.counts_override = counts_per_rev
         self.publish_frames = publish_frames
         self.poll_period_ns = int(poll_period_s * 1e9)
@@ -134,7 +135,7 @@ class WheelsDriver(Driver):
         self._sampled_ns = np.zeros(n, dtype=np.int64)
         self._ref_angle = np.full(n, math.nan)  # reference for the position-difference velocity
         self._ref_ns = np.zeros(n, dtype=np.int64)
-        self._fresh = np.zeros(n, dtype=bool)
+        self._fresh: set[int] = set()   # wheels with a reading since the last publish
         self._healthy: set[int] = set()
         self._next_poll = 0
         self._published_finite = False
@@ -147,7 +148,7 @@ class WheelsDriver(Driver):
         for protocol in self.protocols:
             protocol.start(self.bus, now)
         self._unwrap = [None] * len(self.names)
-        self._fresh[:] = False
+        self._fresh.clear()
         self._healthy = set()
 
     def close(self) -> None:
@@ -189,7 +190,7 @@ class WheelsDriver(Driver):
         healthy = self._healthy_now(now_ns)
         for reading in readings:
             self._apply(reading, healthy, received.stamp_ns)
-        if healthy and all(self._fresh[w] for w in healthy):
+        if healthy and healthy <= self._fresh:
             self._publish(healthy, received.stamp_ns, received.host_ns)
 
     def poll(self, now_ns: int) -> None:
@@ -229,7 +230,7 @@ class WheelsDriver(Driver):
         if math.isnan(velocity):
             velocity = self._difference_velocity(w, angle, stamp_ns)
         self._position[w], self._velocity[w], self._sampled_ns[w] = angle, velocity, stamp_ns
-        self._fresh[w] = True
+        self._fresh.add(w)
 
     def _difference_velocity(self, w: int, angle: float, stamp_ns: int) -> float:
         """Velocity from positions at least ``VELOCITY_WINDOW_S`` apart: receive stamps of frames
@@ -253,19 +254,26 @@ class WheelsDriver(Driver):
     def _publish(self, healthy: set[int], stamp_ns: int, log_ns: int) -> None:
         """Publish every wheel at ``stamp_ns``: wheels sampled earlier (each axis sends on its
         own clock) are carried forward by their velocity, so the pair describes one instant."""
-        velocities = self._velocity.copy()
-        lag_s = (stamp_ns - self._sampled_ns) * 1e-9
-        lag_s = np.where((lag_s > 0) & (lag_s <= MAX_CARRY_S), lag_s, 0.0)
-        positions = self._position + np.where(np.isfinite(velocities), velocities, 0.0) * lag_s
-        stale = [w for w in range(len(self.names)) if w not in healthy]
-        positions[stale] = math.nan
-        velocities[stale] = math.nan
-        self._fresh[:] = False
-        self._published_finite = bool(np.isfinite(positions).any())
-        if np.isfinite(positions).all():
+        positions: list[float] = []
+        velocities: list[float] = []
+        # Python floats for a few wheels (numpy's dozen calls on 4-element arrays were most of a publish)
+        for w, (angle, velocity, sampled_ns) in enumerate(zip(self._position.tolist(), self._velocity.tolist(),
+                                                             self._sampled_ns.tolist(), strict=True)):
+            if w not in healthy:
+                positions.append(math.nan)
+                velocities.append(math.nan)
+                continue
+            lag_s = (stamp_ns - sampled_ns) * 1e-9
+            carry_s = lag_s if 0.0 < lag_s <= MAX_CARRY_S else 0.0
+            positions.append(angle + (velocity if math.isfinite(velocity) else 0.0) * carry_s)
+            velocities.append(velocity)
+        self._fresh.clear()
+        finite = [math.isfinite(p) for p in positions]
+        self._published_finite = any(finite)
+        if all(finite):
             self.counters["wheel_readings"] += 1
-        self._emit(m.JointState(stamp_ns, "base_link", self.names, positions,
-                                velocities if np.isfinite(velocities).any() else np.empty(0)), log_ns)
+        self._emit(m.JointState(stamp_ns, "base_link", self.names, np.array(positions),
+                                np.array(velocities) if any(map(math.isfinite, velocities)) else np.empty(0)), log_ns)
 
     def _publish_stale(self, lost: set[int], now_ns: int) -> None:
         positions = self._position.copy()
